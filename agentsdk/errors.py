@@ -1,0 +1,116 @@
+"""One exception root, subclasses grouped by what the caller can do about them.
+
+==============================  =============================================
+exception                       what the caller can do
+==============================  =============================================
+``ConfigurationError``          fix the robot description / robot.yaml / args
+``DescriptionError``            (a ``ConfigurationError``) fix the URDF/xacro
+``BackendUnavailableError``     install the backend or pick a known name
+``BackendStartError``           the backend failed to open (hardware, sim)
+``CommandRejected``             fix the command; the robot state is unchanged
+``UnknownJointError``           (a ``CommandRejected``, ``KeyError``)
+``InvalidValueError``           (a ``CommandRejected``, ``ValueError``) NaN/inf, shape
+``LimitViolation``              (a ``CommandRejected``) outside a joint limit
+``UnsupportedModeError``        (a ``CommandRejected``) mode not offered
+``AgentTimeoutError``           (also a builtin ``TimeoutError``)
+``SafetyError``                 the safety layer stopped or refuses motion
+``EStopActive``                 (a ``SafetyError``) e-stop latched: reset+enable
+``SafetyFault``                 (a ``SafetyError``) a fault (divergence, bus)
+``BackendFault``                the backend failed while running
+``SimulationDiverged``          (a ``BackendFault``) physics became unstable
+``RobotClosedError``            the connection is closed; reconnect
+==============================  =============================================
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "AgentSDKError",
+    "AgentTimeoutError",
+    "BackendFault",
+    "BackendStartError",
+    "BackendUnavailableError",
+    "CommandRejected",
+    "ConfigurationError",
+    "DescriptionError",
+    "EStopActive",
+    "InvalidValueError",
+    "LimitViolation",
+    "RobotClosedError",
+    "SafetyError",
+    "SafetyFault",
+    "SimulationDiverged",
+    "UnknownJointError",
+    "UnsupportedModeError",
+]
+
+
+class AgentSDKError(Exception):
+    """Root of every error raised by agentsdk."""
+
+
+class ConfigurationError(AgentSDKError):
+    """A robot.yaml, connect() option or robot name is invalid."""
+
+
+class DescriptionError(ConfigurationError):
+    """A URDF/xacro robot description could not be loaded or is malformed."""
+
+
+class BackendUnavailableError(ConfigurationError):
+    """The backend name is unknown or its optional dependency is not installed."""
+
+
+class BackendStartError(AgentSDKError):
+    """The backend could not be opened (simulator build failed, motor silent...)."""
+
+
+class CommandRejected(AgentSDKError):
+    """A command was refused before anything was applied; robot state is unchanged."""
+
+
+class UnknownJointError(CommandRejected, KeyError):
+    """A joint name is not part of the robot."""
+
+    def __str__(self) -> str:  # KeyError would repr() the message
+        return str(self.args[0]) if self.args else ""
+
+
+class InvalidValueError(CommandRejected, ValueError):
+    """A value is NaN/inf, of the wrong length, or otherwise malformed."""
+
+
+class LimitViolation(CommandRejected):
+    """A value is outside a joint limit and the policy is to reject."""
+
+
+class UnsupportedModeError(CommandRejected):
+    """The command mode is unknown or not supported by this backend."""
+
+
+class AgentTimeoutError(AgentSDKError, TimeoutError):
+    """An operation did not complete in time."""
+
+
+class SafetyError(AgentSDKError):
+    """The safety layer refuses motion."""
+
+
+class EStopActive(SafetyError):
+    """The emergency stop is latched: ``await robot.reset()`` then ``await robot.enable()``."""
+
+
+class SafetyFault(SafetyError):
+    """The safety layer is in FAULT (e.g. simulator divergence, motor error)."""
+
+
+class BackendFault(AgentSDKError):
+    """The backend failed while running."""
+
+
+class SimulationDiverged(BackendFault):
+    """The physics simulation became unstable (NaN, huge accelerations)."""
+
+
+class RobotClosedError(AgentSDKError):
+    """The robot connection was closed; every call after close() raises this."""

@@ -1,0 +1,160 @@
+"""Immutable value types: joint metadata, joint state, joint commands.
+
+Units are SI and radians; joint names are exactly as in the URDF (the ROS
+``sensor_msgs/JointState`` convention).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Literal, get_args
+
+import numpy as np
+import numpy.typing as npt
+
+from .errors import InvalidValueError, UnsupportedModeError
+
+__all__ = ["MODES", "CommandMode", "JointCommand", "JointInfo", "JointState"]
+
+CommandMode = Literal["position", "velocity", "effort"]
+MODES: tuple[CommandMode, ...] = get_args(CommandMode)
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def _frozen(a: npt.ArrayLike) -> FloatArray:
+    arr = np.array(a, dtype=np.float64)  # always a private copy
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, slots=True)
+class JointInfo:
+    """One actuated joint, as described by the URDF (plus robot.yaml overrides).
+
+    ``lower``/``upper`` are ``-inf``/``inf`` for continuous joints.
+    ``max_acceleration`` and ``max_jerk`` are not part of URDF; they come from
+    robot.yaml ``joint_limits`` (ros2_control style) or a conservative default.
+    """
+
+    name: str
+    type: Literal["revolute", "continuous", "prismatic"]
+    lower: float
+    upper: float
+    max_velocity: float
+    max_effort: float
+    max_acceleration: float = 10.0
+    max_jerk: float = 200.0
+    parent: str = ""
+    child: str = ""
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    def within(self, position: float, margin: float = 0.0) -> bool:
+        return self.lower + margin <= position <= self.upper - margin
+
+
+@dataclass(frozen=True, slots=True)
+class JointState:
+    """Measured joint state, shaped like ``sensor_msgs/JointState``.
+
+    Arrays are read-only and in ``names`` order; ``stamp`` is robot clock time (s).
+    """
+
+    names: tuple[str, ...]
+    position: FloatArray
+    velocity: FloatArray
+    effort: FloatArray
+    stamp: float
+
+    def __post_init__(self) -> None:
+        for attr in ("position", "velocity", "effort"):
+            arr = getattr(self, attr)
+            if not (isinstance(arr, np.ndarray) and not arr.flags.writeable):
+                object.__setattr__(self, attr, _frozen(arr))
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def positions(self) -> dict[str, float]:
+        """``{joint name: position}``."""
+        return dict(zip(self.names, self.position.tolist(), strict=True))
+
+    def velocities(self) -> dict[str, float]:
+        return dict(zip(self.names, self.velocity.tolist(), strict=True))
+
+    def efforts(self) -> dict[str, float]:
+        return dict(zip(self.names, self.effort.tolist(), strict=True))
+
+
+def _freeze_values(
+    values: Mapping[str, float] | Sequence[float] | npt.ArrayLike | None,
+    what: str,
+) -> Mapping[str, float] | tuple[float, ...] | None:
+    if values is None:
+        return None
+    if isinstance(values, Mapping):
+        out: dict[str, float] = {}
+        for k, v in values.items():
+            if not isinstance(k, str):
+                raise InvalidValueError(f"{what}: joint names must be strings, got {k!r}")
+            out[k] = _as_float(v, f"{what}[{k!r}]")
+        return MappingProxyType(out)
+    if isinstance(values, str | bytes):
+        raise InvalidValueError(f"{what}: expected a mapping or a sequence of floats, got {values!r}")
+    try:
+        seq = list(np.asarray(values, dtype=object).ravel()) if not isinstance(values, Sequence) else list(values)
+    except TypeError as exc:
+        raise InvalidValueError(f"{what}: expected a mapping or a sequence of floats, got {values!r}") from exc
+    return tuple(_as_float(v, f"{what}[{i}]") for i, v in enumerate(seq))
+
+
+def _as_float(v: object, where: str) -> float:
+    try:
+        return float(v)  # type: ignore[arg-type]
+    except (TypeError, ValueError) as exc:
+        raise InvalidValueError(f"{where}: {v!r} is not a number") from exc
+
+
+@dataclass(frozen=True, slots=True, init=False)
+class JointCommand:
+    """A command for some or all joints, as an immutable value.
+
+    ``values`` is either ``{joint name: value}`` (a subset of joints) or a
+    full-length sequence in ``robot.joints`` order. ``mode`` is "position"
+    (rad or m), "velocity" (rad/s or m/s) or "effort" (N·m or N).
+
+    In position mode, optional ``velocity`` and ``effort`` feed-forward terms
+    (same shape as ``values``) are added by the joint servo:
+    ``effort = kp*(q_des - q) + kd*(v_ff - v) + effort_ff``.
+
+    ``robot.command(cmd)`` returns the command actually applied, always as a
+    mapping covering the joints it touched, after safety limiting.
+    """
+
+    mode: CommandMode
+    values: Mapping[str, float] | tuple[float, ...]
+    velocity: Mapping[str, float] | tuple[float, ...] | None = field(default=None)
+    effort: Mapping[str, float] | tuple[float, ...] | None = field(default=None)
+
+    def __init__(
+        self,
+        mode: CommandMode,
+        values: Mapping[str, float] | Sequence[float] | npt.ArrayLike,
+        velocity: Mapping[str, float] | Sequence[float] | npt.ArrayLike | None = None,
+        effort: Mapping[str, float] | Sequence[float] | npt.ArrayLike | None = None,
+    ) -> None:
+        if mode not in MODES:
+            raise UnsupportedModeError(f"unsupported command mode {mode!r}; expected one of {', '.join(MODES)}")
+        if mode != "position" and (velocity is not None or effort is not None):
+            raise InvalidValueError("velocity/effort feed-forward terms are only valid in position mode")
+        object.__setattr__(self, "mode", mode)
+        object.__setattr__(self, "values", _freeze_values(values, "values"))
+        object.__setattr__(self, "velocity", _freeze_values(velocity, "velocity"))
+        object.__setattr__(self, "effort", _freeze_values(effort, "effort"))
+
+    def __repr__(self) -> str:
+        vals = dict(self.values) if isinstance(self.values, Mapping) else list(self.values)
+        return f"JointCommand(mode={self.mode!r}, values={vals!r})"
+

@@ -40,6 +40,8 @@ class Gains(_Strict):
 
     p: float = Field(ge=0.0)
     d: float = Field(ge=0.0)
+    #: velocity-mode gain (``effort = v*(v_des - v)``); defaults to ``d``
+    v: float | None = Field(default=None, ge=0.0)
 
 
 class JointLimitsOverride(_Strict):

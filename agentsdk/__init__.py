@@ -1,0 +1,98 @@
+"""agentsdk: an asyncio SDK for robot agents with pluggable backends.
+
+Write a behavior once::
+
+    import agentsdk
+    from agentsdk import JointCommand
+
+    async def main(robot):
+        await robot.command(JointCommand("position", {"joint1": 0.4}))
+        await robot.clock.sleep(1.0)
+
+and run it on MuJoCo, PyBullet, a CAN motor bus or the mock backend:
+``agentsdk run behavior.py --backend mujoco --robot arm3``.
+"""
+
+from __future__ import annotations
+
+from .clock import Clock, LockstepClock, RealtimeClock
+from .config import RobotConfig, load_robot_config
+from .controller import Capabilities, Controller, Setpoint, StateBuffer
+from .errors import (
+    AgentSDKError,
+    AgentTimeoutError,
+    BackendFault,
+    BackendStartError,
+    BackendUnavailableError,
+    CommandRejected,
+    ConfigurationError,
+    DescriptionError,
+    EStopActive,
+    InvalidValueError,
+    LimitViolation,
+    RobotClosedError,
+    SafetyError,
+    SafetyFault,
+    SimulationDiverged,
+    UnknownJointError,
+    UnsupportedModeError,
+)
+from .motion import Feedback, Motion, MotionResult, ResultCode, Tolerances
+from .registry import available_backends, load_backend, register_backend, unregister_backend
+from .robot import Robot, connect
+from .safety import SafetyConfig, SafetyEvent, SafetyState
+from .trajectory import Trajectory, TrajectoryPoint
+from .types import MODES, CommandMode, JointCommand, JointInfo, JointState
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "MODES",
+    "AgentSDKError",
+    "AgentTimeoutError",
+    "BackendFault",
+    "BackendStartError",
+    "BackendUnavailableError",
+    "Capabilities",
+    "Clock",
+    "CommandMode",
+    "CommandRejected",
+    "ConfigurationError",
+    "Controller",
+    "DescriptionError",
+    "EStopActive",
+    "Feedback",
+    "InvalidValueError",
+    "JointCommand",
+    "JointInfo",
+    "JointState",
+    "LimitViolation",
+    "LockstepClock",
+    "Motion",
+    "MotionResult",
+    "RealtimeClock",
+    "ResultCode",
+    "Robot",
+    "RobotClosedError",
+    "RobotConfig",
+    "SafetyConfig",
+    "SafetyError",
+    "SafetyEvent",
+    "SafetyFault",
+    "SafetyState",
+    "Setpoint",
+    "SimulationDiverged",
+    "StateBuffer",
+    "Tolerances",
+    "Trajectory",
+    "TrajectoryPoint",
+    "UnknownJointError",
+    "UnsupportedModeError",
+    "__version__",
+    "available_backends",
+    "connect",
+    "load_backend",
+    "load_robot_config",
+    "register_backend",
+    "unregister_backend",
+]

@@ -1,0 +1,160 @@
+"""Robot clocks: simulated lockstep time and precise wall-clock time.
+
+Both share one interface (``now``, ``sleep``, ``sleep_until``, ``timeout``), so a
+behavior written against ``robot.clock`` runs unchanged in either time model.
+
+* :class:`LockstepClock` — simulated time. It only moves when the controller's
+  control loop advances it, one control period at a time, and only when every
+  task on the event loop is waiting. Sleepers wake at the first control tick at
+  or after their deadline, in deadline order (ties: first come, first served).
+  Runs as fast as the CPU allows and is deterministic.
+* :class:`RealtimeClock` — ``time.monotonic`` since connect. ``sleep_until``
+  sleeps on the event loop until shortly before the deadline and then yields in
+  a tight loop for the last part, because asyncio timers are only ~1 ms precise.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+import math
+import time
+from abc import ABC, abstractmethod
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from .errors import AgentTimeoutError, InvalidValueError
+
+__all__ = ["Clock", "LockstepClock", "RealtimeClock"]
+
+#: below this remaining time RealtimeClock stops trusting loop timers
+_SPIN_WINDOW = 0.0015
+
+
+def _check_duration(dt: float) -> float:
+    dt = float(dt)
+    if math.isnan(dt) or dt < 0.0:
+        raise InvalidValueError(f"sleep duration must be a finite number >= 0, got {dt!r}")
+    return dt
+
+
+class Clock(ABC):
+    """Time as the robot sees it, in seconds."""
+
+    #: True when time is simulated and only advances in control ticks
+    lockstep: bool = False
+
+    @abstractmethod
+    def now(self) -> float:
+        """Current robot time in seconds (0 at connect)."""
+
+    @abstractmethod
+    async def sleep_until(self, deadline: float) -> None:
+        """Wait until ``now() >= deadline``."""
+
+    async def sleep(self, dt: float) -> None:
+        """Wait ``dt`` seconds of robot time."""
+        await self.sleep_until(self.now() + _check_duration(dt))
+
+    @asynccontextmanager
+    async def timeout(self, dt: float) -> AsyncIterator[None]:
+        """Like ``asyncio.timeout`` but in robot time; raises :class:`AgentTimeoutError`."""
+        dt = _check_duration(dt)
+        task = asyncio.current_task()
+        assert task is not None
+        expired = False
+
+        async def _watch() -> None:
+            nonlocal expired
+            await self.sleep(dt)
+            expired = True
+            task.cancel()
+
+        watcher = asyncio.get_running_loop().create_task(_watch())
+        try:
+            yield
+        except asyncio.CancelledError:
+            if expired and task.uncancel() == 0:
+                raise AgentTimeoutError(f"timed out after {dt:g} s of robot time") from None
+            raise
+        finally:
+            watcher.cancel()
+            await asyncio.gather(watcher, return_exceptions=True)
+
+
+class RealtimeClock(Clock):
+    """Wall-clock time (``time.monotonic``) since the clock was created."""
+
+    lockstep = False
+
+    def __init__(self) -> None:
+        self._t0 = time.monotonic()
+
+    def now(self) -> float:
+        return time.monotonic() - self._t0
+
+    async def sleep_until(self, deadline: float) -> None:
+        remaining = deadline - self.now()
+        if remaining > _SPIN_WINDOW:
+            await asyncio.sleep(remaining - _SPIN_WINDOW)
+        # last part: yield to the loop until the deadline (keeps other tasks running)
+        while self.now() < deadline:  # noqa: ASYNC110 - deliberate: precise final spin
+            await asyncio.sleep(0)
+
+
+class LockstepClock(Clock):
+    """Simulated time advanced by the controller's control loop."""
+
+    lockstep = True
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self._tick = 0
+        self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
+        self._seq = itertools.count()
+        #: set whenever a new sleeper arrives, so an idle control loop wakes up
+        self.wakeup = asyncio.Event()
+
+    def now(self) -> float:
+        # tick count * period: no accumulated floating-point drift
+        return self._tick * self.period
+
+    @property
+    def ticks(self) -> int:
+        return self._tick
+
+    async def sleep_until(self, deadline: float) -> None:
+        if deadline <= self.now():
+            await asyncio.sleep(0)
+            return
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._heap, (deadline, next(self._seq), fut))
+        self.wakeup.set()
+        await fut  # cancellation cancels fut; advance() skips it
+
+    def next_deadline(self) -> float | None:
+        heap = self._heap
+        while heap and heap[0][2].done():
+            heapq.heappop(heap)
+        return heap[0][0] if heap else None
+
+    def advance(self) -> int:
+        """Move time forward one control period and wake due sleepers; returns how many woke."""
+        self._tick += 1
+        now = self.now() + 1e-12
+        woke = 0
+        heap = self._heap
+        while heap and heap[0][0] <= now:
+            _, _, fut = heapq.heappop(heap)
+            if not fut.done():
+                fut.set_result(None)
+                woke += 1
+        return woke
+
+    def cancel_all(self, exc: BaseException) -> None:
+        """Fail every pending sleeper (used when the robot closes or faults)."""
+        for _, _, fut in self._heap:
+            if not fut.done():
+                fut.set_exception(exc)
+        self._heap.clear()

@@ -1,0 +1,449 @@
+"""Trajectory execution: the :class:`Motion` handle and the executor that runs inside the control tick.
+
+Modelled on ros2_controllers' JointTrajectoryController and the
+FollowJointTrajectory action:
+
+* ``robot.follow(traj)`` returns a :class:`Motion` at once; ``await motion``
+  gives a :class:`MotionResult` whose code is named after FollowJointTrajectory
+  (plus CANCELED, PREEMPTED, ABORTED).
+* The executor samples the trajectory every control tick (no asyncio timers in
+  the loop), so tracking is identical in lockstep and in real time.
+* ``motion.cancel()`` — or cancelling the task awaiting the motion, e.g. via
+  ``asyncio.timeout`` — decelerates every joint to rest within its deceleration
+  limit (a jerk-limited ruckig profile from the current desired state), then
+  holds position. Not an instant freeze, not a runaway.
+* A new ``follow`` on overlapping joints preempts the running motion (PREEMPTED)
+  and starts from its *desired* position, velocity and acceleration, so the
+  desired velocity is continuous at the switch.
+* Path, goal and goal-time tolerances per joint; a violation aborts with the
+  matching code, decelerates and holds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+from collections.abc import AsyncIterator, Generator, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from . import scope
+from .controller import MODE_CODES, Controller, Setpoint, StateBuffer
+from .errors import InvalidValueError, UnknownJointError
+from .trajectory import Trajectory, TrajectorySampler, plan_point_to_point, plan_stop
+
+if TYPE_CHECKING:
+    from .safety import SafetyLayer
+
+__all__ = ["Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
+
+_POS = MODE_CODES["position"]
+
+
+class ResultCode(enum.IntEnum):
+    """FollowJointTrajectory result codes, plus the outcomes of an action goal."""
+
+    SUCCESSFUL = 0
+    INVALID_GOAL = -1
+    INVALID_JOINTS = -2
+    PATH_TOLERANCE_VIOLATED = -4
+    GOAL_TOLERANCE_VIOLATED = -5
+    #: motion.cancel() or the awaiting task was cancelled: decelerated and holding
+    CANCELED = -10
+    #: replaced by a newer follow() on overlapping joints
+    PREEMPTED = -11
+    #: stopped by the safety layer (e-stop, fault) or the robot closing
+    ABORTED = -12
+
+
+@dataclass(frozen=True, slots=True)
+class MotionResult:
+    code: ResultCode
+    #: final position error per joint (desired goal - actual), rad or m
+    error: Mapping[str, float]
+    message: str = ""
+    #: robot time when the motion ended
+    time: float = 0.0
+
+    @property
+    def ok(self) -> bool:
+        return self.code is ResultCode.SUCCESSFUL
+
+
+@dataclass(frozen=True, slots=True)
+class Tolerances:
+    """Per-joint tolerances (a float for all joints, or ``{joint: value}``).
+
+    ``path``: max |desired - actual| position error while moving (None: not checked).
+    ``goal``: max |goal - actual| position error at the end.
+    ``goal_time``: how long after the trajectory's end the goal tolerance may take to be met.
+    """
+
+    path: float | Mapping[str, float] | None = None
+    goal: float | Mapping[str, float] = 0.02
+    goal_time: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class Feedback:
+    """Like FollowJointTrajectory feedback: desired, actual and error at ``time``."""
+
+    time: float
+    joint_names: tuple[str, ...]
+    desired_positions: np.ndarray
+    desired_velocities: np.ndarray
+    actual_positions: np.ndarray
+    actual_velocities: np.ndarray
+    error: np.ndarray
+    #: 0.0 at the start, 1.0 at the end of the trajectory
+    progress: float
+
+
+def _per_joint(value: float | Mapping[str, float] | None, names: tuple[str, ...], what: str) -> np.ndarray:
+    if value is None:
+        return np.full(len(names), np.inf)
+    if isinstance(value, Mapping):
+        unknown = set(value) - set(names)
+        if unknown:
+            raise UnknownJointError(f"{what} tolerance for joints not in the trajectory: {sorted(unknown)}")
+        return np.array([float(value.get(n, np.inf)) for n in names])
+    v = float(value)
+    if not v > 0:
+        raise InvalidValueError(f"{what} tolerance must be > 0, got {value!r}")
+    return np.full(len(names), v)
+
+
+class Motion:
+    """Handle of a running trajectory. Awaitable; ``cancel()``; ``feedback()``."""
+
+    def __init__(self, manager: MotionManager, idx: np.ndarray, names: tuple[str, ...]) -> None:
+        self._mgr = manager
+        self.idx = idx
+        self.joint_names = names
+        self._future: asyncio.Future[MotionResult] = asyncio.get_running_loop().create_future()
+        self._feedback: Feedback | None = None
+        self._cancel_requested = False
+
+    # awaitable ------------------------------------------------------------
+    def __await__(self) -> Generator[Any, None, MotionResult]:
+        return self._wait().__await__()
+
+    async def _wait(self) -> MotionResult:
+        try:
+            return await asyncio.shield(self._future)
+        except asyncio.CancelledError:
+            # the awaiting task was cancelled (e.g. asyncio.timeout): stop safely
+            self.cancel()
+            raise
+
+    def done(self) -> bool:
+        return self._future.done()
+
+    def result(self) -> MotionResult:
+        """The result; raises ``asyncio.InvalidStateError`` while running."""
+        return self._future.result()
+
+    def cancel(self) -> None:
+        """Decelerate to rest within the joints' limits, then hold. Result: CANCELED."""
+        if not self._future.done() and not self._cancel_requested:
+            self._cancel_requested = True
+            self._mgr._request_stop(self, ResultCode.CANCELED, "canceled")
+
+    async def feedback(self, rate: float = 50.0) -> AsyncIterator[Feedback]:
+        """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included)."""
+        if not rate > 0:
+            raise InvalidValueError(f"feedback rate must be > 0, got {rate!r}")
+        clock = self._mgr.ctl.clock
+        period = 1.0 / rate
+        next_t = clock.now()
+        last: Feedback | None = None
+        while True:
+            fb = self._feedback
+            if fb is not None and fb is not last:
+                last = fb
+                yield fb
+            if self._future.done():
+                return
+            next_t += period
+            await clock.sleep_until(next_t)
+
+    def __repr__(self) -> str:
+        state = self._future.result().code.name if self._future.done() else "running"
+        return f"<Motion {list(self.joint_names)} {state}>"
+
+
+@dataclass(eq=False)
+class _Exec:
+    """Executor state of one motion (lives in the control tick)."""
+
+    motion: Motion | None
+    idx: np.ndarray
+    sampler: Any
+    t0: float
+    path_tol: np.ndarray
+    goal_tol: np.ndarray
+    goal_time: float
+    goal: np.ndarray
+    phase: str = "follow"  # follow | settle | stopping
+    stop_code: ResultCode | None = None
+    stop_msg: str = ""
+    des_q: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    des_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    des_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    on_done: Any = None
+
+
+class MotionManager:
+    """Owns the running motions of one robot; one executor per motion, run in the control tick."""
+
+    def __init__(self, ctl: Controller, safety: SafetyLayer) -> None:
+        self.ctl = ctl
+        self.safety = safety
+        safety.motions = self
+        n = len(ctl.joints)
+        self._owner: list[_Exec | None] = [None] * n
+        self.owned_mask = np.zeros(n, dtype=bool)
+
+    # ------------------------------------------------------------ queries
+    def owner_of(self, idx: np.ndarray) -> tuple[int, Motion | None] | None:
+        for j in idx.tolist():
+            ex = self._owner[j]
+            if ex is not None:
+                return j, ex.motion
+        return None
+
+    def _desired(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Current desired (q, v, a) for joints: from their executor, else the setpoint/state."""
+        ctl = self.ctl
+        sp, st = ctl.setpoint, ctl.state
+        q = np.where(sp.mode[idx] == _POS, sp.position[idx], st.position[idx])
+        v = np.where(sp.mode[idx] == _POS, sp.velocity[idx], st.velocity[idx])
+        a = np.zeros(len(idx))
+        for k, j in enumerate(idx.tolist()):
+            ex = self._owner[j]
+            if ex is not None and len(ex.des_q):
+                m = int(np.flatnonzero(ex.idx == j)[0])
+                q[k], v[k], a[k] = ex.des_q[m], ex.des_v[m], ex.des_a[m]
+        return q, v, a
+
+    # ------------------------------------------------------------- start
+    def follow(self, traj: Trajectory, tolerances: Tolerances | None) -> Motion:
+        ctl = self.ctl
+        if not isinstance(traj, Trajectory):
+            raise InvalidValueError(f"expected a Trajectory, got {type(traj).__name__}")
+        traj.validate(ctl.joints)
+        names = tuple(traj.joint_names)
+        idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
+        for p in traj.points:
+            self.safety.check_trajectory_point(np.asarray(p.positions, dtype=float), idx)
+        tol = tolerances or Tolerances()
+        path_tol = _per_joint(tol.path, names, "path")
+        goal_tol = _per_joint(tol.goal, names, "goal")
+        if not tol.goal_time >= 0:
+            raise InvalidValueError(f"goal_time must be >= 0, got {tol.goal_time!r}")
+        q0, v0, a0 = self._desired(idx)
+        self._preempt(idx)
+        t0 = ctl.stamp
+        sampler = TrajectorySampler(traj, start_time=t0, start_positions=q0, start_velocities=v0,
+                                    start_accelerations=a0)
+        motion = Motion(self, idx, names)
+        ex = _Exec(motion, idx, sampler, t0, path_tol, goal_tol, tol.goal_time,
+                   goal=np.asarray(traj.points[-1].positions, dtype=float))
+        ex.des_q, ex.des_v, ex.des_a = q0.copy(), v0.copy(), a0.copy()
+        self._install(ex)
+        scope.register(motion)
+        return motion
+
+    def move_to(self, positions: Mapping[str, float], duration: float | None, tol: Tolerances | None) -> Motion:
+        ctl = self.ctl
+        if not isinstance(positions, Mapping) or not positions:
+            raise InvalidValueError("move_to expects a non-empty {joint name: position} mapping")
+        unknown = [n for n in positions if n not in ctl.index]
+        if unknown:
+            raise UnknownJointError(f"unknown joint {unknown[0]!r}; this robot's joints are: {', '.join(ctl.names)}")
+        names = tuple(positions)
+        idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
+        goal = np.array([float(positions[n]) for n in names])
+        if not np.isfinite(goal).all():
+            raise InvalidValueError(f"move_to: non-finite target in {dict(positions)!r}")
+        self.safety.check_trajectory_point(goal, idx)
+        q0, v0, a0 = self._desired(idx)
+        joints = [ctl.joints[i] for i in idx.tolist()]
+        traj = plan_point_to_point((q0, v0, a0), goal, joints, duration=duration)
+        return self.follow(traj, tol)
+
+    def _install(self, ex: _Exec) -> None:
+        for j in ex.idx.tolist():
+            self._owner[j] = ex
+        self.owned_mask[ex.idx] = True
+        self.ctl.add_updater(lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+
+    def _release(self, ex: _Exec) -> None:
+        for j in ex.idx.tolist():
+            if self._owner[j] is ex:
+                self._owner[j] = None
+                self.owned_mask[j] = False
+
+    def _preempt(self, idx: np.ndarray) -> None:
+        seen: list[_Exec] = []
+        for j in idx.tolist():
+            ex = self._owner[j]
+            if ex is not None and ex not in seen:
+                seen.append(ex)
+        for ex in seen:
+            rest = np.array([j for j in ex.idx.tolist() if j not in set(idx.tolist())], dtype=np.intp)
+            q, v, a = self._desired(rest) if len(rest) else (None, None, None)
+            self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
+            if len(rest):
+                # joints the new trajectory does not cover come to rest smoothly
+                self._start_ramp(rest, q, v, a, None, None, "")
+
+    # ----------------------------------------------------------- stopping
+    def _request_stop(self, motion: Motion, code: ResultCode, msg: str) -> None:
+        for ex in set(self._owner):
+            if ex is not None and ex.motion is motion:
+                self._begin_stop(ex, code, msg)
+                return
+
+    def _begin_stop(self, ex: _Exec, code: ResultCode, msg: str) -> None:
+        if ex.phase == "stopping":
+            return
+        q, v, a = ex.des_q.copy(), ex.des_v.copy(), ex.des_a.copy()
+        joints = [self.ctl.joints[i] for i in ex.idx.tolist()]
+        stop = plan_stop(q, v, a, joints, decel_scale=self.safety.config.stop_deceleration_scale)
+        ex.sampler = TrajectorySampler(stop, start_time=self.ctl.stamp, start_positions=q, start_velocities=v,
+                                       start_accelerations=a)
+        ex.t0 = self.ctl.stamp
+        ex.phase = "stopping"
+        ex.stop_code = code
+        ex.stop_msg = msg
+
+    def _start_ramp(self, idx: np.ndarray, q: Any, v: Any, a: Any, code: ResultCode | None, msg: str,
+                    on_done: Any = None) -> _Exec:
+        joints = [self.ctl.joints[i] for i in idx.tolist()]
+        stop = plan_stop(q, v, a, joints, decel_scale=self.safety.config.stop_deceleration_scale)
+        t0 = self.ctl.stamp
+        sampler = TrajectorySampler(stop, start_time=t0, start_positions=q, start_velocities=v,
+                                    start_accelerations=a)
+        n = len(idx)
+        ex = _Exec(None, idx, sampler, t0, np.full(n, np.inf), np.full(n, np.inf), 0.0, goal=q.copy(),
+                   phase="stopping", stop_code=code, stop_msg=msg, on_done=on_done)
+        ex.des_q, ex.des_v, ex.des_a = q.copy(), v.copy(), a.copy()
+        self._install(ex)
+        return ex
+
+    async def stop_all_ramp(self, damp_only: bool = False) -> None:
+        """Decelerate every joint to rest (e-stop categories 1 and 2); returns when at rest."""
+        ctl = self.ctl
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        idx = np.arange(len(ctl.joints))
+        if damp_only:
+            sp = ctl.setpoint
+            sp.kp[:] = 0.0
+            sp.kd[:] = self.safety.config.stop_damping
+            sp.velocity[:] = 0.0
+            sp.effort[:] = 0.0
+
+            def _until_still(t: float, st: StateBuffer, sp: Setpoint) -> bool:
+                if np.all(np.abs(st.velocity) < 1e-2) and not done.done():
+                    done.set_result(None)
+                return not done.done()
+
+            ctl.add_updater(_until_still)
+        else:
+            q, v, a = self._desired(idx)
+            for ex in set(self._owner):
+                if ex is not None:
+                    self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
+            self._start_ramp(idx, q, v, a, None, "", on_done=lambda: done.done() or done.set_result(None))
+        await done
+
+    def abort_all(self, reason: str = "robot closed") -> None:
+        """Resolve every motion ABORTED (no ramp: the caller takes over the joints)."""
+        for ex in set(self._owner):
+            if ex is not None and ex.motion is not None:
+                self._finish(ex, ResultCode.ABORTED, f"aborted: {reason}")
+
+    def fail_all(self, exc: BaseException) -> None:
+        for ex in set(self._owner):
+            if ex is None:
+                continue
+            self._release(ex)
+            if ex.motion is not None and not ex.motion._future.done():
+                ex.motion._future.set_exception(exc)
+                ex.motion._future.exception()  # mark retrieved: the awaiting side re-raises it
+            ex.phase = "dead"
+
+    def _finish(self, ex: _Exec, code: ResultCode | None, msg: str) -> None:
+        self._release(ex)
+        ex.phase = "dead"
+        if ex.motion is not None and code is not None and not ex.motion._future.done():
+            st = self.ctl.state
+            err = ex.goal - st.position[ex.idx]
+            res = MotionResult(code, dict(zip(ex.motion.joint_names, err.tolist(), strict=True)), msg, self.ctl.stamp)
+            ex.motion._future.set_result(res)
+        if ex.on_done is not None:
+            ex.on_done()
+
+    # --------------------------------------------------------- every tick
+    def _update(self, ex: _Exec, t: float, st: StateBuffer, sp: Setpoint) -> bool:
+        if ex.phase == "dead":
+            return False
+        idx = ex.idx
+        q, v, a = ex.sampler.sample(t)
+        ex.des_q, ex.des_v, ex.des_a = q, v, a
+        ctl = self.ctl
+        sp.mode[idx] = _POS
+        sp.enabled[idx] = True
+        sp.position[idx] = q
+        sp.velocity[idx] = v
+        sp.effort[idx] = 0.0
+        sp.kp[idx] = ctl.gain_p[idx]
+        sp.kd[idx] = ctl.gain_d[idx]
+        actual = st.position[idx]
+        err = q - actual
+        m = ex.motion
+        if m is not None:
+            dur = ex.sampler.duration
+            m._feedback = Feedback(t, m.joint_names, q, v, actual.copy(), st.velocity[idx].copy(), err,
+                                   min(1.0, (t - ex.t0) / dur) if dur > 0 else 1.0)
+        elapsed = t - ex.t0
+        if ex.phase == "follow":
+            over = np.abs(err) > ex.path_tol
+            if over.any():
+                k = int(np.argmax(over))
+                self._begin_stop(ex, ResultCode.PATH_TOLERANCE_VIOLATED,
+                                 f"path tolerance violated on joint {m.joint_names[k] if m else k!r}: "
+                                 f"error {err[k]:.4f} > {ex.path_tol[k]:.4f}")
+                return True
+            if elapsed >= ex.sampler.duration:
+                ex.phase = "settle"
+        if ex.phase == "settle":
+            gerr = np.abs(ex.goal - actual)
+            if (gerr <= ex.goal_tol).all():
+                self._finish(ex, ResultCode.SUCCESSFUL, "")
+                self._hold_at(idx, ex.goal)
+                return False
+            if elapsed >= ex.sampler.duration + ex.goal_time:
+                k = int(np.argmax(gerr - ex.goal_tol))
+                name = m.joint_names[k] if m else str(k)
+                self._finish(ex, ResultCode.GOAL_TOLERANCE_VIOLATED,
+                             f"goal tolerance violated on joint {name!r}: error {gerr[k]:.4f} > {ex.goal_tol[k]:.4f}")
+                self._hold_at(idx, ex.goal)
+                return False
+        elif ex.phase == "stopping" and elapsed >= ex.sampler.duration:
+            final = ex.des_q.copy()
+            self._finish(ex, ex.stop_code, ex.stop_msg)
+            self._hold_at(idx, final)
+            return False
+        return True
+
+    def _hold_at(self, idx: np.ndarray, q: np.ndarray) -> None:
+        sp = self.ctl.setpoint
+        sp.position[idx] = q
+        sp.velocity[idx] = 0.0
+        sp.effort[idx] = 0.0
+
+

@@ -1,0 +1,83 @@
+"""Backend registry: entry-point group ``agentsdk.backends``, imported lazily by name.
+
+An unknown name lists the known ones; a backend whose optional dependency is
+missing gives an install hint; one broken plugin cannot break the others.
+"""
+
+from __future__ import annotations
+
+import importlib
+from importlib.metadata import entry_points
+from typing import TYPE_CHECKING
+
+from .errors import BackendUnavailableError
+
+if TYPE_CHECKING:
+    from .controller import Controller
+
+__all__ = ["available_backends", "load_backend", "register_backend", "unregister_backend"]
+
+GROUP = "agentsdk.backends"
+
+#: backends registered in-process (tests, notebooks); take precedence over entry points
+_local: dict[str, type[Controller]] = {}
+
+#: distribution extras hinted at when a backend's import fails
+_HINTS = {
+    "mujoco": "pip install mujoco",
+    "pybullet": "pip install pybullet",
+    "can": "pip install python-can",
+}
+
+# Fallback when the distribution metadata is not installed (e.g. running from a
+# source tree without `pip install -e .`): our own backends by module path.
+_BUILTIN = {
+    "mock": "backends.mock:MockController",
+    "mujoco": "backends.mujoco:MujocoController",
+    "pybullet": "backends.pybullet:PybulletController",
+    "can": "backends.can:CanController",
+}
+
+
+def _entry_points() -> dict[str, str]:
+    found = {ep.name: ep.value for ep in entry_points(group=GROUP)}
+    return {**_BUILTIN, **found}
+
+
+def available_backends() -> list[str]:
+    """Names of every registered backend (importable or not)."""
+    return sorted({*_entry_points(), *_local})
+
+
+def register_backend(name: str, cls: type[Controller]) -> None:
+    """Register a backend class in-process under ``name``."""
+    _local[name] = cls
+
+
+def unregister_backend(name: str) -> None:
+    _local.pop(name, None)
+
+
+def load_backend(name: str) -> type[Controller]:
+    """Import and return the backend class registered as ``name``."""
+    from .controller import Controller
+
+    if name in _local:
+        return _local[name]
+    eps = _entry_points()
+    if name not in eps:
+        raise BackendUnavailableError(
+            f"unknown backend {name!r}; known backends: {', '.join(available_backends())}"
+        )
+    module_name, _, attr = eps[name].partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        hint = _HINTS.get(name, f"install the package that provides {module_name!r}")
+        raise BackendUnavailableError(
+            f"backend {name!r} is not available: {exc.name or exc} is not installed ({hint})"
+        ) from exc
+    cls = getattr(module, attr, None)
+    if not (isinstance(cls, type) and issubclass(cls, Controller)):
+        raise BackendUnavailableError(f"entry point {name!r} -> {eps[name]!r} is not a Controller subclass")
+    return cls

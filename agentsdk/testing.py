@@ -1,0 +1,286 @@
+"""Backend conformance kit: the executable contract every backend must pass.
+
+Use it from any test suite (ours or a third-party backend's)::
+
+    # tests/test_my_backend.py
+    from agentsdk.testing import BackendConformance
+
+    class TestMyBackend(BackendConformance):
+        backend = "mybackend"          # the entry-point name
+        robot = "arm3"                 # a robot name or a .urdf/.xacro/robot.yaml path
+        connect_options = {"port": "/dev/ttyACM0"}
+
+Override :meth:`BackendConformance.open_robot` when the backend needs a fixture
+around it (a motor emulator, a simulator process). Tests are gated on the
+capabilities the backend declares (``Controller.capabilities``), never on its
+name. Requires ``pytest`` and ``pytest-asyncio``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import math
+import threading
+from collections.abc import AsyncIterator
+from typing import Any, ClassVar
+
+import numpy as np
+import pytest
+
+from .description import apply_overrides, resolve_robot
+from .errors import (
+    AgentSDKError,
+    InvalidValueError,
+    RobotClosedError,
+    UnknownJointError,
+    UnsupportedModeError,
+)
+from .registry import load_backend
+from .robot import Robot, connect
+from .types import MODES, JointCommand
+
+__all__ = ["BackendConformance"]
+
+
+def _mid_target(robot: Robot, j: int, offset: float = 0.3) -> float:
+    info = robot.joints[j]
+    lo = info.lower if math.isfinite(info.lower) else -10.0
+    hi = info.upper if math.isfinite(info.upper) else 10.0
+    center = min(max(0.0, lo), hi)
+    target = center + offset
+    if target > hi - 0.05:
+        target = center - offset
+    return target
+
+
+@pytest.mark.asyncio
+class BackendConformance:
+    """Subclass with ``backend = "<name>"``; every ``test_*`` method is one clause of the contract."""
+
+    backend: ClassVar[str] = ""
+    robot: ClassVar[str] = "arm3"
+    connect_options: ClassVar[dict[str, Any]] = {}
+    realtime: ClassVar[bool | None] = None
+    #: how long (robot seconds) a mode may take to reach its target
+    settle_time: ClassVar[float] = 3.0
+    position_tolerance: ClassVar[float] = 0.02
+    velocity_tolerance: ClassVar[float] = 0.1
+    effort_tolerance: ClassVar[float] = 0.05
+
+    # ----------------------------------------------------------- hooks
+    @contextlib.asynccontextmanager
+    async def open_robot(self, **overrides: Any) -> AsyncIterator[Robot]:
+        """Connect a robot on the backend under test. Override to add fixtures."""
+        opts = {**self.connect_options, **overrides}
+        async with connect(self.backend, robot=self.robot, realtime=self.realtime, **opts) as robot:
+            yield robot
+
+    def capabilities(self) -> Any:
+        return load_backend(self.backend).capabilities
+
+    # ------------------------------------------------------- metadata
+    async def test_joint_metadata_matches_description(self) -> None:
+        config, desc = resolve_robot(self.robot)
+        expected = apply_overrides(desc, config)
+        async with self.open_robot() as robot:
+            assert [j.name for j in robot.joints] == [j.name for j in expected]
+            for got, want in zip(robot.joints, expected, strict=True):
+                assert got.type == want.type, got.name
+                assert got.lower == want.lower and got.upper == want.upper, got.name
+                assert got.max_velocity == want.max_velocity, got.name
+                assert got.max_effort == want.max_effort, got.name
+
+    async def test_read_is_finite_and_well_shaped(self) -> None:
+        async with self.open_robot() as robot:
+            await robot.clock.sleep(0.05)
+            st = await robot.read()
+            n = len(robot.joints)
+            assert st.names == tuple(j.name for j in robot.joints)
+            for arr in (st.position, st.velocity, st.effort):
+                assert arr.shape == (n,)
+                assert np.isfinite(arr).all()
+            assert math.isfinite(st.stamp)
+
+    # ---------------------------------------------------------- modes
+    async def _reach(self, robot: Robot, predicate: Any, what: str) -> None:
+        deadline = robot.clock.now() + self.settle_time
+        while robot.clock.now() < deadline:
+            await robot.clock.sleep(0.02)
+            st = await robot.read()
+            if predicate(st):
+                return
+        st = await robot.read()
+        pytest.fail(f"{what} not reached within {self.settle_time} s: state {st}")
+
+    async def test_position_mode_reaches_target(self) -> None:
+        if "position" not in self.capabilities().modes:
+            pytest.skip("backend does not declare position mode")
+        async with self.open_robot() as robot:
+            target = {j.name: _mid_target(robot, k, 0.2) for k, j in enumerate(robot.joints)}
+            await robot.command(JointCommand("position", target))
+            want = np.array(list(target.values()))
+            tol = self.position_tolerance
+            await self._reach(robot, lambda st: np.all(np.abs(st.position - want) < tol), "position target")
+
+    async def test_velocity_mode_reaches_target(self) -> None:
+        if "velocity" not in self.capabilities().modes:
+            pytest.skip("backend does not declare velocity mode")
+        async with self.open_robot() as robot:
+            j = robot.joints[0]
+            v = 0.2 * min(j.max_velocity, 2.0)
+            tol = self.velocity_tolerance
+
+            async def keep_streaming() -> None:  # velocity commands are watched: stream them
+                while True:
+                    await robot.command(JointCommand("velocity", {j.name: v}))
+                    await robot.clock.sleep(0.02)
+
+            async with asyncio.TaskGroup() as tg:
+                streamer = tg.create_task(keep_streaming())
+                try:
+                    await self._reach(robot, lambda st: abs(st.velocity[0] - v) < tol, f"velocity {v} on {j.name}")
+                finally:
+                    streamer.cancel()
+
+    async def test_effort_mode_applies_effort(self) -> None:
+        if "effort" not in self.capabilities().modes:
+            pytest.skip("backend does not declare effort mode")
+        async with self.open_robot() as robot:
+            j = robot.joints[0]
+            tau = 0.05 * j.max_effort
+            tol = max(self.effort_tolerance * j.max_effort, 1e-3)
+            applied = await robot.command(JointCommand("effort", {j.name: tau}))
+            assert applied.values[j.name] == pytest.approx(tau)
+            await robot.clock.sleep(0.05)
+            st = await robot.read()
+            assert abs(st.effort[0] - tau) < tol, f"effort on {j.name}: {st.effort[0]} != {tau}"
+
+    async def test_undeclared_mode_is_rejected(self) -> None:
+        undeclared = [m for m in MODES if m not in self.capabilities().modes]
+        if not undeclared:
+            pytest.skip("backend declares every command mode")
+        async with self.open_robot() as robot:
+            j = robot.joints[0].name
+            for mode in undeclared:
+                with pytest.raises(UnsupportedModeError, match=mode):
+                    await robot.command(JointCommand(mode, {j: 0.0}))
+
+    # ---------------------------------------------------------- clock
+    async def test_clock_is_monotonic_and_sleep_advances(self) -> None:
+        async with self.open_robot() as robot:
+            t0 = robot.clock.now()
+            seen = [t0]
+            for _ in range(5):
+                await robot.clock.sleep(0.01)
+                seen.append(robot.clock.now())
+            assert all(b > a for a, b in itertools.pairwise(seen)), seen
+            assert seen[-1] - t0 >= 0.05 - 1e-9
+            st = await robot.read()
+            assert st.stamp <= robot.clock.now() + 1e-9
+
+    # ---------------------------------------------------------- close
+    async def test_close_is_idempotent_and_later_calls_raise(self) -> None:
+        threads_before = set(threading.enumerate())
+        tasks_before = set(asyncio.all_tasks())
+        async with self.open_robot() as robot:
+            await robot.clock.sleep(0.02)
+        await robot.close()
+        await robot.close()
+        j = robot.joints[0].name
+        with pytest.raises(RobotClosedError):
+            await robot.read()
+        with pytest.raises(RobotClosedError):
+            await robot.command(JointCommand("position", {j: 0.0}))
+        with pytest.raises(RobotClosedError):
+            await robot.estop()
+        for _ in range(3):
+            await asyncio.sleep(0)
+        leaked_tasks = [t for t in asyncio.all_tasks() - tasks_before if not t.done()]
+        assert not leaked_tasks, f"tasks left running after close(): {leaked_tasks}"
+        leaked = [t for t in set(threading.enumerate()) - threads_before if t.is_alive()]
+        for t in leaked:
+            t.join(timeout=1.0)
+        leaked = [t.name for t in leaked if t.is_alive()]
+        assert not leaked, f"threads left running after close(): {leaked}"
+
+    # ----------------------------------------------------- concurrency
+    async def test_concurrent_commands_are_serialized(self) -> None:
+        if "position" not in self.capabilities().modes:
+            pytest.skip("needs position mode")
+        async with self.open_robot() as robot:
+            n = len(robot.joints)
+            a = [_mid_target(robot, k, 0.1) for k in range(n)]
+            b = [_mid_target(robot, k, -0.1) for k in range(n)]
+            for _ in range(20):
+                ra, rb = await asyncio.gather(
+                    robot.command(JointCommand("position", a)), robot.command(JointCommand("position", b))
+                )
+                assert list(ra.values.values()) == pytest.approx(a)
+                assert list(rb.values.values()) == pytest.approx(b)
+                target = robot.controller.setpoint_target()
+                assert np.allclose(target, a) or np.allclose(target, b), f"interleaved setpoint {target}"
+
+    # ----------------------------------------------------- determinism
+    async def _trajectory(self) -> list[np.ndarray]:
+        async with self.open_robot() as robot:
+            out = []
+            n = len(robot.joints)
+            await robot.command(JointCommand("position", [_mid_target(robot, k, 0.25) for k in range(n)]))
+            for _ in range(30):
+                await robot.clock.sleep(0.01)
+                out.append((await robot.read()).position)
+            return out
+
+    async def test_lockstep_is_deterministic(self) -> None:
+        caps = self.capabilities()
+        if not (caps.lockstep and caps.deterministic) or self.realtime:
+            pytest.skip("backend is not a deterministic lockstep backend")
+        first = await self._trajectory()
+        second = await self._trajectory()
+        for x, y in zip(first, second, strict=True):
+            assert np.array_equal(x, y)
+
+    # ----------------------------------------------------- cancellation
+    async def test_cancelled_waiter_leaves_backend_usable(self) -> None:
+        async with self.open_robot() as robot:
+
+            async def waiter() -> None:
+                await robot.clock.sleep(100.0)
+
+            task = asyncio.get_running_loop().create_task(waiter())
+            await robot.clock.sleep(0.02)
+            task.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await task
+            t0 = robot.clock.now()
+            await robot.clock.sleep(0.02)
+            assert robot.clock.now() > t0
+            j = robot.joints[0].name
+            await robot.command(JointCommand("position" if "position" in self.capabilities().modes
+                                             else sorted(self.capabilities().modes)[0], {j: 0.0}))
+            assert np.isfinite((await robot.read()).position).all()
+
+    # ------------------------------------------------------- bad input
+    async def test_bad_input_is_rejected_and_state_unchanged(self) -> None:
+        mode = "position" if "position" in self.capabilities().modes else sorted(self.capabilities().modes)[0]
+        async with self.open_robot() as robot:
+            await robot.clock.sleep(0.02)
+            before = robot.controller.setpoint_target().copy()
+            n = len(robot.joints)
+            j = robot.joints[0].name
+            bad: list[tuple[type[AgentSDKError], JointCommand]] = [
+                (UnknownJointError, JointCommand(mode, {"no_such_joint": 0.0})),
+                (InvalidValueError, JointCommand(mode, {j: float("nan")})),
+                (InvalidValueError, JointCommand(mode, {j: float("inf")})),
+                (InvalidValueError, JointCommand(mode, [0.0] * (n + 1))),
+            ]
+            for exc_type, cmd in bad:
+                with pytest.raises(exc_type):
+                    await robot.command(cmd)
+                assert np.array_equal(robot.controller.setpoint_target(), before), f"state changed by {cmd}"
+            # still usable
+            await robot.command(JointCommand(mode, {j: 0.0}))
+            await robot.clock.sleep(0.02)
+            assert np.isfinite((await robot.read()).position).all()

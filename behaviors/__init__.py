@@ -1,0 +1,1 @@
+"""Runnable behavior scripts: each defines ``async def main(robot)``; run with ``agentsdk run``."""

@@ -44,6 +44,7 @@ from pydantic import BaseModel, ValidationError
 
 from .clock import Clock, LockstepClock, RealtimeClock
 from .errors import (
+    AgentSDKError,
     BackendFault,
     BackendStartError,
     ConfigurationError,
@@ -258,7 +259,7 @@ class Controller(ABC):
         except asyncio.CancelledError:
             await self._close()
             raise
-        except BackendStartError:
+        except AgentSDKError:
             await self._close()
             raise
         except Exception as exc:

@@ -144,7 +144,8 @@ class SafetyLayer:
             self._step = None
         else:
             self._step = np.full(n, float(step))
-        self._watch_codes = np.array([MODE_CODES[m] for m in config.watchdog_modes], dtype=np.int8)
+        #: watched[mode code] -> True if the command watchdog applies to that mode
+        self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
         self._fed = np.zeros(n)  # robot time of the last command per joint
         self._written = ctl.state.position.copy()
         self._goal = ctl.setpoint.position.copy()
@@ -313,7 +314,7 @@ class SafetyLayer:
         if self._state is not SafetyState.OK:
             return
         sp = self.ctl.setpoint
-        streamed = np.isin(sp.mode, self._watch_codes) & sp.enabled
+        streamed = self._watched[sp.mode] & sp.enabled
         if not streamed.any():
             return
         if self.motions is not None:

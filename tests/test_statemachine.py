@@ -1,0 +1,844 @@
+"""Tests of agentsdk.statemachine and agentsdk.scope (one test per semantic).
+
+Time is virtual (FakeClock); nothing here sleeps on the wall clock.  Where a test
+must wait for the engine to process something, it awaits an asyncio.Event set by
+a state body, ``machine.wait_state(...)``, or ``until(predicate)`` (which only
+yields to the event loop).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from collections.abc import AsyncIterator, Callable, Generator
+from typing import Any
+
+import pytest
+
+from agentsdk import scope
+from agentsdk.statemachine import (
+    EventNotAllowed,
+    HistoryRecord,
+    State,
+    StateContext,
+    StateMachine,
+    StateMachineDefinitionError,
+    StateMachineError,
+    find_machines,
+)
+
+# --------------------------------------------------------------------------- helpers
+
+
+class FakeClock:
+    """Virtual time: only ``advance()`` moves it."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+        self._sleepers: list[tuple[float, asyncio.Future[None]]] = []
+        self._changed = asyncio.Event()
+
+    def now(self) -> float:
+        return self.t
+
+    async def sleep(self, dt: float) -> None:
+        fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        entry = (self.t + dt, fut)
+        self._sleepers.append(entry)
+        self._changed.set()
+        try:
+            await fut
+        finally:
+            self._sleepers.remove(entry)
+
+    def sleepers(self) -> int:
+        return sum(not f.done() for _, f in self._sleepers)
+
+    async def wait_sleepers(self, n: int = 1) -> None:
+        while self.sleepers() < n:
+            self._changed.clear()
+            await self._changed.wait()
+
+    def advance(self, dt: float) -> None:
+        self.t += dt
+        for deadline, fut in list(self._sleepers):
+            if deadline <= self.t and not fut.done():
+                fut.set_result(None)
+
+
+class FakeMotion:
+    """A motion handle: cancel() requests a stop; the test decides when it has stopped."""
+
+    def __init__(self, *, stop_on_cancel: bool = False) -> None:
+        self._fut: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        self.stop_on_cancel = stop_on_cancel
+        self.cancel_calls = 0
+        self.await_count = 0
+        self.cancelled = asyncio.Event()
+
+    def cancel(self) -> None:
+        self.cancel_calls += 1
+        self.cancelled.set()
+        if self.stop_on_cancel:
+            self.stopped()
+
+    def stopped(self) -> None:
+        if not self._fut.done():
+            self._fut.set_result("held")
+
+    def done(self) -> bool:
+        return self._fut.done()
+
+    def __await__(self) -> Generator[Any, None, str]:
+        self.await_count += 1
+        return (yield from self._fut.__await__())
+
+
+class FakeRobot:
+    def __init__(self, clock: FakeClock) -> None:
+        self.clock = clock
+        self.estops: list[int] = []
+        self.motions: list[FakeMotion] = []
+
+    def follow(self, *, stop_on_cancel: bool = False) -> FakeMotion:
+        motion = FakeMotion(stop_on_cancel=stop_on_cancel)
+        self.motions.append(motion)
+        scope.register(motion)  # what the real robot does
+        return motion
+
+    async def estop(self, category: int = 1) -> None:
+        self.estops.append(category)
+
+
+async def until(predicate: Callable[[], bool], steps: int = 1000) -> None:
+    """Yield to the event loop until ``predicate()`` holds (no wall-clock time involved)."""
+    for _ in range(steps):
+        if predicate():
+            return
+        await asyncio.sleep(0)
+    raise AssertionError("condition not reached")
+
+
+@pytest.fixture(autouse=True)
+async def no_leaked_tasks() -> AsyncIterator[None]:
+    before = asyncio.all_tasks()
+    yield
+    leaked = [t for t in asyncio.all_tasks() - before if t is not asyncio.current_task() and not t.done()]
+    for t in leaked:
+        t.cancel()
+    assert not leaked, f"tasks left pending: {leaked}"
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    return FakeClock()
+
+
+@pytest.fixture
+def robot(clock: FakeClock) -> FakeRobot:
+    return FakeRobot(clock)
+
+
+def moves(m: StateMachine) -> list[tuple[str | None, str | None, str | None]]:
+    """The transitions of the history of ``m`` (its own machine only)."""
+    return [(r.source, r.target, r.event) for r in m.history if r.target is not None and r.machine == m.machine_path]
+
+
+# --------------------------------------------------------------------------- machines at module level
+
+
+class Approach(StateMachine):
+    reach = State(initial=True)
+    grasp = State()
+    held = State(final=True)
+
+    reached = reach.to(grasp)
+    closed = grasp.to(held)
+
+
+class Patrol(StateMachine):
+    idle = State(initial=True)
+    moving = State(timeout=5.0)
+    picking = State(machine=Approach)
+    done = State(final=True)
+    fault = State(fault=True)
+
+    go = idle.to(moving)
+    arrived = moving.to(picking)
+    done_picking = picking.to(done)
+    stop = moving.to(idle) | idle.to(done)
+    timeout = moving.to(fault)
+    retry = fault.to(idle, guard="can_retry") | fault.to(done)
+
+    def can_retry(self) -> bool:
+        return True
+
+
+# --------------------------------------------------------------------------- definition-time validation
+
+
+def test_unknown_target_rejected_at_class_definition() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: transition 'go' has target 'mooving'"):
+
+        class Bad(StateMachine):
+            idle = State(initial=True)
+            moving = State(final=True)
+            go = idle.to("mooving")
+
+
+def test_unreachable_state_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: state 'orphan' is unreachable"):
+
+        class Bad(StateMachine):
+            idle = State(initial=True)
+            orphan = State()
+            done = State(final=True)
+            go = idle.to(done)
+            back = orphan.to(done)
+
+
+def test_missing_initial_state_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: no initial state"):
+
+        class Bad(StateMachine):
+            idle = State()
+            done = State(final=True)
+            go = idle.to(done)
+
+
+def test_two_initial_states_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: two initial states: 'a' and 'b'"):
+
+        class Bad(StateMachine):
+            a = State(initial=True)
+            b = State(initial=True)
+            done = State(final=True)
+            go = a.to(done) | b.to(done)
+
+
+def test_transition_from_undeclared_state_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: transition 'go' has source <State Patrol.idle>"):
+
+        class Bad(StateMachine):
+            start = State(initial=True)
+            done = State(final=True)
+            go = Patrol.idle.to(done)  # a state of another machine
+            finish = start.to(done)
+
+
+def test_final_state_with_outgoing_transition_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: final state 'done' has outgoing transitions: 'again'"):
+
+        class Bad(StateMachine):
+            idle = State(initial=True)
+            done = State(final=True)
+            go = idle.to(done)
+            again = done.to(idle)
+
+
+def test_timeout_without_timeout_transition_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: state 'moving' has timeout=5 but no 'timeout'"):
+
+        class Bad(StateMachine):
+            moving = State(initial=True, timeout=5.0)
+            done = State(final=True)
+            arrived = moving.to(done)
+
+
+def test_misnamed_body_unknown_guard_and_reserved_name_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: method on_movng is the body of state 'movng'"):
+
+        class Bad(StateMachine):
+            moving = State(initial=True)
+            done = State(final=True)
+            arrived = moving.to(done)
+
+            async def on_movng(self, ctx: StateContext) -> None: ...
+
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad2: .*guard 'is_ready' is not a method"):
+
+        class Bad2(StateMachine):
+            moving = State(initial=True)
+            done = State(final=True)
+            arrived = moving.to(done, guard="is_ready")
+
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad3: 'send' would shadow StateMachine.send"):
+
+        class Bad3(StateMachine):
+            moving = State(initial=True)
+            done = State(final=True)
+            send = moving.to(done)
+
+
+def test_nested_state_without_completion_transition_rejected() -> None:
+    with pytest.raises(StateMachineDefinitionError, match=r"Bad: state 'picking' completes with event 'done_picking'"):
+
+        class Bad(StateMachine):
+            picking = State(initial=True, machine=Approach)
+            done = State(final=True)
+            done_pick = picking.to(done)  # typo: the completion event is done_picking
+
+
+# --------------------------------------------------------------------------- running
+
+
+async def test_body_return_value_fires_completion_event_and_history_records(robot: FakeRobot, clock: FakeClock) -> None:
+    class Seq(StateMachine):
+        a = State(initial=True)
+        b = State()
+        c = State(final=True)
+        next = a.to(b)
+        finish = b.to(c)
+
+        async def on_a(self, ctx: StateContext) -> str:
+            assert ctx.state == "Seq/a" and ctx.robot is robot and ctx.clock is clock and ctx.machine is self
+            assert ctx.event is None
+            clock.advance(1.5)
+            return "next"
+
+        async def on_b(self, ctx: StateContext) -> str:
+            assert ctx.event == "next"
+            clock.advance(0.5)
+            return "finish"
+
+    m = Seq(robot)
+    assert await m.run() == "c"
+    assert m.state_path == "Seq/c"
+    assert m.history == [
+        HistoryRecord(0.0, None, "a", None, note="initial", machine="Seq"),
+        HistoryRecord(1.5, "a", "b", "next", machine="Seq"),
+        HistoryRecord(2.0, "b", "c", "finish", machine="Seq"),
+    ]
+
+
+async def test_guard_blocks_then_allows(robot: FakeRobot) -> None:
+    calls: list[bool] = []
+
+    class Guarded(StateMachine):
+        idle = State(initial=True)
+        done = State(final=True)
+        go = idle.to(done, guard="armed")
+
+        allowed = False
+
+        async def armed(self) -> bool:  # async guard
+            calls.append(self.allowed)
+            return self.allowed
+
+    m = Guarded(robot)
+    task = asyncio.create_task(m.run())
+    m.send("go")
+    await until(lambda: len(calls) == 1)
+    assert m.state == "idle"
+    assert m.history[-1].note == "blocked by guard" and m.history[-1].target is None
+    m.allowed = True
+    m.send("go")
+    assert await task == "done"
+    assert calls == [False, True]
+    assert moves(m)[-1] == ("idle", "done", "go")
+
+
+async def test_callable_guard_and_ignored_events(robot: FakeRobot) -> None:
+    class G(StateMachine):
+        idle = State(initial=True)
+        done = State(final=True)
+        go = idle.to(done, guard=lambda m: m.robot is not None)
+
+    m = G(robot)
+    task = asyncio.create_task(m.run())
+    m.send("nonsense")
+    m.send("go")
+    assert await task == "done"
+    ignored = [r for r in m.history if r.note == "ignored"]
+    assert [(r.source, r.event) for r in ignored] == [("idle", "nonsense")]
+
+    strict = G(robot, strict=True)
+    with pytest.raises(EventNotAllowed, match="nonsense"):
+        strict.send("nonsense")
+
+
+async def test_per_state_timeout_fires_timeout_event(robot: FakeRobot, clock: FakeClock) -> None:
+    class Wait(StateMachine):
+        waiting = State(initial=True, timeout=5.0)
+        late = State(final=True)
+        timeout = waiting.to(late)
+
+        async def on_waiting(self, ctx: StateContext) -> None:
+            await asyncio.Event().wait()  # never finishes by itself
+
+    m = Wait(robot)
+    task = asyncio.create_task(m.run())
+    await m.wait_state("waiting")
+    await clock.wait_sleepers(1)
+    clock.advance(4.9)
+    await until(lambda: clock.sleepers() == 1)
+    assert m.state == "waiting"
+    clock.advance(0.1)
+    assert await task == "late"
+    assert moves(m)[-1] == ("waiting", "late", "timeout")
+    assert m.history[-1].time == pytest.approx(5.0)
+
+
+async def test_external_event_preempts_running_body(robot: FakeRobot) -> None:
+    started = asyncio.Event()
+    log: list[str] = []
+
+    class Work(StateMachine):
+        busy = State(initial=True)
+        stopped = State(final=True)
+        stop = busy.to(stopped)
+
+        async def on_busy(self, ctx: StateContext) -> str:
+            started.set()
+            try:
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                log.append("cancelled")
+                raise
+            finally:
+                log.append("finally")
+            return "unreachable"
+
+    m = Work(robot)
+    task = asyncio.create_task(m.run())
+    await started.wait()
+    m.send("stop")
+    assert await task == "stopped"
+    assert log == ["cancelled", "finally"]
+    assert moves(m)[-1] == ("busy", "stopped", "stop")
+
+
+async def test_nested_machine_completes_parent_state(robot: FakeRobot) -> None:
+    class Grab(StateMachine):
+        reach = State(initial=True)
+        grasp = State()
+        held = State(final=True)
+        reached = reach.to(grasp)
+        closed = grasp.to(held)
+
+        async def on_reach(self, ctx: StateContext) -> str:
+            assert ctx.state == "Task/picking/Grab/reach"
+            return "reached"
+
+        async def on_grasp(self, ctx: StateContext) -> str:
+            return "closed"
+
+    class Task(StateMachine):
+        picking = State(initial=True, machine=Grab)
+        done = State(final=True)
+        done_picking = picking.to(done)
+
+    m = Task(robot)
+    assert await m.run() == "done"
+    assert moves(m) == [(None, "picking", None), ("picking", "done", "done_picking")]
+    # the root history also holds the nested machine's records
+    assert [(r.machine, r.source, r.target) for r in m.history if r.machine != "Task"] == [
+        ("Task/picking/Grab", None, "reach"),
+        ("Task/picking/Grab", "reach", "grasp"),
+        ("Task/picking/Grab", "grasp", "held"),
+    ]
+
+
+async def test_nested_done_mapping_selects_event_by_final_state(robot: FakeRobot) -> None:
+    class Try(StateMachine):
+        attempt = State(initial=True)
+        ok = State(final=True)
+        failed = State(final=True)
+        success = attempt.to(ok)
+        failure = attempt.to(failed)
+
+        async def on_attempt(self, ctx: StateContext) -> str:
+            return "failure"
+
+    class Outer(StateMachine):
+        trying = State(initial=True, machine=Try, done={"ok": "worked", "failed": "gave_up"})
+        happy = State(final=True)
+        sad = State(final=True)
+        worked = trying.to(happy)
+        gave_up = trying.to(sad)
+
+    assert await Outer(robot).run() == "sad"
+
+
+async def test_parent_event_preempts_nested_machine(robot: FakeRobot) -> None:
+    in_grasp = asyncio.Event()
+    log: list[str] = []
+
+    class Grab(StateMachine):
+        reach = State(initial=True)
+        grasp = State()
+        held = State(final=True)
+        reached = reach.to(grasp)
+        closed = grasp.to(held)
+
+        async def on_reach(self, ctx: StateContext) -> str:
+            return "reached"
+
+        async def on_grasp(self, ctx: StateContext) -> str:
+            robot.follow()
+            in_grasp.set()
+            try:
+                await asyncio.Event().wait()
+            finally:
+                log.append(f"finally {ctx.state}")
+            return "closed"
+
+    class Task(StateMachine):
+        picking = State(initial=True, machine=Grab)
+        aborted = State(final=True)
+        done = State(final=True)
+        abort = picking.to(aborted)
+        done_picking = picking.to(done)
+
+    m = Task(robot)
+    task = asyncio.create_task(m.run())
+    await in_grasp.wait()
+    assert m.state_path == "Task/picking/Grab/grasp"
+    m.send("abort")
+    await robot.motions[0].cancelled.wait()
+    robot.motions[0].stopped()
+    assert await task == "aborted"
+    assert log == ["finally Task/picking/Grab/grasp"]
+    assert robot.motions[0].cancel_calls == 1
+
+
+async def test_event_forwarded_to_nested_machine(robot: FakeRobot) -> None:
+    class Grab(StateMachine):
+        grasp = State(initial=True)
+        held = State(final=True)
+        closed = grasp.to(held)
+
+    class Task(StateMachine):
+        picking = State(initial=True, machine=Grab)
+        done = State(final=True)
+        done_picking = picking.to(done)
+
+    m = Task(robot, strict=True)
+    task = asyncio.create_task(m.run())
+    await m.wait_state("Grab/grasp")
+    m.send("closed")  # not a Task event: the active nested machine takes it
+    assert await task == "done"
+
+
+async def test_parallel_regions_complete_when_all_final(robot: FakeRobot) -> None:
+    gate = asyncio.Event()
+
+    class Arm(StateMachine):
+        reach = State(initial=True)
+        there = State(final=True)
+        reached = reach.to(there)
+
+        async def on_reach(self, ctx: StateContext) -> str:
+            return "reached"
+
+    class Gripper(StateMachine):
+        opening = State(initial=True)
+        open = State(final=True)
+        opened = opening.to(open)
+
+        async def on_opening(self, ctx: StateContext) -> str:
+            await gate.wait()
+            return "opened"
+
+    class Both(StateMachine):
+        prepare = State(initial=True, parallel=[Arm, Gripper])
+        ready = State(final=True)
+        done_prepare = prepare.to(ready)
+
+    m = Both(robot)
+    task = asyncio.create_task(m.run())
+    await m.wait_state("Arm/there")
+    assert m.state_path == "Both/prepare/[Arm/there|Gripper/opening]"
+    gate.set()
+    assert await task == "ready"
+
+
+async def test_parent_event_preempts_parallel_regions(robot: FakeRobot) -> None:
+    cancelled: list[str] = []
+
+    class Spin(StateMachine):
+        spinning = State(initial=True)
+        stopped = State(final=True)
+        halt = spinning.to(stopped)
+
+        async def on_spinning(self, ctx: StateContext) -> None:
+            try:
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                cancelled.append(ctx.state)
+                raise
+
+    class Blink(Spin):
+        pass
+
+    class Show(StateMachine):
+        running = State(initial=True, parallel=[Spin, Blink])
+        aborted = State(final=True)
+        done = State(final=True)
+        abort = running.to(aborted)
+        done_running = running.to(done)
+
+    m = Show(robot)
+    task = asyncio.create_task(m.run())
+    await m.wait_state("Spin/spinning")
+    await m.wait_state("Blink/spinning")
+    await until(lambda: m.state_path == "Show/running/[Spin/spinning|Blink/spinning]")
+    m.send("abort")
+    assert await task == "aborted"
+    assert sorted(cancelled) == ["Show/running/Blink/spinning", "Show/running/Spin/spinning"]
+
+
+async def test_timeout_restarts_on_each_visit(robot: FakeRobot, clock: FakeClock) -> None:
+    class Loop(StateMachine):
+        waiting = State(initial=True, timeout=5.0)
+        other = State()
+        late = State(final=True)
+        poke = waiting.to(other)
+        back = other.to(waiting)
+        timeout = waiting.to(late)
+
+    m = Loop(robot)
+    task = asyncio.create_task(m.run())
+    await clock.wait_sleepers(1)
+    clock.advance(3.0)
+    m.send("poke")
+    m.send("back")
+    await until(lambda: len(moves(m)) == 3 and clock.sleepers() == 1)  # re-entered, new timer
+    clock.advance(3.0)  # 6 s since the first entry, 3 s since the second
+    await until(lambda: clock.sleepers() == 1)
+    assert m.state == "waiting"
+    clock.advance(2.0)
+    assert await task == "late"
+    assert [(r.time, r.event) for r in m.history if r.target] == [
+        (0.0, None),
+        (3.0, "poke"),
+        (3.0, "back"),
+        (8.0, "timeout"),
+    ]
+
+
+async def test_body_returning_unknown_event_is_an_error(robot: FakeRobot) -> None:
+    class Typo(StateMachine):
+        idle = State(initial=True)
+        done = State(final=True)
+        go = idle.to(done)
+
+        async def on_idle(self, ctx: StateContext) -> str:
+            return "goo"
+
+    with pytest.raises(StateMachineError, match=r"Typo/idle.*unknown event 'goo'"):
+        await Typo(robot).run()
+    assert robot.estops == [1]
+
+
+async def test_exit_cancels_and_awaits_motions(robot: FakeRobot) -> None:
+    class Move(StateMachine):
+        moving = State(initial=True)
+        idle = State(final=True)
+        stop = moving.to(idle)
+
+        async def on_moving(self, ctx: StateContext) -> None:
+            robot.follow()  # fire and forget: the state owns it anyway
+            await asyncio.Event().wait()
+
+    m = Move(robot)
+    task = asyncio.create_task(m.run())
+    await until(lambda: len(robot.motions) == 1)
+    motion = robot.motions[0]
+    m.send("stop")
+    await motion.cancelled.wait()
+    await until(lambda: motion.await_count == 1)  # the engine is waiting for the stop
+    assert m.state == "moving" and not task.done()
+    motion.stopped()
+    assert await task == "idle"
+    assert motion.cancel_calls == 1 and motion.await_count == 1
+
+
+async def test_motion_that_does_not_stop_escalates(robot: FakeRobot, clock: FakeClock) -> None:
+    class Move(StateMachine):
+        moving = State(initial=True)
+        idle = State(final=True)
+        fault = State(fault=True, final=True)
+        stop = moving.to(idle)
+
+        async def on_moving(self, ctx: StateContext) -> None:
+            robot.follow()
+
+    m = Move(robot)
+    task = asyncio.create_task(m.run())
+    await until(lambda: len(robot.motions) == 1)
+    m.send("stop")
+    await clock.wait_sleepers(1)  # the stop deadline
+    clock.advance(10.0)
+    with pytest.raises(StateMachineError, match=r"Move/moving.*did not stop within 10 s"):
+        await task
+    assert robot.estops == [1]  # not routed to the fault state: the robot would not stop
+
+
+async def test_exception_goes_to_fault_state(robot: FakeRobot) -> None:
+    seen: list[BaseException | None] = []
+
+    class Careful(StateMachine):
+        working = State(initial=True)
+        fault = State(fault=True)
+        done = State(final=True)
+        give_up = fault.to(done)
+
+        async def on_working(self, ctx: StateContext) -> None:
+            raise ValueError("sensor unplugged")
+
+        async def on_fault(self, ctx: StateContext) -> str:
+            seen.append(ctx.error)
+            return "give_up"
+
+    m = Careful(robot)
+    assert await m.run() == "done"
+    assert isinstance(m.last_error, ValueError) and seen == [m.last_error]
+    assert m.last_error_path == "Careful/working"
+    assert moves(m)[1] == ("working", "fault", "error")
+    assert robot.estops == []
+
+
+async def test_exception_in_nested_machine_goes_to_enclosing_fault_state(robot: FakeRobot) -> None:
+    class Grab(StateMachine):
+        grasp = State(initial=True)
+        held = State(final=True)
+        closed = grasp.to(held)
+
+        async def on_grasp(self, ctx: StateContext) -> str:
+            raise RuntimeError("gripper jammed")
+
+    class Task(StateMachine):
+        picking = State(initial=True, machine=Grab)
+        fault = State(fault=True, final=True)
+        done = State(final=True)
+        done_picking = picking.to(done)
+
+    m = Task(robot)
+    assert await m.run() == "fault"
+    assert str(m.last_error) == "gripper jammed" and m.last_error_path == "Task/picking/Grab/grasp"
+
+
+async def test_exception_without_fault_state_estops_and_raises_with_path(robot: FakeRobot) -> None:
+    class Grasping(StateMachine):
+        grasp = State(initial=True)
+        held = State(final=True)
+        closed = grasp.to(held)
+
+        async def on_grasp(self, ctx: StateContext) -> str:
+            robot.follow(stop_on_cancel=True)
+            raise RuntimeError("gripper jammed")
+
+    class Approach(StateMachine):
+        reach = State(initial=True, machine=Grasping)
+        done = State(final=True)
+        done_reach = reach.to(done)
+
+    class Patrol(StateMachine):
+        moving = State(initial=True, machine=Approach)
+        done = State(final=True)
+        done_moving = moving.to(done)
+
+    m = Patrol(robot)
+    with pytest.raises(StateMachineError) as info:
+        await m.run()
+    assert "Patrol/moving/Approach/reach/Grasping/grasp" in str(info.value)
+    assert "gripper jammed" in str(info.value)
+    assert isinstance(info.value.__cause__, RuntimeError)
+    assert info.value.path == "Patrol/moving/Approach/reach/Grasping/grasp"
+    assert robot.estops == [1]
+    assert robot.motions[0].cancel_calls == 1  # the state's motion was stopped too
+
+
+async def test_cancelling_run_cancels_state_and_propagates(robot: FakeRobot) -> None:
+    started = asyncio.Event()
+    log: list[str] = []
+
+    class Forever(StateMachine):
+        busy = State(initial=True)
+        done = State(final=True)
+        finish = busy.to(done)
+
+        async def on_busy(self, ctx: StateContext) -> None:
+            robot.follow()
+            started.set()
+            try:
+                await asyncio.Event().wait()
+            finally:
+                log.append("finally")
+
+    m = Forever(robot)
+    task = asyncio.create_task(m.run())
+    await started.wait()
+    motion = robot.motions[0]
+    task.cancel()
+    await motion.cancelled.wait()
+    await until(lambda: motion.await_count == 1)
+    assert not task.done()  # run() waits for the robot to stop before propagating
+    motion.stopped()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert log == ["finally"]
+    assert motion.cancel_calls == 1
+    assert robot.estops == []
+
+
+async def test_motion_scope_outside_machine(clock: FakeClock) -> None:
+    scope.register(FakeMotion())  # no scope: no-op
+    async with scope.MotionScope("script", clock=clock) as s:
+        assert scope.current_scope() is s
+        motion = FakeMotion(stop_on_cancel=True)
+        scope.register(motion)
+    assert scope.current_scope() is None
+    assert motion.cancel_calls == 1 and motion.done()
+    late = FakeMotion()
+    s.add(late)  # registered after close: stopped at once
+    assert late.cancel_calls == 1
+
+
+# --------------------------------------------------------------------------- introspection
+
+
+def test_mermaid_of_sample_machine() -> None:
+    assert Patrol.mermaid() == (
+        "stateDiagram-v2\n"
+        "    idle\n"
+        "    moving : timeout 5s\n"
+        "    state picking {\n"
+        "        %% Approach\n"
+        '        state "reach" as picking__reach\n'
+        '        state "grasp" as picking__grasp\n'
+        '        state "held" as picking__held\n'
+        "        [*] --> picking__reach\n"
+        "        picking__reach --> picking__grasp : reached\n"
+        "        picking__grasp --> picking__held : closed\n"
+        "        picking__held --> [*]\n"
+        "    }\n"
+        "    done\n"
+        "    fault : fault handler\n"
+        "    [*] --> idle\n"
+        "    idle --> moving : go\n"
+        "    moving --> picking : arrived\n"
+        "    picking --> done : done_picking\n"
+        "    moving --> idle : stop\n"
+        "    idle --> done : stop\n"
+        "    moving --> fault : timeout\n"
+        "    fault --> idle : retry [can_retry]\n"
+        "    fault --> done : retry\n"
+        "    done --> [*]\n"
+    )
+
+
+def test_find_machines_lists_module_machines_in_order(tmp_path: Any) -> None:
+    assert find_machines(sys.modules[__name__]) == [Approach, Patrol]
+    behavior = tmp_path / "patrol_behavior.py"
+    behavior.write_text(
+        "from agentsdk.statemachine import State, StateMachine\n"
+        "class Base(StateMachine):  # abstract: not listed\n"
+        "    pass\n"
+        "class Walk(Base):\n"
+        "    start = State(initial=True)\n"
+        "    end = State(final=True)\n"
+        "    go = start.to(end)\n"
+    )
+    assert [m.__name__ for m in find_machines(str(behavior))] == ["Walk"]

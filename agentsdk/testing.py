@@ -45,14 +45,16 @@ __all__ = ["BackendConformance"]
 
 
 def _mid_target(robot: Robot, j: int, offset: float = 0.3) -> float:
+    """A reachable target ``offset`` away from the joint's neutral position, strictly inside its limits."""
     info = robot.joints[j]
     lo = info.lower if math.isfinite(info.lower) else -10.0
     hi = info.upper if math.isfinite(info.upper) else 10.0
-    center = min(max(0.0, lo), hi)
-    target = center + offset
-    if target > hi - 0.05:
-        target = center - offset
-    return target
+    margin = min(0.05, (hi - lo) / 4)
+    center = min(max(0.0, lo + margin), hi - margin)
+    for target in (center + offset, center - offset):
+        if lo + margin <= target <= hi - margin:
+            return target
+    return min(max(center + offset, lo + margin), hi - margin)
 
 
 @pytest.mark.asyncio

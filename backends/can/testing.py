@@ -1,0 +1,41 @@
+"""Conformance fixture for the CAN backend: the MIT motor emulator on python-can's virtual bus."""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+from collections.abc import AsyncIterator
+from typing import Any, ClassVar
+
+import can
+
+from agentsdk.robot import Robot, connect
+from agentsdk.testing import BackendConformance
+
+from .emulator import MotorEmulator
+
+__all__ = ["EmulatedCanConformance"]
+
+_channels = itertools.count()
+
+
+class EmulatedCanConformance(BackendConformance):
+    """Runs the conformance kit on ``can`` against in-process emulated motors."""
+
+    backend: ClassVar[str] = "can"
+    robot: ClassVar[str] = "mit_leg"
+    settle_time: ClassVar[float] = 3.0
+
+    @contextlib.asynccontextmanager
+    async def open_robot(self, **overrides: Any) -> AsyncIterator[Robot]:
+        channel = f"agentsdk-conformance-{next(_channels)}"
+        bus = can.Bus(interface="virtual", channel=channel)
+        emulator = MotorEmulator.from_robot(self.robot, bus)
+        emulator.start()
+        try:
+            opts = {"interface": "virtual", "channel": channel, **self.connect_options, **overrides}
+            async with connect(self.backend, robot=self.robot, **opts) as robot:
+                yield robot
+        finally:
+            emulator.stop()
+            bus.shutdown()

@@ -1,0 +1,101 @@
+"""The conformance kit on every registered backend, on a tiny in-suite backend, and proof it can fail."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+from tiny_backend import TinyController
+
+import agentsdk
+from agentsdk.registry import available_backends
+from agentsdk.testing import BackendConformance
+from backends.can.testing import EmulatedCanConformance
+
+pytest_plugins = ["pytester"]
+
+#: backends that need a fixture around them (hardware -> emulator)
+FIXTURES: dict[str, type[BackendConformance]] = {"can": EmulatedCanConformance}
+
+for _name in available_backends():
+    _base = FIXTURES.get(_name, BackendConformance)
+    globals()[f"TestConformance_{_name}"] = type(f"TestConformance_{_name}", (_base,), {"backend": _name})
+
+
+def test_every_registered_backend_has_a_conformance_run() -> None:
+    names = set(available_backends())
+    assert {"mock", "mujoco", "pybullet", "can"} <= names
+    for name in names:
+        assert f"TestConformance_{name}" in globals()
+
+
+@pytest.fixture
+def tiny_registered() -> Any:
+    agentsdk.register_backend("tiny", TinyController)
+    yield
+    agentsdk.unregister_backend("tiny")
+
+
+@pytest.mark.usefixtures("tiny_registered")
+class TestTinyBackend(BackendConformance):
+    backend = "tiny"
+    robot = "arm3"
+
+
+# -------------------------------------------------- the kit must be able to fail
+BROKEN = '''
+import threading
+import numpy as np
+import agentsdk
+from agentsdk.testing import BackendConformance
+from tiny_backend import TinyController
+
+
+class IgnoresVelocity(TinyController):
+    name = "ignores_velocity"
+
+    def _write(self, sp):
+        super()._write(sp)
+        self._sp.velocity[:] = 0.0
+        self._sp.kd[self._sp.kp == 0] = 0.0   # velocity commands do nothing
+
+
+class LeaksAfterClose(TinyController):
+    name = "leaks"
+
+    async def _open(self):
+        await super()._open()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._stop.wait, name="leaky-poller", daemon=True)
+        self._thread.start()
+
+    async def _close(self):
+        pass          # forgets to stop its thread
+
+
+agentsdk.register_backend("ignores_velocity", IgnoresVelocity)
+agentsdk.register_backend("leaks", LeaksAfterClose)
+
+
+class TestIgnoresVelocity(BackendConformance):
+    backend = "ignores_velocity"
+    settle_time = 0.5
+
+
+class TestLeaks(BackendConformance):
+    backend = "leaks"
+'''
+
+
+def test_kit_fails_broken_backends(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(tiny_backend=(Path(__file__).parent / "tiny_backend.py").read_text())
+    pytester.makepyfile(test_broken=BROKEN)
+    pytester.makeini("[pytest]\nasyncio_mode = auto\nasyncio_default_fixture_loop_scope = function\n")
+    result = pytester.runpytest_subprocess("test_broken.py", "-q", "-p", "no:cacheprovider")
+    outcomes = result.parseoutcomes()
+    assert outcomes.get("failed", 0) == 2, result.stdout.str()
+    result.stdout.fnmatch_lines_random([
+        "*FAILED test_broken.py::TestIgnoresVelocity::test_velocity_mode_reaches_target*",
+        "*FAILED test_broken.py::TestLeaks::test_close_is_idempotent_and_later_calls_raise*",
+    ])

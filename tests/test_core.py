@@ -90,7 +90,7 @@ async def test_unknown_robot_lists_known_ones() -> None:
 async def test_malformed_urdf(tmp_path: Path) -> None:
     bad = tmp_path / "bad.urdf"
     bad.write_text("<robot name='x'><link name='a'></robot>")
-    with pytest.raises(agentsdk.DescriptionError, match="bad.urdf"):
+    with pytest.raises(agentsdk.DescriptionError, match=r"bad\.urdf"):
         async with agentsdk.connect("mujoco", robot=bad):
             pass
 

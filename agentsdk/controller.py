@@ -511,20 +511,34 @@ class Controller(ABC):
         return JointState(self.names, st.position.copy(), st.velocity.copy(), st.effort.copy(), self.stamp)
 
 
+#: lockstep control loops currently settling, per event loop (their own yields are not "work")
+_settling: dict[asyncio.AbstractEventLoop, int] = {}
+
+
 async def _settle(loop: asyncio.AbstractEventLoop) -> None:
     """Yield until no other task on the loop is ready to run.
 
     Lockstep time may only advance when every task is waiting. CPython's event
     loop keeps its ready queue in ``_ready``; where that is absent we fall back
-    to yielding a fixed number of times.
+    to yielding a fixed number of times. Several lockstep robots on one loop
+    each yield here: their settle steps are discounted, or they would keep each
+    other spinning.
     """
-    await asyncio.sleep(0)
-    ready = getattr(loop, "_ready", None)
-    if ready is None:
-        for _ in range(64):
-            await asyncio.sleep(0)
-        return
-    spins = 0
-    while ready and spins < 100_000:
+    _settling[loop] = _settling.get(loop, 0) + 1
+    try:
         await asyncio.sleep(0)
-        spins += 1
+        ready = getattr(loop, "_ready", None)
+        if ready is None:
+            for _ in range(64):
+                await asyncio.sleep(0)
+            return
+        spins = 0
+        while len(ready) > _settling[loop] - 1 and spins < 100_000:
+            await asyncio.sleep(0)
+            spins += 1
+    finally:
+        n = _settling[loop] - 1
+        if n:
+            _settling[loop] = n
+        else:
+            del _settling[loop]

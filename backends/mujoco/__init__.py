@@ -83,6 +83,12 @@ class MujocoController(Controller):
             root = spec.worldbody.first_body()
             if root is not None:
                 root.add_freejoint()
+        else:
+            # MuJoCo fuses links fixed to the world into the world body, and its
+            # parent/child contact filter does not apply to the world: restore the
+            # URDF convention that adjacent links do not collide.
+            for body in spec.worldbody.bodies:
+                spec.add_exclude(bodyname1="world", bodyname2=body.name)
         for j in self.joints:
             sj = spec.joint(j.name)
             if sj is None:

@@ -37,6 +37,7 @@ from .errors import (
     UnknownJointError,
     UnsupportedModeError,
 )
+from .feedback import FeedbackAgent, LoopStats, run_feedback
 from .motion import Feedback, Motion, MotionResult, ResultCode, Tolerances
 from .registry import available_backends, load_backend, register_backend, unregister_backend
 from .robot import Robot, connect
@@ -62,12 +63,14 @@ __all__ = [
     "DescriptionError",
     "EStopActive",
     "Feedback",
+    "FeedbackAgent",
     "InvalidValueError",
     "JointCommand",
     "JointInfo",
     "JointState",
     "LimitViolation",
     "LockstepClock",
+    "LoopStats",
     "Motion",
     "MotionResult",
     "RealtimeClock",
@@ -94,5 +97,6 @@ __all__ = [
     "load_backend",
     "load_robot_config",
     "register_backend",
+    "run_feedback",
     "unregister_backend",
 ]

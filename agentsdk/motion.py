@@ -225,8 +225,18 @@ class MotionManager:
             ex = self._owner[j]
             if ex is not None and len(ex.des_q):
                 m = int(np.flatnonzero(ex.idx == j)[0])
-                q[k], v[k], a[k] = ex.des_q[m], ex.des_v[m], ex.des_a[m]
+                eq, ev, ea = self._desired_next(ex)
+                q[k], v[k], a[k] = eq[m], ev[m], ea[m]
         return q, v, a
+
+    def _desired_next(self, ex: _Exec) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Desired (q, v, a) of ``ex`` at the next tick (``ctl.stamp``), not at the last one (``ex.des_*``).
+
+        A trajectory or stop ramp started now starts at ``ctl.stamp`` from this state, so the
+        desired motion continues seamlessly; starting it from the last tick's state would
+        repeat that position for one tick (a stall of v*dt while the desired velocity says v).
+        """
+        return ex.sampler.sample(self.ctl.stamp)
 
     # ------------------------------------------------------------- start
     def follow(self, traj: Trajectory, tolerances: Tolerances | None) -> Motion:
@@ -298,7 +308,7 @@ class MotionManager:
             self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
             if len(rest):
                 # joints the new trajectory does not cover come to rest smoothly
-                self._start_ramp(rest, q, v, a, None, None, "")
+                self._start_ramp(rest, q, v, a, None, "")
 
     # ----------------------------------------------------------- stopping
     def _request_stop(self, motion: Motion, code: ResultCode, msg: str) -> None:
@@ -310,7 +320,7 @@ class MotionManager:
     def _begin_stop(self, ex: _Exec, code: ResultCode, msg: str) -> None:
         if ex.phase == "stopping":
             return
-        q, v, a = ex.des_q.copy(), ex.des_v.copy(), ex.des_a.copy()
+        q, v, a = self._desired_next(ex)
         joints = [self.ctl.joints[i] for i in ex.idx.tolist()]
         stop = plan_stop(q, v, a, joints, decel_scale=self.safety.config.stop_deceleration_scale)
         ex.sampler = TrajectorySampler(stop, start_time=self.ctl.stamp, start_positions=q, start_velocities=v,
@@ -407,8 +417,11 @@ class MotionManager:
         m = ex.motion
         if m is not None:
             dur = ex.sampler.duration
-            m._feedback = Feedback(t, m.joint_names, q, v, actual.copy(), st.velocity[idx].copy(), err,
-                                   min(1.0, (t - ex.t0) / dur) if dur > 0 else 1.0)
+            if ex.phase == "stopping":  # the stop ramp is not progress along the trajectory: keep the last value
+                progress = m._feedback.progress if m._feedback is not None else 0.0
+            else:
+                progress = min(1.0, (t - ex.t0) / dur) if dur > 0 else 1.0
+            m._feedback = Feedback(t, m.joint_names, q, v, actual.copy(), st.velocity[idx].copy(), err, progress)
         elapsed = t - ex.t0
         if ex.phase == "follow":
             over = np.abs(err) > ex.path_tol

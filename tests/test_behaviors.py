@@ -1,0 +1,76 @@
+"""Every shipped behavior runs to completion through the CLI, in lockstep, on mock and MuJoCo.
+
+The CLI runs its own event loop (``asyncio.run``), so these tests are synchronous.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+import agentsdk.robot
+from agentsdk.cli import load_behavior
+from agentsdk.cli import main as cli_main
+
+BEHAVIORS_DIR = Path(__file__).resolve().parents[1] / "behaviors"
+BEHAVIORS = sorted(p for p in BEHAVIORS_DIR.glob("*.py") if p.name != "__init__.py")
+BACKENDS = ["mock", "mujoco"]
+#: the event-loop stall watchdog measures wall time; on a loaded test machine a lockstep run can be
+#: starved for its default 0.25 s without anything being wrong, so it gets more slack here
+SAFETY = {"stall_timeout": 5.0}
+
+
+@pytest.fixture(autouse=True)
+def connections(monkeypatch: pytest.MonkeyPatch) -> list[tuple[str, Any]]:
+    """Record (backend, robot) of every connect() the CLI makes."""
+    seen: list[tuple[str, Any]] = []
+    real = agentsdk.robot.connect
+
+    def recording(backend: str = "mujoco", robot: Any = "arm3", **kw: Any) -> Any:
+        seen.append((backend, robot))
+        kw.setdefault("safety", SAFETY)
+        return real(backend, robot, **kw)
+
+    monkeypatch.setattr(agentsdk.robot, "connect", recording)
+    return seen
+
+
+def test_every_behavior_is_collected() -> None:
+    names = {p.stem for p in BEHAVIORS}
+    assert {"pick_place", "patrol", "track", "humanoid_wave"} <= names
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("path", BEHAVIORS, ids=lambda p: p.stem)
+def test_behavior_runs(path: Path, backend: str, connections: list[tuple[str, Any]]) -> None:
+    assert cli_main(["run", str(path), "--backend", backend, "--quiet"]) == 0
+    expected_robot = getattr(load_behavior(str(path)), "ROBOT", "arm3")
+    assert connections == [(backend, expected_robot)]
+
+
+def test_humanoid_wave_defaults_to_the_humanoid(connections: list[tuple[str, Any]]) -> None:
+    assert load_behavior(str(BEHAVIORS_DIR / "humanoid_wave.py")).ROBOT == "humanoid"
+    assert cli_main(["run", str(BEHAVIORS_DIR / "humanoid_wave.py"), "--backend", "mock", "--quiet"]) == 0
+    assert connections == [("mock", "humanoid")]
+
+
+def test_track_reports_timing(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["run", str(BEHAVIORS_DIR / "track.py"), "--backend", "mock", "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "timing:" in out and "missed deadlines 0" in out and "2000 periods" in out
+
+
+def test_patrol_fault_state_gives_up_on_a_stuck_joint(capsys: pytest.CaptureFixture[str]) -> None:
+    path = str(BEHAVIORS_DIR / "patrol.py")
+    assert cli_main(["run", path, "--backend", "mock", "-o", "frozen_joints=[joint2]", "--quiet"]) == 1
+    captured = capsys.readouterr()
+    assert "fault #3" in captured.out and "'failed'" in captured.out
+    assert "patrol failed" in captured.err
+
+
+def test_patrol_graph(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["graph", str(BEHAVIORS_DIR / "patrol.py")]) == 0
+    out = capsys.readouterr().out
+    assert "stateDiagram-v2" in out and "moving --> fault : timeout" in out

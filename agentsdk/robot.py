@@ -116,6 +116,7 @@ class Robot:
                     "cancel it (motion.cancel()) before sending direct commands"
                 )
             values = self.safety.limit_command(cmd.mode, idx, values)
+            vel, eff = self.safety.limit_feedforward(idx, vel, eff)
             ctl.apply(cmd.mode, idx, values, vel, eff)
             self.safety.feed(cmd.mode, idx)
             applied = {ctl.names[i]: float(v) for i, v in zip(idx.tolist(), values.tolist(), strict=True)}

@@ -44,7 +44,14 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .controller import MODE_CODES, Controller, Setpoint, StateBuffer
-from .errors import ConfigurationError, EStopActive, InvalidValueError, LimitViolation, SafetyFault
+from .errors import (
+    ConfigurationError,
+    EStopActive,
+    InvalidValueError,
+    LimitViolation,
+    RobotClosedError,
+    SafetyFault,
+)
 from .types import MODES, CommandMode
 
 if TYPE_CHECKING:
@@ -128,6 +135,10 @@ class SafetyLayer:
         self._cause: BaseException | None = None
         self._latched = threading.Event()  # set from any thread
         self._latch_lock = threading.Lock()
+        #: lowest stop category latched since the last reset (None: not latched)
+        self._latch_category: int | None = None
+        #: the loop side has taken over the current latch (see _enforce_latch)
+        self._latch_handled = False
         self._pending_thread_events: deque[SafetyEvent] = deque()
         self.stall_traceback: str | None = None
         self.motions: MotionManager | None = None
@@ -148,9 +159,19 @@ class SafetyLayer:
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
         self._fed = np.zeros(n)  # robot time of the last command per joint
         self._written = ctl.state.position.copy()
+        #: goal of a direct position command being ramped (max_position_step), per joint
         self._goal = ctl.setpoint.position.copy()
+        self._ramping = np.zeros(n, dtype=bool)
+        #: joints put on hold by the command watchdog (not watched again until commanded)
+        self._held = np.zeros(n, dtype=bool)
+        self._vmax = np.where(np.isnan(ctl.max_velocity), np.inf, ctl.max_velocity)
+        self._emax = np.where(np.isnan(ctl.max_effort), np.inf, ctl.max_effort)
         self._last_warn: dict[tuple[str, int], float] = {}
-        self._stop_task: asyncio.Task[None] | None = None
+        self._stop_tasks: set[asyncio.Task[None]] = set()
+        #: the controlled stop (category 1 or 2) in progress and the category its end state follows
+        self._ramp_stop: asyncio.Task[None] | None = None
+        self._ramp_category = 2
+        self._fault_waiters: set[asyncio.Future[BaseException]] = set()
         # stall watchdog
         self._beat = time.monotonic()
         self._beat_handle: asyncio.TimerHandle | None = None
@@ -187,14 +208,17 @@ class SafetyLayer:
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._thread = None
-        if self._stop_task is not None and not self._stop_task.done():
-            self._stop_task.cancel()
+        for task in list(self._stop_tasks):
+            task.cancel()
 
     # --------------------------------------------------------------- state
     @property
     def state(self) -> SafetyState:
-        if self._latched.is_set() and self._state not in (SafetyState.ESTOP, SafetyState.FAULT):
-            self._state = SafetyState.ESTOP  # latched from another thread
+        # no side effect here: the loop side must still see a latch set from another thread
+        if self._state is SafetyState.FAULT:
+            return SafetyState.FAULT
+        if self._latched.is_set():
+            return SafetyState.ESTOP  # possibly latched from another thread, not handled yet
         return self._state
 
     @property
@@ -226,6 +250,7 @@ class SafetyLayer:
 
     # -------------------------------------------------------------- limits
     def _warn(self, kind: str, j: int, msg: str) -> None:
+        """Log a warning at most once per ``warn_interval`` (wall time) per (kind, joint)."""
         now = time.monotonic()
         key = (kind, j)
         if now - self._last_warn.get(key, -1e9) >= self.config.warn_interval:
@@ -248,7 +273,14 @@ class SafetyLayer:
             what, unit = "effort", "N·m"
         out = np.clip(values, lo, hi)
         bad = out != values
-        if mode == "position" and self._step is not None and self.config.limit_policy == "reject":
+        reject = self.config.limit_policy == "reject"
+        if reject and bad.any():
+            k = int(np.argmax(bad))
+            raise LimitViolation(
+                f"{what} command {values[k]:.4g} {unit} for joint {ctl.names[int(idx[k])]!r} is outside "
+                f"[{lo[k]:.4g}, {hi[k]:.4g}]"
+            )
+        if mode == "position" and self._step is not None and reject:
             jump = np.abs(values - self._written[idx]) > self._step[idx] + 1e-12
             if jump.any():
                 k = int(np.argmax(jump))
@@ -260,22 +292,67 @@ class SafetyLayer:
                 )
         if not bad.any():
             return values
-        for k in np.flatnonzero(bad).tolist():
-            j = int(idx[k])
-            name = ctl.names[j]
-            msg = (
-                f"{what} command {values[k]:.4g} {unit} for joint {name!r} is outside "
-                f"[{lo[k]:.4g}, {hi[k]:.4g}]"
-            )
-            if self.config.limit_policy == "reject":
-                raise LimitViolation(msg)
-            self.record("clamp", f"{msg}; clamped to {out[k]:.4g}", name)
-            self._warn("clamp", j, msg + "; clamped")
+        self._record_clamps(what, unit, idx, values, out, lo, hi)
         return out
 
+    def _record_clamps(
+        self, what: str, unit: str, idx: np.ndarray, values: np.ndarray, out: np.ndarray, lo: Any, hi: Any
+    ) -> None:
+        lo = np.broadcast_to(lo, values.shape)
+        hi = np.broadcast_to(hi, values.shape)
+        for k in np.flatnonzero(out != values).tolist():
+            j = int(idx[k])
+            name = self.ctl.names[j]
+            msg = f"{what} command {values[k]:.4g} {unit} for joint {name!r} is outside [{lo[k]:.4g}, {hi[k]:.4g}]"
+            self.record("clamp", f"{msg}; clamped to {out[k]:.4g}", name)
+            self._warn(f"clamp {what}", j, msg + "; clamped")
+
+    def limit_feedforward(
+        self, idx: np.ndarray, velocity: np.ndarray | None, effort: np.ndarray | None
+    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Check position-mode feed-forward terms against the velocity and effort limits.
+
+        Same policy as :meth:`limit_command`: clamp (and record) or raise :class:`LimitViolation`.
+        """
+        out: list[np.ndarray | None] = []
+        for what, unit, arr, lim in (
+            ("velocity feed-forward", "rad/s", velocity, self._vmax),
+            ("effort feed-forward", "N·m", effort, self._emax),
+        ):
+            if arr is None:
+                out.append(None)
+                continue
+            hi = lim[idx]
+            clipped = np.clip(arr, -hi, hi)
+            bad = clipped != arr
+            if bad.any():
+                if self.config.limit_policy == "reject":
+                    k = int(np.argmax(bad))
+                    raise LimitViolation(
+                        f"{what} {arr[k]:.4g} {unit} for joint {self.ctl.names[int(idx[k])]!r} is outside "
+                        f"[{-hi[k]:.4g}, {hi[k]:.4g}]"
+                    )
+                self._record_clamps(what, unit, idx, arr, clipped, -hi, hi)
+                arr = clipped
+            out.append(arr)
+        return out[0], out[1]
+
     def feed(self, mode: CommandMode, idx: np.ndarray) -> None:
-        """A command was applied to these joints: refresh the command watchdog."""
+        """A command was applied to these joints: refresh the command watchdog, start position ramps.
+
+        A direct position command becomes the *goal* of a ramp limited to
+        ``max_position_step`` per cycle; the setpoint keeps showing where the
+        ramp is, so a stop started before the next tick starts from there.
+        """
         self._fed[idx] = self.ctl.stamp
+        self._held[idx] = False
+        if mode == "position":
+            sp = self.ctl.setpoint
+            self._goal[idx] = sp.position[idx]
+            sp.position[idx] = self._written[idx]
+            self._ramping[idx] = True
+        else:
+            self._ramping[idx] = False
         if self._state is SafetyState.HOLD:
             self._state = SafetyState.OK
             self.record("resume", "command received; leaving HOLD")
@@ -292,29 +369,42 @@ class SafetyLayer:
 
     # ---------------------------------------------------------- per cycle
     def _filter(self, t: float, st: StateBuffer, sp: Setpoint) -> None:
-        """Setpoint filter, every tick: keep position setpoints in limits and ramp their steps."""
-        if self._latched.is_set():
-            self._enforce_latch(sp)
+        """Setpoint filter, every tick: keep position setpoints in limits and ramp their steps.
+
+        A joint with a direct position command ramps towards its goal (see :meth:`feed`);
+        every other position-mode joint (trajectory, stop ramp, hold) is limited to what
+        its writer put in the setpoint for this cycle. Feed-forward terms are clipped to
+        the velocity and effort limits as a backstop.
+        """
+        if self._latched.is_set() and not self._latch_handled:
+            self._enforce_latch()
         pos_mode = (sp.mode == _POS) & sp.enabled
         written = self._written
         # joints not in position mode track the measured position (bumpless switch)
         np.copyto(written, st.position, where=~pos_mode)
-        goal = self._goal
-        np.copyto(goal, sp.position, where=sp.position != written)
-        np.clip(goal, self._lo, self._hi, out=goal)
-        if self._step is not None:
-            np.clip(goal, written - self._step, written + self._step, out=sp.position, where=pos_mode)
-        else:
-            np.copyto(sp.position, goal, where=pos_mode)
-        np.copyto(written, sp.position, where=pos_mode)
+        ramping = self._ramping
+        ramping &= pos_mode
+        if self.motions is not None:
+            ramping &= ~self.motions.owned_mask
+        target = np.where(ramping, self._goal, sp.position)
+        np.clip(target, self._lo, self._hi, out=target)
+        out = np.clip(target, written - self._step, written + self._step) if self._step is not None else target
+        np.copyto(sp.position, out, where=pos_mode)
+        ramping &= out != target
+        np.copyto(written, out, where=pos_mode)
+        np.clip(sp.velocity, -self._vmax, self._vmax, out=sp.velocity)
+        np.clip(sp.effort, -self._emax, self._emax, out=sp.effort)
 
     def _on_tick(self, t: float, st: StateBuffer) -> None:
         if self._pending_thread_events:
             self._drain_thread_events()
-        if self._state is not SafetyState.OK:
-            return
         sp = self.ctl.setpoint
-        streamed = self._watched[sp.mode] & sp.enabled
+        # the ramp origin of joints outside position mode is their fresh measurement
+        np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
+        if self._state is not SafetyState.OK and self._state is not SafetyState.HOLD:
+            return
+        # in HOLD too: another joint's stream may go stale while the first one is held
+        streamed = self._watched[sp.mode] & sp.enabled & ~self._held
         if not streamed.any():
             return
         if self.motions is not None:
@@ -323,6 +413,7 @@ class SafetyLayer:
         if stale.any():
             idx = np.flatnonzero(stale)
             self._hold(idx)
+            self._held[idx] = True
             self._state = SafetyState.HOLD
             names = ", ".join(self.ctl.names[i] for i in idx.tolist())
             self.record("watchdog", f"no command for {self.config.command_timeout:g} s; holding {names}")
@@ -343,49 +434,152 @@ class SafetyLayer:
     def _on_fault(self, exc: BaseException) -> None:
         self._state = SafetyState.FAULT
         self._cause = exc
+        self._ramping[:] = False
         self.record("fault", str(exc))
         if self.motions is not None:
             self.motions.fail_all(exc)
+        for fut in self._fault_waiters:
+            if not fut.done():
+                fut.set_result(exc)
 
     # --------------------------------------------------------------- e-stop
     def _latch(self, category: int, source: str) -> bool:
         """Latch the e-stop (any thread). Returns False if it was already latched."""
         with self._latch_lock:
             first = not self._latched.is_set()
+            if self._latch_category is None or category < self._latch_category:
+                self._latch_category = category
             self._latched.set()
         return first
 
-    def _enforce_latch(self, sp: Setpoint) -> None:
-        """On the loop side: once latched, nothing but stop ramps may drive the joints."""
-        if self._state not in (SafetyState.ESTOP, SafetyState.FAULT):
+    def _enforce_latch(self) -> None:
+        """Loop side, once per latch set from another thread (stall watchdog, estop_threadsafe).
+
+        Category 0: torque is already off; running motions end ABORTED. Categories 1
+        and 2: the stop task scheduled on the loop decelerates them (no freeze here).
+        """
+        self._latch_handled = True
+        if self._state is not SafetyState.FAULT:
             self._state = SafetyState.ESTOP
+        if self._latch_category == 0:
+            self._ramping[:] = False
             if self.motions is not None:
                 self.motions.abort_all("e-stop")
 
+    def _begin_stop(self, category: int, source: str) -> asyncio.Task[None]:
+        """Loop side: latch, record and start the stop task of ``category``.
+
+        A controlled stop already in progress is joined, not restarted (restarting its
+        ramp would end the first one early, at speed); a category 1 request makes it end
+        with torque off, a category 0 request removes torque at once.
+        """
+        self._latch(category, source)
+        self._latch_handled = True
+        if self._state is not SafetyState.FAULT:
+            self._state = SafetyState.ESTOP
+        self.record("estop", f"category {category} requested" + ("" if source == "api" else f" ({source})"))
+        running = self._ramp_stop
+        if category != 0 and running is not None and not running.done():
+            self._ramp_category = min(self._ramp_category, category)
+            return running
+        task = asyncio.get_running_loop().create_task(self._stop(category), name=f"agentsdk-estop-{category}")
+        self._stop_tasks.add(task)
+        task.add_done_callback(self._stop_tasks.discard)
+        if category != 0:
+            self._ramp_stop = task
+            self._ramp_category = category
+        return task
+
     async def estop(self, category: int = 1) -> None:
-        """Latch an e-stop of the given category and wait until its end state is reached."""
+        """Latch an e-stop of the given category and wait until its end state is reached.
+
+        The stop runs in its own task: cancelling the caller does not interrupt it.
+        """
         if category not in (0, 1, 2):
             raise InvalidValueError(f"stop category must be 0, 1 or 2 (IEC 60204-1), got {category!r}")
-        self._latch(category, "api")
-        self._state = SafetyState.ESTOP if self._state is not SafetyState.FAULT else self._state
-        self.record("estop", f"category {category} requested")
-        motions = self.motions
-        if motions is not None:
-            motions.abort_all("e-stop")
+        task = self._begin_stop(category, "api")
+        try:
+            await asyncio.shield(task)
+        except asyncio.CancelledError:
+            me = asyncio.current_task()
+            if task.cancelled() and (me is None or not me.cancelling()):
+                raise RobotClosedError("robot closed during the e-stop (actuators left safe by close)") from None
+            raise
+
+    def _stop_time_bound(self) -> float:
+        """Robot seconds a controlled stop may take before the safety layer stops waiting for rest."""
+        scale = self.config.stop_deceleration_scale
+        acc = np.array([j.max_acceleration for j in self.ctl.joints]) * scale
+        jerk = np.array([j.max_jerk for j in self.ctl.joints])
+        t = self._vmax / acc + acc / jerk
+        t = t[np.isfinite(t)]
+        return 2.0 * float(t.max()) + 0.5 if t.size else 5.0
+
+    async def _stop(self, category: int) -> None:
         ctl = self.ctl
-        if category == 0:
+        motions = self.motions
+        ramping = self._ramping.copy()
+        self._ramping[:] = False
+        if category == 0 or motions is None or ctl.fault is not None or ctl.closed:
+            if motions is not None:
+                motions.abort_all("e-stop")
             self._torque_off()
+            if category != 0:
+                self.record("estop", f"category {category}: control loop not running; torque removed")
             return
-        if motions is None:  # pragma: no cover - Robot always wires motions
-            self._torque_off()
+        damp_only = "position" not in ctl.capabilities.modes
+        if damp_only:
+            motions.abort_all("e-stop")
+        elif ramping.any():
+            # joints ramping to a direct position goal stop from where the ramp would be at
+            # the next tick, at the ramp's velocity (not from rest: that would be a step)
+            sp = ctl.setpoint
+            step = self._step if self._step is not None else np.inf
+            nxt = np.clip(np.clip(self._goal, self._lo, self._hi), self._written - step, self._written + step)
+            np.copyto(sp.velocity, (nxt - self._written) / ctl.period, where=ramping)
+            np.copyto(sp.position, nxt, where=ramping)
+        # running motions are not aborted first: the stop ramp starts from their desired state
+        loop = asyncio.get_running_loop()
+        fault: asyncio.Future[BaseException] = loop.create_future()
+        self._fault_waiters.add(fault)
+        bound = self._stop_time_bound()
+        ramp = loop.create_task(motions.stop_all_ramp(damp_only=damp_only), name="agentsdk-stop-ramp")
+        timer = loop.create_task(ctl.clock.sleep(bound), name="agentsdk-stop-bound")
+        try:
+            await asyncio.wait({ramp, fault, timer}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            self._fault_waiters.discard(fault)
+            for t in (ramp, timer):
+                t.cancel()
+            await asyncio.gather(ramp, timer, return_exceptions=True)
+        if fault.done() or ctl.fault is not None:
+            # the control loop died during the stop; it removed torque itself (category 0)
+            self.record("estop", f"category {category}: interrupted by a fault; torque removed")
             return
-        await motions.stop_all_ramp(damp_only="position" not in ctl.capabilities.modes)
+        if ramp.cancelled() or ramp.exception() is not None:
+            self.record("estop", f"category {category}: not at rest after {bound:g} s; ending the stop anyway")
+            log.warning("e-stop category %d: joints not at rest after %g s", category, bound)
+        category = min(category, self._ramp_category)  # escalated while stopping
         if category == 1:
             self._torque_off()
             self.record("estop", "category 1: stopped, torque removed")
         else:
-            ctl.hold_current()
+            self._hold_where_stopped()
             self.record("estop", "category 2: stopped, holding with torque on")
+
+    def _hold_where_stopped(self) -> None:
+        """End of a category 2 stop: hold with torque on at the stop ramp's final desired position.
+
+        (Re-targeting to the measured position instead would step the setpoint by the
+        servo's tracking error, e.g. the gravity sag, and let the joint sag further.)
+        """
+        ctl = self.ctl
+        sp = ctl.setpoint
+        pos = (sp.mode == _POS) & sp.enabled
+        keep = sp.position.copy()
+        ctl.hold_current()
+        np.copyto(sp.position, keep, where=pos)
+        np.copyto(ctl.target, keep, where=pos)
 
     def _torque_off(self) -> None:
         ctl = self.ctl
@@ -397,37 +591,48 @@ class SafetyLayer:
 
     def estop_threadsafe(self, category: int = 0) -> None:
         """Latch an e-stop from any thread. Category 0 acts at once in the calling thread;
-        categories 1 and 2 are scheduled on the robot's event loop."""
+        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone)."""
         if category not in (0, 1, 2):
             raise InvalidValueError(f"stop category must be 0, 1 or 2 (IEC 60204-1), got {category!r}")
-        self._latch(category, "thread")
-        if category == 0 or self._loop is None or self._loop.is_closed():
-            self.ctl.emergency_stop(0)
-            self._pending_thread_events.append(SafetyEvent(self.ctl.stamp, "estop", None, "category 0 (threadsafe)"))
-            return
         loop = self._loop
+        if category != 0 and loop is not None and not loop.is_closed() and not self.ctl.closed:
+            self._latch(category, "thread")
 
-        def _start() -> None:
-            self._stop_task = loop.create_task(self.estop(category))
+            def _start() -> None:
+                if not self.ctl.closed:
+                    self._begin_stop(category, "threadsafe")
 
-        loop.call_soon_threadsafe(_start)
+            try:
+                loop.call_soon_threadsafe(_start)
+                return
+            except RuntimeError:  # the loop closed meanwhile: stop here
+                pass
+        self._latch(0, "thread")
+        if self.ctl.closed:
+            return
+        self.ctl.emergency_stop(0)
+        self._pending_thread_events.append(
+            SafetyEvent(self.ctl.stamp, "estop", None, f"category {category} (threadsafe): torque removed at once")
+        )
 
     async def reset(self) -> None:
         """Clear the latch (ESTOP -> DISABLED) or recover a FAULT. Never moves the robot."""
-        if self._stop_task is not None and not self._stop_task.done():
-            await self._stop_task
+        if self._stop_tasks:
+            # a stop in progress completes first
+            await asyncio.gather(*self._stop_tasks, return_exceptions=True)
         if self._state is SafetyState.FAULT:
             await self.ctl.recover()
             self._cause = None
         with self._latch_lock:
             self._latched.clear()
+            self._latch_category = None
+        self._latch_handled = False
         self.stall_traceback = None
-        ctl = self.ctl
+        self._ramping[:] = False
         # stay exactly as the stop left us: torque off stays off, a hold keeps holding
         self._state = SafetyState.DISABLED
         self._beat = time.monotonic()
         self.record("reset", "latch cleared; call enable() to allow motion")
-        _ = ctl
 
     async def enable(self) -> None:
         """Allow motion again: hold the current position with torque on (ESTOP must be reset first)."""
@@ -440,6 +645,8 @@ class SafetyLayer:
         ctl.hold_current()
         self._written = ctl.state.position.copy()
         self._goal = self._written.copy()
+        self._ramping[:] = False
+        self._held[:] = False
         self._fed[:] = ctl.stamp
         self._state = SafetyState.OK
         self.record("enable", "motion enabled; holding current position")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import tempfile
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import mujoco
 import numpy as np
@@ -161,15 +161,18 @@ class MujocoController(Controller):
 
     async def _step(self, dt: float) -> None:
         m, d = self.model, self.data
+        t0 = d.time
         mujoco.mj_step(m, d, nstep=self._nsub)
         w = d.warning
         for k, code in enumerate(_WARNINGS):
             n = w[code].number
             if n != self._warn[k]:
                 self._warn[k] = n
+                # MuJoCo has already reset the state: report the time before this step
+                # and the dof it flagged (lastinfo), not the reset values
                 raise SimulationDiverged(
-                    f"MuJoCo simulation of {self.description.name!r} diverged at t={d.time:.4f} s "
-                    f"({mujoco.mjtWarning(code).name}, e.g. {_dof_hint(m, d)}); "
+                    f"MuJoCo simulation of {self.description.name!r} diverged in the step after "
+                    f"t={t0:.4f} s ({mujoco.mjtWarning(code).name} at dof {w[code].lastinfo}); "
                     "lower the gains or the timestep"
                 )
         if not np.isfinite(d.qacc).all():
@@ -189,11 +192,6 @@ class MujocoController(Controller):
 
     async def _recover(self) -> None:
         self._reset_state()
-
-
-def _dof_hint(m: Any, d: Any) -> str:
-    i = int(np.argmax(np.abs(d.qacc))) if m.nv else 0
-    return f"dof {i} qacc={d.qacc[i]:.3g}" if m.nv else "no dofs"
 
 
 def _convert_mesh(path: Path) -> Path:

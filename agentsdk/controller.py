@@ -508,7 +508,7 @@ class Controller(ABC):
 
     def snapshot(self) -> JointState:
         st = self.state
-        return JointState(self.names, st.position.copy(), st.velocity.copy(), st.effort.copy(), self.stamp)
+        return JointState._trusted(self.names, st.position.copy(), st.velocity.copy(), st.effort.copy(), self.stamp)
 
 
 #: lockstep control loops currently settling, per event loop (their own yields are not "work")

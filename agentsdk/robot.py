@@ -119,8 +119,9 @@ class Robot:
             vel, eff = self.safety.limit_feedforward(idx, vel, eff)
             ctl.apply(cmd.mode, idx, values, vel, eff)
             self.safety.feed(cmd.mode, idx)
-            applied = {ctl.names[i]: float(v) for i, v in zip(idx.tolist(), values.tolist(), strict=True)}
-            return JointCommand(cmd.mode, applied)
+            names = ctl.names
+            applied = {names[i]: v for i, v in zip(idx.tolist(), values.tolist(), strict=True)}
+            return JointCommand._trusted(cmd.mode, applied)
 
     # ---------------------------------------------------------- trajectory
     def follow(self, trajectory: Trajectory, tolerances: Tolerances | None = None) -> Motion:

@@ -74,6 +74,19 @@ class JointState:
             if not (isinstance(arr, np.ndarray) and not arr.flags.writeable):
                 object.__setattr__(self, attr, _frozen(arr))
 
+    @classmethod
+    def _trusted(
+        cls, names: tuple[str, ...], position: FloatArray, velocity: FloatArray, effort: FloatArray, stamp: float
+    ) -> JointState:
+        """Build from private copies without re-validating (the control-loop hot path)."""
+        self = object.__new__(cls)
+        for attr, arr in (("position", position), ("velocity", velocity), ("effort", effort)):
+            arr.flags.writeable = False
+            object.__setattr__(self, attr, arr)
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "stamp", stamp)
+        return self
+
     def index(self, name: str) -> int:
         return self.names.index(name)
 
@@ -95,7 +108,13 @@ def _freeze_values(
     if values is None:
         return None
     if isinstance(values, Mapping):
-        out: dict[str, float] = {}
+        try:  # fast path; the loop below only runs to name the offending entry
+            out = {k: float(v) for k, v in values.items()}
+            if all(type(k) is str for k in out):
+                return MappingProxyType(out)
+        except (TypeError, ValueError):
+            pass
+        out = {}
         for k, v in values.items():
             if not isinstance(k, str):
                 raise InvalidValueError(f"{what}: joint names must be strings, got {k!r}")
@@ -107,7 +126,10 @@ def _freeze_values(
         seq = list(np.asarray(values, dtype=object).ravel()) if not isinstance(values, Sequence) else list(values)
     except TypeError as exc:
         raise InvalidValueError(f"{what}: expected a mapping or a sequence of floats, got {values!r}") from exc
-    return tuple(_as_float(v, f"{what}[{i}]") for i, v in enumerate(seq))
+    try:
+        return tuple(map(float, seq))
+    except (TypeError, ValueError):
+        return tuple(_as_float(v, f"{what}[{i}]") for i, v in enumerate(seq))
 
 
 def _as_float(v: object, where: str) -> float:
@@ -153,6 +175,16 @@ class JointCommand:
         object.__setattr__(self, "values", _freeze_values(values, "values"))
         object.__setattr__(self, "velocity", _freeze_values(velocity, "velocity"))
         object.__setattr__(self, "effort", _freeze_values(effort, "effort"))
+
+    @classmethod
+    def _trusted(cls, mode: CommandMode, values: Mapping[str, float]) -> JointCommand:
+        """Build an already-validated command without re-validating (the hot path)."""
+        self = object.__new__(cls)
+        object.__setattr__(self, "mode", mode)
+        object.__setattr__(self, "values", MappingProxyType(values))
+        object.__setattr__(self, "velocity", None)
+        object.__setattr__(self, "effort", None)
+        return self
 
     def __repr__(self) -> str:
         vals = dict(self.values) if isinstance(self.values, Mapping) else list(self.values)

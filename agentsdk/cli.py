@@ -1,6 +1,8 @@
 """The ``agentsdk`` command line.
 
 ``agentsdk run BEHAVIOR``       run ``async def main(robot)`` from a behavior script
+                                (``--record run.mcap``, ``--plot out.png``, ``--view``)
+``agentsdk replay RUN.mcap``    replay a recording's commands and report the divergence
 ``agentsdk robots``             list the shipped robots
 ``agentsdk describe ROBOT``     print the joint tree with types and limits (like check_urdf)
 ``agentsdk graph BEHAVIOR``     print the Mermaid diagram of the behavior's state machines
@@ -14,7 +16,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import importlib.util
+import json
 import logging
+import os
 import signal
 import sys
 import time
@@ -159,33 +163,179 @@ async def run_behavior(
 
 
 # ----------------------------------------------------------------- commands
-def _cmd_run(args: argparse.Namespace) -> int:
-    module = load_behavior(args.behavior)
-    robot = args.robot or getattr(module, "ROBOT", "arm3")
-    backend = args.backend or getattr(module, "BACKEND", "mujoco")
+def _has_display() -> bool:
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def _check_view(backend: str) -> None:
+    if backend not in ("mujoco", "pybullet"):
+        raise ConfigurationError(f"--view is available for the mujoco and pybullet backends, not {backend!r}")
+    if not _has_display():
+        raise ConfigurationError(
+            "--view needs a display, but neither DISPLAY nor WAYLAND_DISPLAY is set; "
+            "run without --view (use --record/--plot instead) or under a desktop session or xvfb-run"
+        )
+
+
+def _check_output(path: str | None, what: str) -> None:
+    if path is None:
+        return
+    p = Path(path)
+    if p.is_dir():
+        raise ConfigurationError(f"{what} {path} is a directory; give a file name")
+    if not p.resolve().parent.is_dir():
+        raise ConfigurationError(f"cannot write {what} {path}: directory {p.resolve().parent} does not exist")
+
+
+class _MujocoView:
+    """MuJoCo's passive viewer, synced from a tick hook at about 60 Hz of wall time."""
+
+    def __init__(self, robot: Any) -> None:
+        import mujoco.viewer
+
+        ctl = robot.controller
+        self._handle = mujoco.viewer.launch_passive(ctl.model, ctl.data)
+        self._last = 0.0
+        self._ctl = ctl
+        ctl.tick_hooks.append(self._on_tick)
+
+    def _on_tick(self, t: float, state: Any) -> None:
+        now = time.perf_counter()
+        if now - self._last >= 1 / 60 and self._handle.is_running():
+            self._last = now
+            self._handle.sync()
+
+    def close(self) -> None:
+        try:
+            self._ctl.tick_hooks.remove(self._on_tick)
+        except ValueError:
+            pass
+        self._handle.close()
+
+
+class _RunExtras:
+    """Recording, plot, progress bar and viewer around one run."""
+
+    def __init__(
+        self,
+        *,
+        record: str | None,
+        plot: str | None,
+        rate: float | None,
+        progress: bool,
+        view: bool,
+        label: str,
+        metadata: dict[str, str],
+        total: float | None = None,
+    ) -> None:
+        self.record, self.plot, self.rate = record, plot, rate
+        self.progress_on, self.view, self.label, self.metadata, self.total = progress, view, label, metadata, total
+        self.recorder: Any = None
+        self.progress: Any = None
+        self.viewer: Any = None
+        self.robot_desc = ""
+
+    def on_robot(self, bot: Any) -> None:
+        self.robot_desc = f"{bot.name} ({bot.backend})"
+        if self.record or self.plot:
+            from .recording import Recorder
+
+            self.recorder = Recorder.attach(bot, self.record, rate=self.rate, keep=bool(self.plot),
+                                            metadata=self.metadata)
+        if self.view and bot.backend == "mujoco":
+            self.viewer = _MujocoView(bot)
+        if self.progress_on:
+            from .progress import RunProgress
+
+            self.progress = RunProgress(bot.clock.now, label=self.label, total=self.total).start()
+
+    def close(self) -> list[str]:
+        """Stop the display, finish the recording, draw the plot; returns summary lines."""
+        lines: list[str] = []
+        if self.progress is not None:
+            self.progress.stop()
+        if self.viewer is not None:
+            self.viewer.close()
+        rec = self.recorder
+        if rec is None:
+            return lines
+        rec.finish()
+        if self.record:
+            counts = ", ".join(f"{k} {v}" for k, v in rec.counts.items())
+            lines.append(f"recorded {rec.ticks} ticks to {self.record} ({counts})")
+        if self.plot:
+            from .plot import plot_run
+
+            plot_run(rec.data(), self.plot)
+            lines.append(f"plot written to {self.plot}")
+        return lines
+
+
+def _options(items: list[str] | None) -> dict[str, Any]:
     options: dict[str, Any] = {}
-    for item in args.option or []:
+    for item in items or []:
         key, sep, value = item.partition("=")
         if not sep:
             raise ConfigurationError(f"--option expects KEY=VALUE, got {item!r}")
         options[key] = _parse_value(value)
+    return options
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from .progress import progress_enabled
+    from .recording import robot_spec_for_metadata
+
+    module = load_behavior(args.behavior)
+    robot = args.robot or getattr(module, "ROBOT", "arm3")
+    backend = args.backend or getattr(module, "BACKEND", "mujoco")
+    options = _options(args.option)
+    _check_output(args.record, "recording")
+    _check_output(args.plot, "plot")
+    if args.record_rate is not None and not (args.record or args.plot):
+        raise ConfigurationError("--record-rate needs --record or --plot")
+    if args.record_rate is not None and not args.record_rate > 0:
+        raise ConfigurationError(f"--record-rate must be > 0 Hz, got {args.record_rate:g}")
+    if args.view:
+        _check_view(backend)
+        if backend == "pybullet":
+            options.setdefault("gui", True)
+    behavior_name = Path(module.__file__ or args.behavior).name
+    extras = _RunExtras(
+        record=args.record,
+        plot=args.plot,
+        rate=args.record_rate,
+        progress=progress_enabled(args.quiet),
+        view=args.view,
+        label=f"{behavior_name} on {robot} ({backend})",
+        metadata={
+            "robot": robot_spec_for_metadata(robot),
+            "behavior": str(Path(module.__file__ or args.behavior).resolve()),
+            "backend_options": json.dumps(options, sort_keys=True, default=str),
+        },
+    )
     try:
         summary = asyncio.run(
             run_behavior(
                 module.main,
                 backend=backend,
                 robot=robot,
-                realtime=True if args.realtime else None,
+                realtime=True if (args.realtime or args.view) else None,
                 options=options,
+                on_robot=extras.on_robot,
                 install_signal_handlers=True,
             )
         )
     except KeyboardInterrupt:
+        _close_extras(extras, args.quiet)
         print("interrupted: robot stopped (category 1)", file=sys.stderr)
         return EXIT_INTERRUPTED
     except AgentSDKError:
+        _close_extras(extras, args.quiet)
         raise
     except Exception as exc:
+        _close_extras(extras, args.quiet)
         if args.debug:
             raise
         tb = traceback.extract_tb(exc.__traceback__)
@@ -194,10 +344,81 @@ def _cmd_run(args: argparse.Namespace) -> int:
         print(f"behavior failed: {type(exc).__name__}: {exc} (at {where}); robot stopped (category 1)",
               file=sys.stderr)
         return EXIT_BEHAVIOR_FAILED
+    except BaseException:
+        _close_extras(extras, True)
+        raise
+    lines = extras.close()
     if not args.quiet:
-        print(f"ran {Path(module.__file__ or args.behavior).name} on {robot} ({backend})")
-        for line in summary.lines():
+        print(f"ran {behavior_name} on {robot} ({backend})")
+        for line in [*summary.lines(), *lines]:
             print(line)
+    return 0
+
+
+def _close_extras(extras: _RunExtras, quiet: bool) -> None:
+    """Finish recording/plot after a failed run too (that is when they are most useful)."""
+    try:
+        lines = extras.close()
+    except AgentSDKError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return
+    if not quiet:
+        for line in lines:
+            print(line, file=sys.stderr)
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from .progress import progress_enabled
+    from .recording import read_recording, replay
+
+    _check_output(args.record, "recording")
+    _check_output(args.plot, "plot")
+    data = read_recording(args.recording)
+    backend = args.backend or data.backend or "mujoco"
+    robot = args.robot or data.robot
+    if args.tolerance is not None and not args.tolerance >= 0:
+        raise ConfigurationError(f"--tolerance must be >= 0, got {args.tolerance:g}")
+    extras = _RunExtras(
+        record=None,
+        plot=None,
+        rate=None,
+        progress=progress_enabled(args.quiet),
+        view=False,
+        label=f"replay {Path(args.recording).name}",
+        metadata={},
+        total=data.duration,
+    )
+    t_wall = time.perf_counter()
+    try:
+        result = asyncio.run(
+            replay(data, backend=backend, robot=robot, options=_options(args.option), record=args.record,
+                   on_robot=extras.on_robot)
+        )
+    finally:
+        extras.close()
+    wall = time.perf_counter() - t_wall
+    if args.plot:
+        from .plot import plot_run
+
+        result.replayed.metadata.setdefault("behavior", data.metadata.get("behavior", ""))
+        plot_run(result.replayed, args.plot, reference=data,
+                 title=f"replay of {Path(args.recording).name} into {robot} on {backend} (dashed: recorded)")
+    failed = args.tolerance is not None and result.worst > args.tolerance
+    if not args.quiet or failed:
+        source = Path(data.metadata.get("behavior") or "?").name
+        print(f"replayed {args.recording} ({source} on {data.robot or '?'}, {data.backend or '?'}, "
+              f"{data.duration:.3f} s) into {robot} ({backend}) in {wall:.2f} s wall time")
+        if result.config_changed:
+            print("warning: the robot configuration differs from the recorded one")
+        for line in result.lines():
+            print(line)
+        if args.record:
+            print(f"replay recorded to {args.record}")
+        if args.plot:
+            print(f"plot written to {args.plot}")
+    if failed:
+        print(f"divergence {result.worst:.3e} exceeds --tolerance {args.tolerance:g}", file=sys.stderr)
+        return EXIT_BEHAVIOR_FAILED
     return 0
 
 
@@ -269,8 +490,27 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--robot", default=None, help="robot name or path to .urdf/.xacro/robot.yaml")
     r.add_argument("--realtime", action="store_true", help="pace the simulation to the wall clock")
     r.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
-    r.add_argument("--quiet", "-q", action="store_true", help="no summary")
+    r.add_argument("--quiet", "-q", action="store_true", help="no summary, no progress bar")
     r.add_argument("--debug", action="store_true", help="show tracebacks")
+    r.add_argument("--record", metavar="RUN.mcap", help="record joint states, commands, safety events and "
+                   "state-machine transitions to an MCAP file (Foxglove-readable)")
+    r.add_argument("--record-rate", type=float, metavar="HZ",
+                   help="decimate recorded joint states to HZ (commands are always complete)")
+    r.add_argument("--plot", metavar="OUT.png", help="plot desired vs actual position per joint and the error")
+    r.add_argument("--view", action="store_true",
+                   help="show the simulation (MuJoCo viewer / PyBullet GUI; needs a display; implies --realtime)")
+
+    rp = sub.add_parser("replay", help="replay a recording's commands into a fresh robot and report divergence")
+    rp.add_argument("recording", help="an MCAP file written by `agentsdk run --record`")
+    rp.add_argument("--backend", default=None, help="backend to replay into (default: the recorded one)")
+    rp.add_argument("--robot", default=None, help="robot (default: the recorded one)")
+    rp.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
+    rp.add_argument("--record", metavar="OUT.mcap", help="record the replayed run")
+    rp.add_argument("--plot", metavar="OUT.png", help="plot the replayed run over the recorded one")
+    rp.add_argument("--tolerance", type=float, metavar="RAD",
+                    help="exit with status 1 if any joint diverges by more than RAD")
+    rp.add_argument("--quiet", "-q", action="store_true", help="no report, no progress bar")
+    rp.add_argument("--debug", action="store_true", help="show tracebacks")
 
     sub.add_parser("robots", help="list the shipped robots")
     d = sub.add_parser("describe", help="print a robot's joint tree and limits")
@@ -291,7 +531,13 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     debug = args.debug
     logging.basicConfig(level=logging.DEBUG if debug else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    handlers = {"run": _cmd_run, "robots": _cmd_robots, "describe": _cmd_describe, "graph": _cmd_graph}
+    handlers = {
+        "run": _cmd_run,
+        "replay": _cmd_replay,
+        "robots": _cmd_robots,
+        "describe": _cmd_describe,
+        "graph": _cmd_graph,
+    }
     try:
         return handlers[args.command](args)
     except AgentSDKError as exc:

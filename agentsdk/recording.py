@@ -1,0 +1,1004 @@
+"""Record runs to MCAP, read them back, and replay their commands into a fresh connection.
+
+    agentsdk run behaviors/wave.py --record run.mcap        # record
+    agentsdk replay run.mcap --backend mujoco               # replay + divergence report
+
+Channels (all ``jsonschema`` schemas, ``json`` message encoding)
+----------------------------------------------------------------
+
+=======================  =============================  ====================================================
+topic                    schema name                    content
+=======================  =============================  ====================================================
+``/joint_states``        ``sensor_msgs/msg/JointState``  measured state after every control tick (or
+                                                        decimated to ``record_rate`` Hz): ``header.stamp``
+                                                        {sec, nanosec}, ``name[]``, ``position[]``,
+                                                        ``velocity[]``, ``effort[]``
+``/joint_commands``      ``agentsdk/msg/JointCommand``   the servo setpoint actually written to the backend
+                                                        (after the safety layer): the JointState fields
+                                                        (desired position/velocity/effort) plus ``mode[]``
+                                                        ("position"/"velocity"/"effort"), ``enabled[]``,
+                                                        ``kp[]``, ``kd[]`` and ``target[]`` (the last
+                                                        commanded value before ramping)
+``/safety/events``       ``agentsdk/msg/SafetyEvent``    ``kind``, ``joint`` (or null), ``detail``
+``/behavior/transitions`` ``agentsdk/msg/Transition``    state-machine history records: ``machine``,
+                                                        ``source``, ``target``, ``event``, ``note``
+=======================  =============================  ====================================================
+
+A metadata record named ``agentsdk`` holds what replay needs: the robot (name,
+or absolute path of its robot.yaml/URDF), the backend and its options, the
+control period, the joint names, the validated robot.yaml content and the
+behavior script.
+
+Why JSON and not ROS 2 CDR: Foxglove decodes ``json`` channels natively from
+their JSON schema (plots of ``/joint_states.position[0]`` and
+``/joint_commands.position[0]`` work out of the box, with the same field paths
+as a ROS bag, since the messages are shaped like ``sensor_msgs/JointState``),
+``mcap cat --json`` prints them, every channel uses one code path, and the SDK
+needs no extra dependency.  The price: ``ros2 bag play`` cannot republish JSON
+channels; a ROS user who needs that can convert ``/joint_states`` to CDR with
+``mcap-ros2-support`` offline.  The command channel has no ROS message type
+anyway (``mode[]``, gains).
+
+Timing
+------
+Log time (and ``header.stamp``) is robot clock time in nanoseconds: simulated
+time in lockstep, time since connect in real time.  A ``/joint_states``
+message stamped ``t`` is the state measured at the end of the tick that
+started at ``t - period``; the ``/joint_commands`` message applied during that
+tick is stamped ``t - period`` (when it was written).
+
+``/joint_commands`` is change-based: a message is written at every tick whose
+setpoint differs from the previous tick's, at the tick just before each change
+(so a line plot shows holds as flat segments) and at the first and last tick
+of every buffer block; sample-and-hold reconstructs the setpoint of every tick
+exactly.  ``record_rate`` decimates ``/joint_states`` only: commands are never
+decimated, so a decimated recording still replays exactly.
+
+Cost on the control loop
+------------------------
+The recorder's tick hook copies a few numpy rows into preallocated blocks of
+``BLOCK_TICKS`` ticks (about 3 µs per tick for a 3-joint arm); no logging and
+no encoding per tick.  When a block is full the rows to keep are selected
+(vectorized, well under a millisecond) and queued; :meth:`Recorder.finish`
+encodes and writes them after the run.  Only a long run whose queue exceeds
+``DRAIN_AFTER_TICKS`` ticks (about 2 minutes at 500 Hz) has the tick hook
+write a few queued messages per tick, which bounds memory at a steady cost of
+tens of microseconds per tick.  Writing whole blocks at once in the loop (or
+in a thread: the GIL hand-offs stalled the loop for up to a second under load)
+would pause the control loop long enough to trip the safety layer's stall
+watchdog.  Call :meth:`Recorder.finish` after the robot is closed, as the CLI
+does, so that the final write cannot stall a running control loop.
+
+State-machine transitions
+-------------------------
+:mod:`agentsdk.statemachine` has no public transition hook yet; the recorder
+listens by wrapping ``StateMachine._sm_record`` (the single place every
+history record is made) while at least one recorder is attached, and keeps the
+records of machines whose ``robot`` is the recorded robot.
+
+Replay
+------
+:func:`replay` connects a fresh robot (lockstep for simulators), and an
+updater writes the recorded setpoint (position, velocity, effort, kp, kd,
+enabled, mode) into ``robot.controller.setpoint`` at the same tick it was
+applied in the recording.  The safety layer filters it again, which leaves it
+unchanged (the recorded setpoint is already limited and ramped); the command
+watchdog is turned off because no commands are sent.  Lockstep MuJoCo is
+deterministic, so a MuJoCo recording replays into MuJoCo bit for bit.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import datetime as _dt
+import json
+import logging
+import math
+import os
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, TYPE_CHECKING, Any
+
+import numpy as np
+
+from .controller import MODE_CODES, StateBuffer
+from .errors import ConfigurationError
+from .types import MODES
+
+if TYPE_CHECKING:
+    from mcap.writer import Writer
+
+    from .controller import Controller, Setpoint
+    from .robot import Robot
+
+__all__ = [
+    "BLOCK_TICKS",
+    "FORMAT",
+    "TOPICS",
+    "Recorder",
+    "ReplayResult",
+    "RunData",
+    "read_recording",
+    "replay",
+    "robot_spec_for_metadata",
+]
+
+log = logging.getLogger("agentsdk.recording")
+
+FORMAT = "agentsdk-recording/1"
+METADATA_NAME = "agentsdk"
+BLOCK_TICKS = 4096
+#: unwritten ticks kept in memory before the tick hook starts writing a few messages per tick
+DRAIN_AFTER_TICKS = 16 * BLOCK_TICKS
+#: messages written per tick while draining (more than a tick produces, so the backlog shrinks)
+_DRAIN_PER_TICK = 4
+#: MCAP chunk size: small enough that compressing one chunk is a short pause
+_CHUNK_BYTES = 256 * 1024
+
+JOINT_STATES = "/joint_states"
+JOINT_COMMANDS = "/joint_commands"
+SAFETY_EVENTS = "/safety/events"
+TRANSITIONS = "/behavior/transitions"
+TOPICS = (JOINT_STATES, JOINT_COMMANDS, SAFETY_EVENTS, TRANSITIONS)
+
+_NS = 1_000_000_000
+
+# ------------------------------------------------------------------ schemas
+_TIME = {
+    "type": "object",
+    "title": "builtin_interfaces/msg/Time",
+    "properties": {
+        "sec": {"type": "integer", "description": "seconds of robot time"},
+        "nanosec": {"type": "integer", "minimum": 0, "maximum": 999999999},
+    },
+}
+_HEADER = {
+    "type": "object",
+    "title": "std_msgs/msg/Header",
+    "properties": {"stamp": _TIME, "frame_id": {"type": "string"}},
+}
+_NUMBERS = {"type": "array", "items": {"type": "number"}}
+_STRINGS = {"type": "array", "items": {"type": "string"}}
+
+JOINT_STATE_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "sensor_msgs/msg/JointState",
+    "description": "Measured joint state (sensor_msgs/JointState layout); robot clock time.",
+    "type": "object",
+    "properties": {
+        "header": _HEADER,
+        "name": _STRINGS,
+        "position": {**_NUMBERS, "description": "rad or m"},
+        "velocity": {**_NUMBERS, "description": "rad/s or m/s"},
+        "effort": {**_NUMBERS, "description": "N·m or N"},
+    },
+}
+JOINT_COMMAND_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "agentsdk/msg/JointCommand",
+    "description": (
+        "Servo setpoint written to the backend (after safety filtering), sensor_msgs/JointState layout "
+        "plus mode and gains: effort = kp*(position - q) + kd*(velocity - v) + effort, zero if not enabled."
+    ),
+    "type": "object",
+    "properties": {
+        "header": _HEADER,
+        "name": _STRINGS,
+        "position": {**_NUMBERS, "description": "desired position, rad or m"},
+        "velocity": {**_NUMBERS, "description": "desired velocity / feed-forward, rad/s or m/s"},
+        "effort": {**_NUMBERS, "description": "effort feed-forward, N·m or N"},
+        "mode": {"type": "array", "items": {"type": "string", "enum": list(MODES)}},
+        "enabled": {"type": "array", "items": {"type": "boolean"}},
+        "kp": _NUMBERS,
+        "kd": _NUMBERS,
+        "target": {**_NUMBERS, "description": "last commanded value (per mode) before ramping"},
+    },
+}
+SAFETY_EVENT_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "agentsdk/msg/SafetyEvent",
+    "type": "object",
+    "properties": {
+        "header": _HEADER,
+        "kind": {"type": "string", "description": "clamp, watchdog, estop, reset, enable, fault, stall, ..."},
+        "joint": {"type": ["string", "null"]},
+        "detail": {"type": "string"},
+    },
+}
+TRANSITION_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "agentsdk/msg/Transition",
+    "description": "A state-machine history record; target is null for events that caused no transition.",
+    "type": "object",
+    "properties": {
+        "header": _HEADER,
+        "machine": {"type": "string"},
+        "source": {"type": ["string", "null"]},
+        "target": {"type": ["string", "null"]},
+        "event": {"type": ["string", "null"]},
+        "note": {"type": "string"},
+    },
+}
+_SCHEMAS = {
+    JOINT_STATES: JOINT_STATE_SCHEMA,
+    JOINT_COMMANDS: JOINT_COMMAND_SCHEMA,
+    SAFETY_EVENTS: SAFETY_EVENT_SCHEMA,
+    TRANSITIONS: TRANSITION_SCHEMA,
+}
+
+
+def _ns(t: float) -> int:
+    return round(t * _NS)
+
+
+def _header(ns: int) -> dict[str, Any]:
+    sec, nsec = divmod(ns, _NS)
+    return {"stamp": {"sec": sec, "nanosec": nsec}, "frame_id": ""}
+
+
+def _rows(a: np.ndarray) -> list[list[Any]]:
+    """Rows as lists; non-finite floats become null (JSON has no NaN/inf)."""
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        return [[x if math.isfinite(x) else None for x in row] for row in a.tolist()]
+    return a.tolist()
+
+
+def robot_spec_for_metadata(spec: str | os.PathLike[str]) -> str:
+    """A robot spec that still resolves from another directory: names stay, paths become absolute."""
+    text = os.fspath(spec)
+    is_path = "/" in text or os.sep in text or text.lower().endswith((".urdf", ".xacro", ".yaml", ".yml"))
+    return str(Path(text).expanduser().resolve()) if is_path else text
+
+
+# ------------------------------------------------------------------ data
+@dataclass
+class RunData:
+    """A recorded run as arrays (joint columns in ``names`` order; times in ns of robot time)."""
+
+    names: tuple[str, ...]
+    period: float
+    metadata: dict[str, str]
+    state_time: np.ndarray
+    position: np.ndarray
+    velocity: np.ndarray
+    effort: np.ndarray
+    cmd_time: np.ndarray
+    cmd_position: np.ndarray
+    cmd_velocity: np.ndarray
+    cmd_effort: np.ndarray
+    cmd_kp: np.ndarray
+    cmd_kd: np.ndarray
+    cmd_enabled: np.ndarray
+    cmd_mode: np.ndarray
+    cmd_target: np.ndarray
+    events: list[dict[str, Any]] = field(default_factory=list)
+    transitions: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def duration(self) -> float:
+        """Robot time of the last joint state (s)."""
+        return float(self.state_time[-1]) / _NS if len(self.state_time) else 0.0
+
+    @property
+    def robot(self) -> str:
+        return self.metadata.get("robot", "")
+
+    @property
+    def backend(self) -> str:
+        return self.metadata.get("backend", "")
+
+    def command_index(self, t_ns: np.ndarray, *, applied_before: bool = True) -> np.ndarray:
+        """Index of the setpoint in effect: the latest command stamped before ``t_ns``
+        (``applied_before=True``: the setpoint that produced a state stamped ``t_ns``) or at/before it."""
+        side = "left" if applied_before else "right"
+        return np.searchsorted(self.cmd_time, t_ns, side=side) - 1
+
+    def desired_position(self) -> np.ndarray:
+        """Position setpoint behind every joint state (NaN where the joint was not position-servoed)."""
+        out = np.full_like(self.position, np.nan)
+        if not len(self.cmd_time):
+            return out
+        idx = self.command_index(self.state_time)
+        ok = idx >= 0
+        rows = idx[ok]
+        des = self.cmd_position[rows]
+        servo = (self.cmd_mode[rows] == MODE_CODES["position"]) & self.cmd_enabled[rows]
+        out[ok] = np.where(servo, des, np.nan)
+        return out
+
+
+def _empty(names: tuple[str, ...], period: float, metadata: dict[str, str]) -> RunData:
+    n = len(names)
+    z = np.zeros((0, n))
+    return RunData(
+        names,
+        period,
+        metadata,
+        np.zeros(0, np.int64),
+        z,
+        z.copy(),
+        z.copy(),
+        np.zeros(0, np.int64),
+        z.copy(),
+        z.copy(),
+        z.copy(),
+        z.copy(),
+        z.copy(),
+        np.zeros((0, n), bool),
+        np.zeros((0, n), np.int8),
+        z.copy(),
+    )
+
+
+# ------------------------------------------------------------------ recorder
+class _Block:
+    """Preallocated per-tick rows (one control tick per row)."""
+
+    __slots__ = ("e", "en", "kd", "kp", "mode", "q", "sp_e", "sp_q", "sp_v", "t", "target", "tc", "v")
+
+    def __init__(self, cap: int, n: int) -> None:
+        self.t = np.empty(cap)
+        self.tc = np.empty(cap)
+        self.q = np.empty((cap, n))
+        self.v = np.empty((cap, n))
+        self.e = np.empty((cap, n))
+        self.sp_q = np.empty((cap, n))
+        self.sp_v = np.empty((cap, n))
+        self.sp_e = np.empty((cap, n))
+        self.kp = np.empty((cap, n))
+        self.kd = np.empty((cap, n))
+        self.target = np.empty((cap, n))
+        self.en = np.empty((cap, n), dtype=bool)
+        self.mode = np.empty((cap, n), dtype=np.int8)
+
+
+_CMD_FIELDS = ("sp_q", "sp_v", "sp_e", "kp", "kd", "en", "mode", "target")
+
+
+@dataclass
+class _Chunk:
+    """Rows selected from one block for output."""
+
+    st_ns: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    e: np.ndarray
+    cmd_ns: np.ndarray
+    cmd: dict[str, np.ndarray]
+
+
+class Recorder:
+    """Records one robot's joint states, applied setpoints, safety events and transitions.
+
+    Create with :meth:`attach` (it registers a tick hook), call :meth:`finish`
+    once the run is over (writes the MCAP file).  With ``keep=True`` the
+    selected rows also stay in memory for :meth:`data` (plots, replay).
+    """
+
+    def __init__(
+        self,
+        robot: Robot,
+        path: str | os.PathLike[str] | None = None,
+        *,
+        rate: float | None = None,
+        keep: bool = False,
+        metadata: Mapping[str, str] | None = None,
+        block_ticks: int = BLOCK_TICKS,
+    ) -> None:
+        if rate is not None and not (math.isfinite(rate) and rate > 0):
+            raise ConfigurationError(f"record rate must be a positive number of Hz, got {rate!r}")
+        if path is None and not keep:
+            raise ConfigurationError("Recorder needs a path or keep=True")
+        ctl = robot.controller
+        self._robot = robot
+        self._ctl: Controller = ctl
+        self.names: tuple[str, ...] = tuple(ctl.names)
+        self.period = float(ctl.period)
+        self.rate = rate
+        self.keep = keep
+        self.path = Path(path) if path is not None else None
+        n = len(self.names)
+        self._cap = int(block_ticks)
+        self._block = _Block(self._cap, n)
+        self._k = 0
+        self._prev_t = float(ctl.stamp)
+        self.ticks = 0
+        # selection state carried across blocks
+        self._last_sample = math.floor(self._prev_t * rate + 1e-6) if rate else 0
+        self._last_cmd: tuple[np.ndarray, ...] | None = None
+        self._chunks: list[_Chunk] = []  # kept for data()
+        self._events_src: deque[Any] = robot.safety.events
+        self._last_event: Any = self._events_src[-1] if self._events_src else None
+        self._events: list[dict[str, Any]] = []
+        self._transitions: list[dict[str, Any]] = []
+        self._pending_side: list[tuple[int, str, dict[str, Any]]] = []
+        self.counts: dict[str, int] = dict.fromkeys(TOPICS, 0)
+        self._finished = False
+        self.metadata = self._metadata(metadata or {})
+        self._writer: Writer | None = None
+        self._stream: IO[bytes] | None = None
+        self._channels: dict[str, int] = {}
+        self._backlog: deque[tuple[_Chunk | None, list[tuple[int, str, dict[str, Any]]]]] = deque()
+        self._backlog_ticks = 0
+        self._drain: Iterator[None] | None = None
+        if self.path is not None:
+            self._open_writer(self.path)
+        ctl.tick_hooks.insert(0, self._on_tick)  # first: sees the setpoint exactly as written
+        _add_transition_listener(self._on_transition)
+
+    @classmethod
+    def attach(
+        cls,
+        robot: Robot,
+        path: str | os.PathLike[str] | None = None,
+        *,
+        rate: float | None = None,
+        keep: bool = False,
+        metadata: Mapping[str, str] | None = None,
+    ) -> Recorder:
+        """Start recording ``robot`` (call right after connect, before any tick)."""
+        return cls(robot, path, rate=rate, keep=keep, metadata=metadata)
+
+    # -------------------------------------------------------------- setup
+    def _metadata(self, extra: Mapping[str, str]) -> dict[str, str]:
+        from . import __version__
+
+        ctl = self._ctl
+        try:
+            config = json.dumps(ctl.config.model_dump(mode="json"), sort_keys=True)
+        except Exception:  # pragma: no cover - a config that does not serialize
+            config = ""
+        opts = ctl.options.model_dump(mode="json") if hasattr(ctl.options, "model_dump") else {}
+        md = {
+            "format": FORMAT,
+            "robot": self._robot.name,
+            "robot_name": self._robot.name,
+            "backend": ctl.name,
+            "backend_options": json.dumps(opts, sort_keys=True),
+            "realtime": "true" if self._robot.realtime else "false",
+            "control_period": repr(self.period),
+            "joints": json.dumps(list(self.names)),
+            "record_rate": "" if self.rate is None else repr(float(self.rate)),
+            "robot_config": config,
+            "agentsdk_version": __version__,
+            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        }
+        md.update({k: str(v) for k, v in extra.items()})
+        return md
+
+    def _open_writer(self, path: Path) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        from . import __version__
+
+        try:
+            self._stream = open(path, "wb")  # closed in finish()
+        except OSError as exc:
+            raise ConfigurationError(f"cannot write recording {path}: {exc.strerror or exc}") from exc
+        w = Writer(self._stream, chunk_size=_CHUNK_BYTES, compression=CompressionType.ZSTD)
+        w.start(profile="", library=f"agentsdk {__version__}")
+        for topic, schema in _SCHEMAS.items():
+            sid = w.register_schema(schema["title"], "jsonschema", json.dumps(schema).encode())
+            self._channels[topic] = w.register_channel(topic, "json", sid)
+        w.add_metadata(METADATA_NAME, self.metadata)
+        self._writer = w
+
+    # ----------------------------------------------------------- per tick
+    def _on_tick(self, t: float, st: StateBuffer) -> None:
+        k = self._k
+        if k == self._cap:
+            self._rotate()
+            k = 0
+        b = self._block
+        ctl = self._ctl
+        sp = ctl.setpoint
+        b.t[k] = t
+        b.tc[k] = self._prev_t
+        self._prev_t = t
+        b.q[k] = st.position
+        b.v[k] = st.velocity
+        b.e[k] = st.effort
+        b.sp_q[k] = sp.position
+        b.sp_v[k] = sp.velocity
+        b.sp_e[k] = sp.effort
+        b.kp[k] = sp.kp
+        b.kd[k] = sp.kd
+        b.en[k] = sp.enabled
+        b.mode[k] = sp.mode
+        b.target[k] = ctl.target
+        self._k = k + 1
+        self.ticks += 1
+        ev = self._events_src
+        if ev and ev[-1] is not self._last_event:
+            self._take_events()
+        if self._backlog_ticks > DRAIN_AFTER_TICKS:
+            self._write_some(_DRAIN_PER_TICK)
+
+    def _take_events(self) -> None:
+        src = self._events_src
+        new = []
+        for ev in reversed(src):
+            if ev is self._last_event:
+                break
+            new.append(ev)
+        self._last_event = src[-1] if src else None
+        for ev in reversed(new):
+            msg = {"kind": ev.kind, "joint": ev.joint, "detail": ev.detail}
+            self._events.append({"time": ev.time, **msg})
+            self._pending_side.append((_ns(ev.time), SAFETY_EVENTS, msg))
+
+    def _on_transition(self, machine: Any, rec: Any) -> None:
+        if getattr(machine, "robot", None) is not self._robot or self._finished:
+            return
+        msg = {"machine": rec.machine, "source": rec.source, "target": rec.target, "event": rec.event, "note": rec.note}
+        self._transitions.append({"time": rec.time, **msg})
+        self._pending_side.append((_ns(rec.time), TRANSITIONS, msg))
+
+    # ----------------------------------------------------------- blocks
+    def _rotate(self) -> None:
+        m = self._k
+        self._k = 0
+        if m == 0:
+            return
+        chunk = self._select(self._block, m)
+        if self.keep:
+            self._chunks.append(chunk)
+        if self._writer is not None:
+            side, self._pending_side = self._pending_side, []
+            self._backlog.append((chunk, side))
+            self._backlog_ticks += len(chunk.st_ns)
+
+    def _select(self, b: _Block, m: int) -> _Chunk:
+        t = b.t[:m]
+        if self.rate is None:
+            st_rows = np.arange(m)
+        else:
+            s = np.floor(t * self.rate + 1e-6).astype(np.int64)
+            prev = np.concatenate(([self._last_sample], s[:-1]))
+            st_rows = np.flatnonzero(s != prev)
+            self._last_sample = int(s[-1])
+        arrays = [getattr(b, f)[:m] for f in _CMD_FIELDS]
+        changed = np.zeros(m, dtype=bool)
+        last = self._last_cmd
+        if last is None:
+            changed[0] = True
+        for a, lrow in zip(arrays, last or [None] * len(arrays), strict=True):
+            if m > 1:
+                changed[1:] |= (a[1:] != a[:-1]).any(axis=1)
+            if lrow is not None:
+                changed[0] |= bool((a[0] != lrow).any())
+        keep = changed.copy()
+        keep[:-1] |= changed[1:]  # the last tick of a hold, so line plots stay flat
+        keep[-1] = True
+        self._last_cmd = tuple(a[m - 1].copy() for a in arrays)
+        cmd_rows = np.flatnonzero(keep)
+        ns = np.rint(t * _NS).astype(np.int64)
+        cns = np.rint(b.tc[:m] * _NS).astype(np.int64)
+        return _Chunk(
+            st_ns=ns[st_rows],
+            q=b.q[st_rows],
+            v=b.v[st_rows],
+            e=b.e[st_rows],
+            cmd_ns=cns[cmd_rows],
+            cmd={f: a[cmd_rows] for f, a in zip(_CMD_FIELDS, arrays, strict=True)},
+        )
+
+    def _write_some(self, n: int) -> None:
+        """Write up to ``n`` messages of the backlog (resumable)."""
+        for _ in range(n):
+            if self._drain is None:
+                self._drain = self._write_backlog()
+            try:
+                next(self._drain)
+            except StopIteration:
+                self._drain = None
+                return
+
+    def _write_backlog(self) -> Iterator[None]:
+        while self._backlog:
+            chunk, side = self._backlog[0]
+            if chunk is not None:
+                yield from self._write_chunk(chunk)
+                self._backlog_ticks -= len(chunk.st_ns)
+            self._write_side(side)
+            self._backlog.popleft()
+            yield
+
+    def _write_chunk(self, c: _Chunk) -> Iterator[None]:
+        """Write a chunk's messages in log-time order, yielding after each one."""
+        w = self._writer
+        assert w is not None
+        names = list(self.names)
+        st_ch, cmd_ch = self._channels[JOINT_STATES], self._channels[JOINT_COMMANDS]
+        q, v, e = _rows(c.q), _rows(c.v), _rows(c.e)
+        d = c.cmd
+        cq, cv, ce, kp, kd, tg = (_rows(d[f]) for f in ("sp_q", "sp_v", "sp_e", "kp", "kd", "target"))
+        en = d["en"].tolist()
+        modes = [[MODES[x] for x in row] for row in d["mode"].tolist()]
+        st_ns = c.st_ns.tolist()
+        cmd_ns = c.cmd_ns.tolist()
+        dumps = json.dumps
+        seq_s, seq_c = self.counts[JOINT_STATES], self.counts[JOINT_COMMANDS]
+        # merge both streams in log-time order (a command stamped t precedes the state stamped t)
+        i = j = 0
+        ns_i, ns_j = len(st_ns), len(cmd_ns)
+        while i < ns_i or j < ns_j:
+            if j < ns_j and (i >= ns_i or cmd_ns[j] <= st_ns[i]):
+                ns = cmd_ns[j]
+                msg = {
+                    "header": _header(ns),
+                    "name": names,
+                    "position": cq[j],
+                    "velocity": cv[j],
+                    "effort": ce[j],
+                    "mode": modes[j],
+                    "enabled": en[j],
+                    "kp": kp[j],
+                    "kd": kd[j],
+                    "target": tg[j],
+                }
+                w.add_message(cmd_ch, log_time=ns, data=dumps(msg).encode(), publish_time=ns, sequence=seq_c + j)
+                j += 1
+            else:
+                ns = st_ns[i]
+                msg = {"header": _header(ns), "name": names, "position": q[i], "velocity": v[i], "effort": e[i]}
+                w.add_message(st_ch, log_time=ns, data=dumps(msg).encode(), publish_time=ns, sequence=seq_s + i)
+                i += 1
+            yield
+        self.counts[JOINT_STATES] += ns_i
+        self.counts[JOINT_COMMANDS] += ns_j
+
+    def _write_side(self, side: list[tuple[int, str, dict[str, Any]]]) -> None:
+        w = self._writer
+        assert w is not None
+        for ns, topic, msg in sorted(side, key=lambda x: x[0]):
+            w.add_message(
+                self._channels[topic],
+                log_time=ns,
+                data=json.dumps({"header": _header(ns), **msg}).encode(),
+                publish_time=ns,
+                sequence=self.counts[topic],
+            )
+            self.counts[topic] += 1
+
+    # ----------------------------------------------------------- finish
+    def finish(self) -> None:
+        """Flush everything, write the MCAP summary and close the file. Idempotent."""
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            self._ctl.tick_hooks.remove(self._on_tick)
+        except ValueError:
+            pass
+        _remove_transition_listener(self._on_transition)
+        if self._events_src and self._events_src[-1] is not self._last_event:
+            self._take_events()
+        self._rotate()
+        if self._writer is None:
+            self._pending_side.clear()
+            return
+        self._backlog.append((None, self._pending_side))
+        self._pending_side = []
+        try:
+            if self._drain is not None:  # finish a drain interrupted mid-chunk first
+                for _ in self._drain:
+                    pass
+                self._drain = None
+            for _ in self._write_backlog():
+                pass
+            self._writer.finish()
+        except OSError as exc:
+            raise ConfigurationError(f"writing recording {self.path} failed: {exc.strerror or exc}") from exc
+        finally:
+            if self._stream is not None:
+                self._stream.close()
+
+    def __enter__(self) -> Recorder:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.finish()
+
+    def data(self) -> RunData:
+        """The recorded run (needs ``keep=True``); call after :meth:`finish` for the last rows."""
+        if not self.keep:
+            raise ConfigurationError("Recorder.data() needs keep=True")
+        if not self._finished:
+            self._rotate()
+        out = _from_chunks(self.names, self.period, dict(self.metadata), self._chunks)
+        out.events = list(self._events)
+        out.transitions = list(self._transitions)
+        return out
+
+
+def _from_chunks(names: tuple[str, ...], period: float, md: dict[str, str], chunks: list[_Chunk]) -> RunData:
+    if not chunks:
+        return _empty(names, period, md)
+
+    def cat(get: Callable[[_Chunk], np.ndarray]) -> np.ndarray:
+        return np.concatenate([get(c) for c in chunks])
+
+    return RunData(
+        names=names,
+        period=period,
+        metadata=md,
+        state_time=cat(lambda c: c.st_ns),
+        position=cat(lambda c: c.q),
+        velocity=cat(lambda c: c.v),
+        effort=cat(lambda c: c.e),
+        cmd_time=cat(lambda c: c.cmd_ns),
+        cmd_position=cat(lambda c: c.cmd["sp_q"]),
+        cmd_velocity=cat(lambda c: c.cmd["sp_v"]),
+        cmd_effort=cat(lambda c: c.cmd["sp_e"]),
+        cmd_kp=cat(lambda c: c.cmd["kp"]),
+        cmd_kd=cat(lambda c: c.cmd["kd"]),
+        cmd_enabled=cat(lambda c: c.cmd["en"]),
+        cmd_mode=cat(lambda c: c.cmd["mode"]),
+        cmd_target=cat(lambda c: c.cmd["target"]),
+    )
+
+
+# ------------------------------------------------------- transition hook
+_listeners: list[Callable[[Any, Any], None]] = []
+
+
+def _add_transition_listener(fn: Callable[[Any, Any], None]) -> None:
+    from . import statemachine
+
+    cls = statemachine.StateMachine
+    original = getattr(cls, "_sm_record", None)
+    if original is None:  # pragma: no cover - the engine changed
+        log.debug("StateMachine has no _sm_record; transitions will not be recorded")
+        return
+    if not _listeners and getattr(original, "_agentsdk_recording", False) is False:
+
+        def _sm_record(self: Any, *args: Any, **kwargs: Any) -> None:
+            original(self, *args, **kwargs)
+            if self.history:
+                rec = self.history[-1]
+                for listener in tuple(_listeners):
+                    try:
+                        listener(self, rec)
+                    except Exception:  # a recorder must never break a behavior
+                        log.exception("transition listener failed")
+
+        _sm_record._agentsdk_recording = True  # type: ignore[attr-defined]
+        _sm_record.__wrapped__ = original  # type: ignore[attr-defined]
+        cls._sm_record = _sm_record  # type: ignore[method-assign]
+    _listeners.append(fn)
+
+
+def _remove_transition_listener(fn: Callable[[Any, Any], None]) -> None:
+    from . import statemachine
+
+    try:
+        _listeners.remove(fn)
+    except ValueError:
+        return
+    cls = statemachine.StateMachine
+    current = cls.__dict__.get("_sm_record")
+    if not _listeners and getattr(current, "_agentsdk_recording", False):
+        cls._sm_record = current.__wrapped__  # type: ignore[union-attr, method-assign]
+
+
+# ------------------------------------------------------------------ reading
+def read_recording(path: str | os.PathLike[str]) -> RunData:
+    """Read an agentsdk MCAP recording; raises ConfigurationError for a missing or foreign file."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigurationError(f"recording not found: {p}")
+    try:
+        with open(p, "rb") as f:
+            reader = make_reader(f)
+            md: dict[str, str] = {}
+            for rec in reader.iter_metadata():
+                if rec.name == METADATA_NAME:
+                    md = dict(rec.metadata)
+            if md.get("format") != FORMAT:
+                raise ConfigurationError(f"{p} is not an agentsdk recording (no '{METADATA_NAME}' metadata)")
+            names = tuple(json.loads(md["joints"]))
+            period = float(md["control_period"])
+            st_t: list[int] = []
+            st: list[tuple[list[float], list[float], list[float]]] = []
+            cm_t: list[int] = []
+            cm: list[dict[str, Any]] = []
+            events: list[dict[str, Any]] = []
+            transitions: list[dict[str, Any]] = []
+            for _schema, channel, message in reader.iter_messages(topics=list(TOPICS)):
+                msg = json.loads(message.data)
+                topic = channel.topic
+                if topic == JOINT_STATES:
+                    st_t.append(message.log_time)
+                    st.append((msg["position"], msg["velocity"], msg["effort"]))
+                elif topic == JOINT_COMMANDS:
+                    cm_t.append(message.log_time)
+                    cm.append(msg)
+                else:
+                    msg.pop("header", None)
+                    item = {"time": message.log_time / _NS, **msg}
+                    (events if topic == SAFETY_EVENTS else transitions).append(item)
+    except ConfigurationError:
+        raise
+    except (McapError, OSError, ValueError, KeyError, EOFError) as exc:
+        raise ConfigurationError(f"cannot read recording {p}: {exc}") from exc
+    n = len(names)
+    out = _empty(names, period, md)
+    out.events, out.transitions = events, transitions
+    if st:
+        arr = np.array(st, dtype=float).reshape(len(st), 3, n)
+        out.state_time = np.array(st_t, dtype=np.int64)
+        out.position, out.velocity, out.effort = arr[:, 0], arr[:, 1], arr[:, 2]
+    if cm:
+
+        def col(key: str, dtype: Any = float) -> np.ndarray:
+            return np.array([m[key] for m in cm], dtype=dtype).reshape(len(cm), n)
+
+        out.cmd_time = np.array(cm_t, dtype=np.int64)
+        out.cmd_position, out.cmd_velocity, out.cmd_effort = col("position"), col("velocity"), col("effort")
+        out.cmd_kp, out.cmd_kd, out.cmd_target = col("kp"), col("kd"), col("target")
+        out.cmd_enabled = col("enabled", bool)
+        out.cmd_mode = np.array([[MODE_CODES[x] for x in m["mode"]] for m in cm], dtype=np.int8).reshape(len(cm), n)
+    return out
+
+
+# ------------------------------------------------------------------ replay
+@dataclass
+class ReplayResult:
+    """Divergence of the replayed joint positions from the recorded ones (per joint, rad or m)."""
+
+    names: tuple[str, ...]
+    max_abs: dict[str, float]
+    rms: dict[str, float]
+    samples: int
+    ticks: int
+    replayed: RunData
+    config_changed: bool = False
+    #: True for a real-time recording: its stamps are off the tick grid, the replay is interpolated
+    interpolated: bool = False
+
+    @property
+    def worst(self) -> float:
+        return max(self.max_abs.values(), default=0.0)
+
+    def lines(self) -> list[str]:
+        width = max([len("joint"), *(len(n) for n in self.names)])
+        out = [
+            f"divergence of joint positions (replayed - recorded) over {self.samples} samples"
+            + (" (real-time recording: replay interpolated, approximate):" if self.interpolated else ":"),
+            f"  {'joint':{width}s}  {'max |err|':>11s}  {'RMS':>11s}",
+        ]
+        for n in self.names:
+            out.append(f"  {n:{width}s}  {self.max_abs[n]:11.3e}  {self.rms[n]:11.3e}")
+        return out
+
+
+async def replay(
+    data: RunData,
+    *,
+    backend: str | None = None,
+    robot: str | None = None,
+    options: Mapping[str, Any] | None = None,
+    record: str | os.PathLike[str] | None = None,
+    on_robot: Callable[[Robot], Any] | None = None,
+) -> ReplayResult:
+    """Feed the recorded setpoints, tick by tick, into a fresh connection and compare joint states."""
+    from .robot import connect
+
+    if not len(data.state_time):
+        raise ConfigurationError("the recording has no joint states to replay")
+    backend = backend or data.backend or "mujoco"
+    robot = robot or data.robot
+    if not robot:
+        raise ConfigurationError("the recording does not name its robot; pass --robot")
+    opts: dict[str, Any] = {}
+    if backend == data.backend and data.metadata.get("backend_options"):
+        opts.update(json.loads(data.metadata["backend_options"]))
+        opts.pop("gui", None)  # a recording made with --view replays headless
+    opts.update(options or {})
+    end_ns = int(data.state_time[-1])
+    async with connect(backend, robot=robot, safety={"watchdog_modes": ()}, **opts) as bot:
+        ctl = bot.controller
+        if abs(ctl.period - data.period) > 1e-12:
+            raise ConfigurationError(
+                f"control period of {bot.name} on {backend} is {ctl.period:g} s, "
+                f"the recording's is {data.period:g} s; replay needs the same period"
+            )
+        missing = [n for n in data.names if n not in ctl.index]
+        if missing:
+            raise ConfigurationError(
+                f"robot {bot.name!r} has no joint(s) {', '.join(missing)} from the recording "
+                f"(its joints: {', '.join(ctl.names)})"
+            )
+        config_changed = False
+        recorded_config = data.metadata.get("robot_config")
+        if recorded_config:
+            config_changed = json.loads(recorded_config) != ctl.config.model_dump(mode="json")
+            if config_changed:
+                log.warning("robot.yaml of %s differs from the recorded one; replay may diverge", bot.name)
+        cols = np.array([ctl.index[n] for n in data.names], dtype=np.intp)
+        rec = Recorder(
+            bot,
+            record,
+            keep=True,
+            metadata={
+                "robot": robot_spec_for_metadata(robot),
+                "backend_options": json.dumps(opts, sort_keys=True, default=str),
+                "behavior": data.metadata.get("behavior", ""),
+                "replay_of": data.metadata.get("created", ""),
+            },
+        )
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        half = _ns(ctl.period) // 2
+        cmd_ns = data.cmd_time
+        pos, vel, eff = data.cmd_position, data.cmd_velocity, data.cmd_effort
+        kp, kd, en, mode, tgt = data.cmd_kp, data.cmd_kd, data.cmd_enabled, data.cmd_mode, data.cmd_target
+        target = ctl.target
+
+        def update(t: float, st: StateBuffer, sp: Setpoint) -> bool:
+            ns = _ns(t)
+            if ns >= end_ns - half:
+                return False
+            i = int(np.searchsorted(cmd_ns, ns, side="right")) - 1
+            if i >= 0:
+                sp.position[cols] = pos[i]
+                sp.velocity[cols] = vel[i]
+                sp.effort[cols] = eff[i]
+                sp.kp[cols] = kp[i]
+                sp.kd[cols] = kd[i]
+                sp.enabled[cols] = en[i]
+                sp.mode[cols] = mode[i]
+                target[cols] = tgt[i]
+            return True
+
+        def watch(t: float, st: StateBuffer) -> None:
+            if _ns(t) >= end_ns - half and not done.done():
+                ctl.remove_updater(update)
+                done.set_result(None)
+
+        def fault(exc: BaseException) -> None:
+            if not done.done():
+                done.set_exception(exc)
+
+        ctl.tick_hooks.append(watch)
+        ctl.fault_hooks.append(fault)
+        if on_robot is not None:
+            on_robot(bot)
+        try:
+            ctl.add_updater(update)
+            await done
+        except BaseException:
+            ctl.remove_updater(update)
+            await bot.close()
+            rec.finish()
+            raise
+        ticks = ctl.ticks
+    rec.finish()  # after close: joining the writer must not stall the control loop
+    return _compare(data, rec.data(), ticks, config_changed)
+
+
+def _compare(data: RunData, replayed: RunData, ticks: int, config_changed: bool) -> ReplayResult:
+    cols = [replayed.names.index(n) for n in data.names]
+    rt = replayed.state_time
+    if not len(rt):
+        raise ConfigurationError("the replay produced no joint states")
+    rows = np.minimum(np.searchsorted(rt, data.state_time), len(rt) - 1)
+    if np.array_equal(rt[rows], data.state_time):
+        actual = replayed.position[rows][:, cols]
+        interpolated = False
+    elif data.metadata.get("realtime") == "true":
+        # real-time stamps are off the tick grid: compare against the replay interpolated in time
+        actual = np.column_stack([np.interp(data.state_time, rt, replayed.position[:, c]) for c in cols])
+        interpolated = True
+    else:
+        first = int(data.state_time[np.argmax(rt[rows] != data.state_time)]) / _NS
+        raise ConfigurationError(f"the replay has no joint state at t={first:.6f} s")
+    diff = actual - data.position
+    max_abs = {n: float(np.max(np.abs(diff[:, j]))) for j, n in enumerate(data.names)}
+    rms = {n: float(np.sqrt(np.mean(diff[:, j] ** 2))) for j, n in enumerate(data.names)}
+    return ReplayResult(data.names, max_abs, rms, len(data.state_time), ticks, replayed, config_changed, interpolated)

@@ -273,7 +273,7 @@ class SafetyLayer:
             hi = ctl.max_effort[idx]
             lo = -hi
             what, unit = "effort", "N·m"
-        out = np.clip(values, lo, hi)
+        out = np.minimum(np.maximum(values, lo), hi)
         bad = out != values
         reject = self.config.limit_policy == "reject"
         if reject and bad.any():

@@ -121,6 +121,7 @@ class PybulletController(Controller):
         # servo torque of the last substep (what _read reports as effort)
         self._tau = np.zeros(n)
         self._raw = np.zeros(n)
+        self._neg_lim = -self.max_effort
         self._q = np.zeros(n)
         self._v = np.zeros(n)
 
@@ -281,7 +282,8 @@ class PybulletController(Controller):
             raw *= self._kp
             raw += self._kd * (self._vd - v)
             raw += self._ff
-            np.clip(raw, -lim, lim, out=tau)
+            np.maximum(raw, self._neg_lim, out=tau)  # ufuncs: np.clip dispatch costs µs here
+            np.minimum(tau, lim, out=tau)
             en = self._en
             if self.torque_disabled:
                 tau[:] = 0.0
@@ -316,7 +318,8 @@ class PybulletController(Controller):
         for k, s in enumerate(states):
             q[k] = s[0]
             v[k] = s[1]
-        if not (np.isfinite(q).all() and np.isfinite(v).all() and np.abs(v).max(initial=0.0) <= MAX_SPEED):
+        # NaN in v makes the comparison False, so one max covers finiteness of v too
+        if not (np.abs(v).max(initial=0.0) <= MAX_SPEED and np.isfinite(q).all()):
             bad = int(np.argmax(~np.isfinite(q) | ~np.isfinite(v) | (np.abs(v) > MAX_SPEED)))
             name = p.getJointInfo(self._body, self._dofs[bad], physicsClientId=self._cid)[1].decode()
             raise SimulationDiverged(

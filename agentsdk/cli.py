@@ -547,3 +547,5 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USER_ERROR
 
 
+if __name__ == "__main__":
+    sys.exit(main())

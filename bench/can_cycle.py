@@ -264,6 +264,12 @@ async def _raw_async(n: int, interface: str, channel: str, duration: float) -> d
             **_stats(lat)}
 
 
+def _median_run(runs: list[dict[str, Any]], key: str) -> dict[str, Any]:
+    """The run with the median ``key`` (its percentiles stay consistent), plus every run's ``key``."""
+    ordered = sorted(runs, key=lambda r: r[key])
+    return {**ordered[(len(ordered) - 1) // 2], "runs": [r[key] for r in runs]}
+
+
 def _missed(ctl: Any) -> tuple[int, int, int]:
     return (sum(s.commands for s in ctl.stats), sum(s.missed for s in ctl.stats), sum(s.late for s in ctl.stats))
 
@@ -332,9 +338,10 @@ def measure(
     motors: tuple[int, ...] = MOTOR_COUNTS,
     interface: str = "socketcan",
     channel: str = "vcan0",
-    duration: float = 2.0,
+    duration: float = 1.0,
     rate: float = 2000.0,
     sustain: float = 0.5,
+    repeat: int = 3,
     progress: Any = None,
 ) -> dict[str, Any]:
     """Every measurement for every motor count; returns the JSON-able results."""
@@ -348,12 +355,17 @@ def measure(
             row: dict[str, Any] = {"motors": n, "wire_limit": wire_limit(n, reply_dlc)}
             with emulator(robot_yaml, interface, ch) as kind:
                 row["emulator"] = kind
-                say(f"can_cycle: {n} motor(s): raw python-can (sync)")
-                row["raw_sync"] = raw_sync(n, interface, ch, duration)
-                say(f"can_cycle: {n} motor(s): raw python-can (asyncio Notifier)")
-                row["raw_async"] = asyncio.run(_raw_async(n, interface, ch, duration))
-                say(f"can_cycle: {n} motor(s): backend bus cycle, free-running")
-                row["backend_free_run"] = asyncio.run(_backend_free_run(robot_yaml, interface, ch, duration))
+                runs: dict[str, list[dict[str, Any]]] = {"raw_sync": [], "raw_async": [], "backend_free_run": []}
+                for rep in range(repeat):  # interleaved, so that load drifts hit all three alike
+                    say(f"can_cycle: {n} motor(s), run {rep + 1}/{repeat}: raw sync, raw async, backend free-run")
+                    runs["raw_sync"].append(raw_sync(n, interface, ch, duration))
+                    runs["raw_async"].append(asyncio.run(_raw_async(n, interface, ch, duration)))
+                    runs["backend_free_run"].append(
+                        asyncio.run(_backend_free_run(robot_yaml, interface, ch, duration))
+                    )
+                row["raw_sync"] = _median_run(runs["raw_sync"], "round_trips_per_s")
+                row["raw_async"] = _median_run(runs["raw_async"], "round_trips_per_s")
+                row["backend_free_run"] = _median_run(runs["backend_free_run"], "cycles_per_s")
                 if sustain > 0:
                     r2 = max(1.0, float(f"{sustain * row['backend_free_run']['cycles_per_s']:.2g}"))
                     set_rate(robot_yaml, r2)
@@ -375,6 +387,7 @@ def measure(
         "bitrate": BITRATE,
         "realtime_rate_hz": rate,
         "sustain_fraction": sustain,
+        "repeat": repeat,
         "loadavg": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
         "cpus": os.cpu_count(),
         "results": rows,
@@ -447,7 +460,8 @@ def _round(x: Any) -> Any:
 
 def report(res: dict[str, Any]) -> str:
     head = (f"CAN cycle rates on {res['interface']}:{res['channel']} ({res['model']}, {res['profile']} replies "
-            f"DLC {res['reply_dlc']}, {res['duration_s']:g} s per figure, emulator: "
+            f"DLC {res['reply_dlc']}, {res['duration_s']:g} s per figure, median of {res['repeat']} for the "
+            "self-paced loops, emulator: "
             f"{res['results'][0]['emulator'] if res['results'] else '-'}; load avg {res['loadavg']}, "
             f"{res['cpus']} CPU(s))")
     legend = ("wire max = 1 Mbit/s bound for 8-byte command + reply per motor (worst-case stuffing - none); "
@@ -462,7 +476,7 @@ def report(res: dict[str, Any]) -> str:
 def run(quick: bool = False) -> Any:
     """For ``python -m bench``: measure on vcan0 if there is one, else on the virtual bus; a Section."""
     interface = "socketcan" if Path("/sys/class/net/vcan0").exists() else "virtual"
-    res = measure(interface=interface, duration=0.5 if quick else 2.0)
+    res = measure(interface=interface, duration=0.5 if quick else 1.0, repeat=1 if quick else 3)
     try:
         from bench.common import Comparison, Section, Table
     except ImportError:
@@ -501,11 +515,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--interface", default="socketcan", help="socketcan (default; needs CHANNEL) or virtual")
     ap.add_argument("--channel", default="vcan0")
     ap.add_argument("--motors", default=",".join(map(str, MOTOR_COUNTS)), help="motor counts, comma-separated")
-    ap.add_argument("--duration", type=float, default=2.0, help="seconds per measurement")
+    ap.add_argument("--duration", type=float, default=1.0, help="seconds per measurement")
     ap.add_argument("--rate", type=float, default=2000.0, help="update_rate of the realtime run [Hz]")
     ap.add_argument("--sustain", type=float, default=0.5,
                     help="second realtime run at this fraction of the free-running rate (0 = skip)")
-    ap.add_argument("--quick", action="store_true", help="0.5 s per measurement")
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each self-paced loop; the median is shown")
+    ap.add_argument("--quick", action="store_true", help="0.5 s per measurement, one run each")
     ap.add_argument("--json", metavar="PATH", help="also write the JSON to PATH")
     args = ap.parse_args(argv)
     if args.interface == "socketcan" and not Path(f"/sys/class/net/{args.channel}").exists():
@@ -513,7 +528,8 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     motors = tuple(int(x) for x in args.motors.split(",") if x.strip())
-    res = measure(motors, args.interface, args.channel, 0.5 if args.quick else args.duration, args.rate, args.sustain)
+    res = measure(motors, args.interface, args.channel, 0.5 if args.quick else args.duration, args.rate,
+                  args.sustain, 1 if args.quick else args.repeat)
     print(report(res))
     print()
     text = json.dumps(_round(res), indent=1)

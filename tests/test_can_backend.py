@@ -1,0 +1,365 @@
+"""CAN backend on python-can's ``virtual`` interface, with the MIT motor emulator in-process.
+
+Each test gets its own virtual channel. The emulated motors are a Python thread in the
+test process (same GIL, same loaded CI host), so the tests that are not about faults
+raise ``max_missed_replies`` (see :data:`MAX_MISSED`): they check how misses are
+counted and classified, not how fast a thread gets scheduled. Waits are bounded; the
+assertions are on safety states, error texts, emulator states and counters.
+
+The real-SocketCAN counterpart (emulator in a separate process) is tests/test_can_vcan.py.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import os
+import threading
+import time
+from collections.abc import AsyncIterator, Callable, Iterator
+from pathlib import Path
+from typing import Any, ClassVar
+
+import can
+import pytest
+import yaml
+
+import agentsdk
+from agentsdk import BackendFault, BackendStartError, EStopActive, JointCommand, Robot, SafetyFault, SafetyState
+from agentsdk.cli import main as cli_main
+from agentsdk.testing import BackendConformance
+from backends.can.emulator import MotorEmulator
+from backends.can.mit import DISABLE
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: Consecutive missed cycles before a motor is declared lost (backend default 5 = 10 ms at
+#: 500 Hz). The emulated motors here are a thread of the test process, sharing its GIL with
+#: the control loop (which spins the last 1.5 ms of every period) and, on a loaded 2-CPU CI
+#: host, the CPUs with everything else: runs of 5 to 49 consecutive late replies were
+#: measured there with no fault injected. The tests check how misses are classified and
+#: that they escalate, not the threshold: a silent or dropping motor trips this in 0.5 s.
+MAX_MISSED = 250
+
+#: mit_leg's motors: CAN id -> joint
+MOTORS = {1: "hip_abduction", 2: "hip_pitch", 3: "knee"}
+
+_channels = itertools.count()
+
+
+def unique_channel() -> str:
+    return f"agentsdk-can-test-{os.getpid()}-{next(_channels)}"
+
+
+def mit_leg_at(tmp_path: Path, update_rate: float) -> Path:
+    """A copy of mit_leg's robot.yaml running at another control rate."""
+    src = ROOT / "robots" / "mit_leg" / "robot.yaml"
+    cfg = yaml.safe_load(src.read_text())
+    cfg["description"] = str(src.parent / cfg["description"])
+    cfg["update_rate"] = update_rate
+    dst = tmp_path / "mit_leg" / "robot.yaml"
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_text(yaml.safe_dump(cfg))
+    return dst
+
+
+@contextlib.contextmanager
+def emulator(channel: str, robot: str | Path = "mit_leg") -> Iterator[MotorEmulator]:
+    """The robot's motors on a virtual channel; thread stopped and bus shut down on exit."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    try:
+        emu = MotorEmulator.from_robot(robot, bus)
+        emu.start()
+        try:
+            yield emu
+        finally:
+            emu.stop()
+    finally:
+        bus.shutdown()
+
+
+@contextlib.contextmanager
+def sniffer(channel: str) -> Iterator[Callable[[], list[can.Message]]]:
+    """An independent listener on the channel; call the yielded function to collect its frames."""
+    bus = can.Bus(interface="virtual", channel=channel)
+    seen: list[can.Message] = []
+
+    def frames() -> list[can.Message]:
+        while (msg := bus.recv(0.0)) is not None:
+            seen.append(msg)
+        return seen
+
+    try:
+        yield frames
+    finally:
+        bus.shutdown()
+
+
+def disabled_ids(frames: list[can.Message]) -> set[int]:
+    return {m.arbitration_id for m in frames if bytes(m.data) == DISABLE}
+
+
+@contextlib.asynccontextmanager
+async def can_robot(robot: str | Path = "mit_leg", **options: Any) -> AsyncIterator[tuple[Robot, MotorEmulator, str]]:
+    """Emulator + ``connect("can", robot=...)`` on one fresh virtual channel."""
+    channel = unique_channel()
+    options.setdefault("max_missed_replies", MAX_MISSED)
+    with emulator(channel, robot) as emu:
+        async with agentsdk.connect("can", robot=robot, interface="virtual", channel=channel, **options) as bot:
+            yield bot, emu, channel
+
+
+async def wait_until(predicate: Callable[[], bool], what: str, limit: float = 5.0) -> None:
+    """Poll ``predicate`` (it reads state other threads change) with a bound that only guards against hangs."""
+    try:
+        async with asyncio.timeout(limit):
+            while not predicate():  # noqa: ASYNC110 - nothing to wait on: the emulator is another thread
+                await asyncio.sleep(0.005)
+    except TimeoutError:
+        pytest.fail(f"{what}: not within {limit} s")
+
+
+def wait_until_sync(predicate: Callable[[], bool], what: str, timeout: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        if time.monotonic() > deadline:
+            pytest.fail(f"{what}: not within {timeout} s")
+        time.sleep(0.005)
+
+
+async def run_cycles(robot: Robot, n: int) -> None:
+    """Let the control loop run ``n`` more bus cycles (bounded wait)."""
+    ctl = robot.controller
+    target = ctl.ticks + n
+    await wait_until(lambda: ctl.ticks >= target or ctl.fault is not None, f"{n} control cycles", limit=30.0)
+
+
+def all_disabled(emu: MotorEmulator, ids: Any = MOTORS) -> bool:
+    return all(not emu.snapshot(i).enabled for i in ids)
+
+
+async def wait_fault(robot: Robot) -> BaseException:
+    await wait_until(lambda: robot.safety.state is SafetyState.FAULT, "safety FAULT")
+    cause = robot.safety.cause
+    assert isinstance(cause, BackendFault), cause
+    return cause
+
+
+# ------------------------------------------------------------------ conformance
+class TestCanConformanceVirtual(BackendConformance):
+    """The backend contract on the virtual bus (mit_leg at its robot.yaml rate, 500 Hz, real time).
+
+    Kit tolerances unchanged: the emulator has no gravity and only 0.02 N·m of Coulomb
+    friction, so the position servo ends within 0.5 mrad of its target and the velocity
+    servo (kd = 3 N·m·s/rad) within 0.02 rad/s. The only option changed is
+    ``max_missed_replies`` (:data:`MAX_MISSED`).
+    """
+
+    backend = "can"
+    robot = "mit_leg"
+    connect_options: ClassVar[dict[str, Any]] = {"max_missed_replies": MAX_MISSED}
+
+    @contextlib.asynccontextmanager
+    async def open_robot(self, **overrides: Any) -> AsyncIterator[Robot]:
+        channel = unique_channel()
+        opts = {**self.connect_options, **overrides, "interface": "virtual", "channel": channel}
+        with emulator(channel):
+            async with agentsdk.connect(self.backend, robot=self.robot, realtime=self.realtime, **opts) as robot:
+                yield robot
+
+
+# ----------------------------------------------------------------------- basics
+async def test_open_enables_and_close_disables_every_motor() -> None:
+    async with can_robot() as (robot, emu, _):
+        assert all(emu.snapshot(i).enabled for i in MOTORS)
+        await run_cycles(robot, 20)
+        ctl = robot.controller
+        assert [s.joint for s in ctl.stats] == list(MOTORS.values())
+        assert all(s.commands >= 20 and s.replies >= 20 for s in ctl.stats)
+        assert robot.safety.state is SafetyState.OK
+    wait_until_sync(lambda: all_disabled(emu), "DISABLE on close")
+
+
+# ----------------------------------------------------------------------- faults
+async def test_dropped_frames_are_counted_then_a_dead_motor_faults() -> None:
+    async with can_robot() as (robot, emu, channel):
+        ctl = robot.controller
+        # 20 % of commands and 20 % of replies lost: about 36 % of cycles miss each motor
+        # (set after the open, which sends each ENABLE once)
+        emu.drop_rate = 0.2
+        await run_cycles(robot, 300)
+        assert robot.safety.state is SafetyState.OK, robot.safety.cause
+        assert ctl.fault is None
+        for s in ctl.stats:
+            assert s.missed > 0, s
+            assert s.replies > s.missed, s
+        st = await robot.read()
+        assert all(abs(p) < 13 for p in st.position)
+
+        with sniffer(channel) as frames:
+            emu.drop_rate = 0.0
+            emu.set_faults(3, drop_rate=1.0)  # the knee's cable is cut
+            cause = await wait_fault(robot)
+            assert "motor id 3 (joint 'knee') lost" in str(cause)
+            assert ctl.stats[2].consecutive_missed >= MAX_MISSED
+            with pytest.raises(SafetyFault, match="knee"):
+                await robot.command(JointCommand("position", {"knee": 0.5}))
+            # DISABLE went to every motor; the knee never hears it and goes limp on its own timeout
+            await wait_until(lambda: disabled_ids(frames()) == set(MOTORS), "DISABLE frames for every motor")
+            await wait_until(lambda: all_disabled(emu, (1, 2)), "motors 1 and 2 disabled")
+            await wait_until(lambda: emu.snapshot(3).limp, "knee limp (motor-side timeout)")
+            assert emu.snapshot(3).counters.timeouts >= 1
+
+
+async def test_late_replies_are_counted_and_escalate(tmp_path: Path) -> None:
+    # mit_leg at 100 Hz with a 5 ms reply window; the knee answers 7.5 ms after each command:
+    # its replies reach the bus after their cycle's deadline, before the next cycle's command
+    # (asyncio's timers are ~1 ms coarse and the emulator is a thread: keep margins of ms).
+    leg = mit_leg_at(tmp_path, 100.0)
+    async with can_robot(leg, reply_deadline=0.5, max_missed_replies=10) as (robot, emu, _):
+        ctl = robot.controller
+        await run_cycles(robot, 5)
+        emu.set_faults(3, reply_latency=0.0075)
+        cause = await wait_fault(robot)
+        knee = ctl.stats[2]
+        assert "motor id 3 (joint 'knee') replies too late: none within the 5 ms reply deadline" in str(cause)
+        assert knee.consecutive_missed == 10, knee
+        assert knee.late >= 5, knee  # the last reply may still be on its way
+        assert knee.replies >= knee.commands - 1, knee
+        assert robot.safety.state is SafetyState.FAULT
+        await wait_until(lambda: all_disabled(emu), "every motor disabled")
+
+
+async def test_silent_motor_at_open_fails_naming_it_and_disables_the_others() -> None:
+    channel = unique_channel()
+    with emulator(channel) as emu, sniffer(channel) as frames:
+        emu.set_faults(2, silent=True)
+        with pytest.raises(BackendStartError, match=r"motor id 2 \(joint 'hip_pitch'\) did not answer"):
+            async with agentsdk.connect("can", robot="mit_leg", interface="virtual", channel=channel):
+                pytest.fail("connect must fail")
+        wait_until_sync(lambda: all_disabled(emu), "every motor disabled after the failed open")
+        assert emu.counters(1).specials >= 2  # enabled, then disabled again
+        assert emu.counters(2).specials == 0  # silent: heard nothing
+        assert 1 in disabled_ids(frames())
+
+
+async def test_silent_motor_mid_run_faults_naming_it_and_disables_all() -> None:
+    async with can_robot() as (robot, emu, channel):
+        await robot.command(JointCommand("position", {"hip_pitch": -0.3, "knee": 0.6}))
+        await run_cycles(robot, 20)
+        with sniffer(channel) as frames:
+            emu.set_faults(2, silent=True)
+            cause = await wait_fault(robot)
+            assert "motor id 2 (joint 'hip_pitch') lost" in str(cause)
+            await wait_until(lambda: disabled_ids(frames()) == set(MOTORS), "DISABLE frames for every motor")
+        await wait_until(lambda: all_disabled(emu, (1, 3)), "motors 1 and 3 disabled")
+        await wait_until(lambda: emu.snapshot(2).limp, "silent motor limp (motor-side timeout)")
+        with pytest.raises(SafetyFault):
+            await robot.read()
+
+
+async def test_wrong_id_replies_are_unexpected_and_the_real_motor_faults() -> None:
+    async with can_robot() as (robot, emu, _):
+        ctl = robot.controller
+        await run_cycles(robot, 10)
+        assert ctl.unexpected_replies == 0
+        emu.set_faults(3, wrong_id=9)
+        cause = await wait_fault(robot)
+        assert ctl.unexpected_replies >= MAX_MISSED
+        assert "motor id 3 (joint 'knee') lost" in str(cause)
+        assert "not in backends.can.motors: 9" in str(cause)
+        await wait_until(lambda: all_disabled(emu), "every motor disabled")
+
+
+async def test_motor_error_code_faults_with_its_name() -> None:
+    async with can_robot() as (robot, emu, _):
+        await run_cycles(robot, 10)
+        emu.set_faults(2, error_code=1)  # CubeMars: over-temperature
+        cause = await wait_fault(robot)
+        assert "motor id 2 (joint 'hip_pitch') reports error: over-temp" in str(cause)
+        assert robot.controller.stats[1].last_error == "over-temperature"
+        await wait_until(lambda: all_disabled(emu), "every motor disabled")
+        with pytest.raises(SafetyFault, match="over-temp"):
+            await robot.command(JointCommand("position", {"knee": 0.5}))
+
+
+async def test_fault_recovers_once_the_motor_error_clears() -> None:
+    async with can_robot() as (robot, emu, _):
+        await run_cycles(robot, 10)
+        emu.set_faults(3, error_code=2)  # over-current
+        cause = await wait_fault(robot)
+        assert "motor id 3 (joint 'knee') reports error: over-current" in str(cause)
+        await wait_until(lambda: all_disabled(emu), "every motor disabled")
+        emu.set_faults(3, error_code=0)
+        await robot.reset()  # recover: ENABLE each motor again; torque stays off until enable()
+        assert robot.safety.state is SafetyState.DISABLED
+        await robot.enable()
+        assert robot.safety.state is SafetyState.OK
+        assert all(emu.snapshot(i).enabled for i in MOTORS)
+        await robot.command(JointCommand("position", {"knee": 0.5}))
+        await wait_until(lambda: abs(emu.snapshot(3).position - 0.5) < 0.02, "knee at its new target")
+        assert robot.safety.state is SafetyState.OK
+
+
+async def test_estop_disables_and_enable_reenables_while_the_loop_runs() -> None:
+    async with can_robot() as (robot, emu, _):
+        ctl = robot.controller
+        await run_cycles(robot, 10)
+        await robot.estop(0)
+        await wait_until(lambda: all_disabled(emu), "every motor disabled")
+        await run_cycles(robot, 10)  # the loop keeps cycling with torque off
+        assert all_disabled(emu)
+        with pytest.raises(EStopActive):
+            await robot.command(JointCommand("position", {"knee": 0.5}))
+        await robot.reset()
+        await robot.enable()  # ENABLE frames while the loop's commands are in flight
+        assert all(emu.snapshot(i).enabled for i in MOTORS)
+        await run_cycles(robot, 20)
+        assert robot.safety.state is SafetyState.OK
+        assert all(s.consecutive_missed == 0 for s in ctl.stats)
+
+
+# ------------------------------------------------------------------------ stall
+async def test_loop_stall_disables_the_motors_from_the_watchdog_thread() -> None:
+    async with can_robot() as (robot, emu, _):
+        ctl = robot.controller
+        await run_cycles(robot, 10)
+        bus = ctl._estop_bus
+        assert bus is not None
+        senders: list[tuple[str, int]] = []
+        real_send = bus.send
+
+        def recording_send(msg: can.Message, timeout: float | None = None) -> None:
+            if bytes(msg.data) == DISABLE:
+                senders.append((threading.current_thread().name, msg.arbitration_id))
+            real_send(msg, timeout)
+
+        bus.send = recording_send  # type: ignore[method-assign]
+        time.sleep(0.5)  # noqa: ASYNC251 - the point: a behavior blocking the event loop (stall_timeout is 0.25 s)
+        # the watchdog thread sent DISABLE while the loop was stuck
+        assert senders, "no DISABLE frame sent during the stall"
+        assert {name for name, _ in senders} == {"agentsdk-stall-watchdog-can"}
+        assert {mid for _, mid in senders} == set(MOTORS)
+        await wait_until(lambda: all_disabled(emu), "every motor disabled")
+        assert robot.safety.state is SafetyState.ESTOP
+        assert robot.safety.stall_detected_at is not None
+        with pytest.raises(EStopActive):
+            await robot.command(JointCommand("position", {"knee": 0.5}))
+        await run_cycles(robot, 10)  # the loop runs on torque-off: nothing re-enables the motors
+        assert all_disabled(emu)
+
+
+# -------------------------------------------------------------------------- CLI
+def test_cli_runs_wave_on_the_virtual_bus(capsys: pytest.CaptureFixture[str]) -> None:
+    channel = unique_channel()
+    with emulator(channel) as emu:
+        rc = cli_main([
+            "run", str(ROOT / "behaviors" / "wave.py"), "--backend", "can", "--robot", "mit_leg",
+            "-o", "interface=virtual", "-o", f"channel={channel}", "-o", f"max_missed_replies={MAX_MISSED}",
+        ])
+        out, err = capsys.readouterr()
+        assert rc == 0, err
+        assert "ran wave.py on mit_leg (can)" in out
+        assert emu.counters(3).commands > 1000  # ~7.5 s at 500 Hz
+        wait_until_sync(lambda: all_disabled(emu), "DISABLE on exit")

@@ -73,8 +73,6 @@ class Capabilities:
     modes: frozenset[CommandMode]
     lockstep: bool
     realtime: bool
-    #: True when the backend can remove actuator torque (stop category 0)
-    torque_off: bool = True
     #: True when the same inputs always give bit-identical states (lockstep sims)
     deterministic: bool = False
 
@@ -315,16 +313,16 @@ class Controller(ABC):
         if isinstance(self.clock, LockstepClock):
             self.clock.wakeup.set()
 
+    @property
+    def busy(self) -> bool:
+        """True while a time-dependent activity (trajectory, stop ramp) runs."""
+        return bool(self._updaters)
+
     def remove_updater(self, updater: Updater) -> None:
         try:
             self._updaters.remove(updater)
         except ValueError:
             pass
-
-    @property
-    def busy(self) -> bool:
-        """True while a time-dependent activity (trajectory, stop ramp) runs."""
-        return bool(self._updaters)
 
     async def _tick(self) -> None:
         sp = self.setpoint

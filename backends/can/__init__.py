@@ -94,7 +94,7 @@ class MotorStats:
 
 class CanController(Controller):
     name = "can"
-    capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True, torque_off=True)
+    capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True)
     options_model = CanOptions
 
     def __init__(self, *args: Any, **kw: Any) -> None:

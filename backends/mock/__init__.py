@@ -53,7 +53,7 @@ class MockOptions(BaseModel):
 class MockController(Controller):
     name = "mock"
     capabilities = Capabilities(
-        modes=frozenset(MODES), lockstep=True, realtime=True, torque_off=True, deterministic=True
+        modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )
     options_model = MockOptions
 
@@ -68,7 +68,7 @@ class MockController(Controller):
             raise ConfigurationError(f"mock: unknown modes {bad}")
         # per-instance capabilities (the modes knob lets tests build a restricted backend)
         self.capabilities = Capabilities(
-            modes=frozenset(opts.modes), lockstep=True, realtime=True, torque_off=True, deterministic=True
+            modes=frozenset(opts.modes), lockstep=True, realtime=True, deterministic=True
         )
         self.lag = opts.lag
         self.frozen = np.zeros(len(self.joints), dtype=bool)

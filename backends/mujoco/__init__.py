@@ -56,7 +56,7 @@ class MujocoOptions(BaseModel):
 class MujocoController(Controller):
     name = "mujoco"
     capabilities = Capabilities(
-        modes=frozenset(MODES), lockstep=True, realtime=True, torque_off=True, deterministic=True
+        modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )
     options_model = MujocoOptions
 

@@ -88,7 +88,7 @@ class PybulletOptions(BaseModel):
 class PybulletController(Controller):
     name = "pybullet"
     capabilities = Capabilities(
-        modes=frozenset(MODES), lockstep=True, realtime=True, torque_off=True, deterministic=True
+        modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )
     options_model = PybulletOptions
 

@@ -15,6 +15,29 @@ and run it on MuJoCo, PyBullet, a CAN motor bus or the mock backend:
 
 from __future__ import annotations
 
+import os as _os
+
+
+def _source_checkout_subpackages() -> None:
+    """Make ``agentsdk.backends`` & co. importable from a source checkout that is not installed.
+
+    The repository keeps ``backends/``, ``robots/``, ``behaviors/`` and ``bench/`` at its root; an
+    install (editable or not) maps them to ``agentsdk.backends`` etc. (``[tool.setuptools.package-dir]``).
+    When this package is imported straight from a checkout (``python -m agentsdk`` in the repository
+    after a non-editable install, or with ``PYTHONPATH`` pointing at it), the package path is extended
+    with the repository root, as ``pkgutil.extend_path`` does for split packages.
+    """
+    here = _os.path.dirname(_os.path.abspath(__file__))
+    root = _os.path.dirname(here)
+    if _os.path.isfile(_os.path.join(root, "pyproject.toml")) and _os.path.isfile(
+        _os.path.join(root, "backends", "__init__.py")
+    ):
+        if root not in __path__:
+            __path__.append(root)
+
+
+_source_checkout_subpackages()
+
 from .clock import Clock, LockstepClock, RealtimeClock
 from .config import RobotConfig, load_robot_config
 from .controller import Capabilities, Controller, Setpoint, StateBuffer

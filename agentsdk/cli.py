@@ -7,6 +7,8 @@
 ``agentsdk describe ROBOT``     print the joint tree with types and limits (like check_urdf)
 ``agentsdk graph BEHAVIOR``     print the Mermaid diagram of the behavior's state machines
 ``agentsdk emulate-can ...``    run the MIT motor emulator on a CAN bus
+``agentsdk bench ...``          run the benchmarks, each figure beside its raw baseline
+``agentsdk vcan -- CMD``        run CMD inside user-mode Linux with a SocketCAN vcan0
 
 User errors print one line and exit non-zero; ``--debug`` shows tracebacks.
 """
@@ -41,7 +43,7 @@ def load_behavior(spec: str) -> ModuleType:
     """Import a behavior script by path, or by name from the shipped ``behaviors`` package."""
     path = Path(spec)
     if not path.exists() and not spec.endswith(".py"):
-        import behaviors
+        import agentsdk.behaviors as behaviors
 
         candidate = Path(behaviors.__file__).parent / f"{spec}.py"
         if candidate.exists():
@@ -474,9 +476,28 @@ def _cmd_graph(args: argparse.Namespace) -> int:
 
 
 def _cmd_emulate_can(args: argparse.Namespace, rest: list[str]) -> int:
-    from backends.can.emulator import main as emulator_main
+    from agentsdk.backends.can.emulator import main as emulator_main
 
     return emulator_main(rest)
+
+
+def _cmd_bench(rest: list[str]) -> int:
+    from agentsdk.bench.__main__ import main as bench_main
+
+    return bench_main(rest)
+
+
+def _cmd_vcan(rest: list[str]) -> int:
+    """Run a command inside a user-mode Linux kernel with a real SocketCAN vcan0 (the shipped runner)."""
+    import subprocess
+
+    script = Path(__file__).resolve().parent / "data" / "run-in-vcan.sh"
+    if rest and rest[0] == "--":
+        rest = rest[1:]
+    if not rest:
+        print("usage: agentsdk vcan [--] COMMAND [ARGS...]   (e.g. agentsdk vcan -- pytest -m vcan)", file=sys.stderr)
+        return EXIT_USER_ERROR
+    return subprocess.call(["bash", str(script), *rest])
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -519,15 +540,22 @@ def _parser() -> argparse.ArgumentParser:
     g.add_argument("behavior")
     sub.add_parser("emulate-can", help="run the MIT motor emulator (see `agentsdk emulate-can --help`)",
                    add_help=False)
+    sub.add_parser("bench", help="run the benchmarks against their raw baselines (see `agentsdk bench --help`)",
+                   add_help=False)
+    sub.add_parser("vcan", help="run a command inside user-mode Linux with a SocketCAN vcan0 (root, Debian)",
+                   add_help=False)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
-    if (argv and argv[0] == "emulate-can") or (len(argv) > 1 and argv[0] == "--debug" and argv[1] == "emulate-can"):
-        rest = argv[argv.index("emulate-can") + 1:]
-        return _cmd_emulate_can(argparse.Namespace(), rest)
+    passthrough = {"emulate-can": lambda rest: _cmd_emulate_can(argparse.Namespace(), rest),
+                   "bench": _cmd_bench, "vcan": _cmd_vcan}
+    head = argv[1:2] if argv[:1] == ["--debug"] else argv[:1]
+    if head and head[0] in passthrough:
+        rest = argv[argv.index(head[0]) + 1:]
+        return passthrough[head[0]](rest)
     args = parser.parse_args(argv)
     debug = args.debug
     logging.basicConfig(level=logging.DEBUG if debug else logging.WARNING, format="%(levelname)s %(name)s: %(message)s")

@@ -984,7 +984,7 @@ def check_config(config: RobotConfig, description: RobotDescription) -> tuple[Jo
 
 
 def _default_robots_dir() -> Path:
-    import robots
+    import agentsdk.robots as robots
 
     return Path(robots.__file__).resolve().parent
 

@@ -1,5 +1,5 @@
-"""agentsdk benchmarks: ``python -m bench`` (see bench/__main__.py).
+"""agentsdk benchmarks: ``agentsdk bench`` (see bench/__main__.py).
 
 Every figure is reported next to a raw baseline measured in the same run; see
-:mod:`bench.common` for the shared result types.
+:mod:`agentsdk.bench.common` for the shared result types.
 """

@@ -1,10 +1,10 @@
-"""``python -m bench``: run every benchmark, each figure next to its raw baseline from the same run.
+"""``agentsdk bench``: run every benchmark, each figure next to its raw baseline from the same run.
 
-    python -m bench                     # everything (a few minutes)
-    python -m bench --quick             # shorter runs, same structure
-    python -m bench --only overhead     # one benchmark (repeatable, or comma-separated)
-    python -m bench --json out.json     # also write the full results (raw data, tables) as JSON
-    python -m bench --list              # the benchmark names
+    agentsdk bench                     # everything (a few minutes); also `python -m agentsdk.bench`
+    agentsdk bench --quick             # shorter runs, same structure
+    agentsdk bench --only overhead     # one benchmark (repeatable, or comma-separated)
+    agentsdk bench --json out.json     # also write the full results (raw data, tables) as JSON
+    agentsdk bench --list              # the benchmark names
 
 Tables go to stdout as each benchmark finishes, then a summary of every
 comparison and the JSON summary; progress goes to stderr.
@@ -13,7 +13,7 @@ Benchmarks written in other modules (``bench/feedback_timing.py``,
 ``bench/safety_latency.py``, ``bench/can_cycle.py``) are called if present: the
 first of ``run``, ``bench``, ``benchmark``, ``run_benchmark``, ``run_bench``,
 ``measure``, ``main`` they define, with ``quick=`` if it takes it. They may return a
-:class:`bench.common.Section` (or a list of them, or a list of ``Comparison``), a
+:class:`agentsdk.bench.common.Section` (or a list of them, or a list of ``Comparison``), a
 JSON-able dict, or print their own table and JSON (parsed from their output).
 CAN needs a SocketCAN ``vcan0``: without one here, ``can_cycle`` runs inside the
 user-mode-linux VM of ``scripts/run-in-vcan.sh`` and its results come back as JSON.
@@ -39,7 +39,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TextIO
 
-from bench.common import (
+from agentsdk.bench.common import (
     COMPARISON_HEADERS,
     Comparison,
     Section,
@@ -52,7 +52,6 @@ from bench.common import (
 )
 
 BENCH_DIR = Path(__file__).resolve().parent
-REPO = BENCH_DIR.parent
 INNER_ENV = "AGENTSDK_BENCH_INNER"
 ENTRY_POINTS = ("run", "bench", "benchmark", "run_benchmark", "run_bench", "measure", "main")
 
@@ -355,7 +354,7 @@ def run_external(name: str, title: str, quick: bool) -> list[Section]:
     path = BENCH_DIR / f"{name}.py"
     if not path.is_file():
         return [Section(name, title, status="missing", notes=[f"bench/{name}.py does not exist: nothing measured"])]
-    mod = importlib.import_module(f"bench.{name}")
+    mod = importlib.import_module(f"agentsdk.bench.{name}")
     entry, skipped = _find_entry(mod)
     if entry is None:
         why = f" (found only {', '.join(skipped)}, which need arguments)" if skipped else ""
@@ -378,7 +377,7 @@ def run_external(name: str, title: str, quick: bool) -> list[Section]:
     sys.stdout.flush()
     secs = _to_sections(name, title, result, tee.buf.getvalue())
     for s in secs:
-        s.data.setdefault("entry_point", f"bench.{name}.{fname}")
+        s.data.setdefault("entry_point", f"agentsdk.bench.{name}.{fname}")
     return secs
 
 
@@ -403,12 +402,14 @@ def _can_cycle(quick: bool) -> list[Section]:
                 s.notes.append("measured on this machine's own vcan0 interface")
         return secs
     # no vcan0 here: run the benchmark inside the user-mode-linux kernel of scripts/run-in-vcan.sh
-    script = REPO / "scripts" / "run-in-vcan.sh"
+    import agentsdk
+
+    script = Path(agentsdk.__file__).resolve().parent / "data" / "run-in-vcan.sh"
     if not script.is_file():
-        return [Section("can_cycle", title, status="skipped", notes=["no vcan0 and no scripts/run-in-vcan.sh"])]
+        return [Section("can_cycle", title, status="skipped", notes=[f"no vcan0 and no {script}"])]
     fd, tmp = tempfile.mkstemp(suffix=".json", prefix="bench-can-", dir=tempfile.gettempdir())
     os.close(fd)
-    cmd = ["bash", str(script), sys.executable, "-m", "bench", "--inner", "--only", "can_cycle", "--json", tmp]
+    cmd = ["bash", str(script), sys.executable, "-m", "agentsdk.bench", "--inner", "--only", "can_cycle", "--json", tmp]
     if quick:
         cmd.append("--quick")
     env = {**os.environ, INNER_ENV: "1", "VCAN_TIMEOUT": os.environ.get("VCAN_TIMEOUT", "900")}
@@ -417,7 +418,7 @@ def _can_cycle(quick: bool) -> list[Section]:
     t0 = time.perf_counter()
     # the VM's stdout goes straight to ours; its stderr is streamed to ours and its tail kept for errors
     err_tail: deque[str] = deque(maxlen=15)
-    with subprocess.Popen(cmd, cwd=REPO, env=env, stdout=sys.stdout, stderr=subprocess.PIPE, text=True) as proc:
+    with subprocess.Popen(cmd, env=env, stdout=sys.stdout, stderr=subprocess.PIPE, text=True) as proc:
         assert proc.stderr is not None
         for line in proc.stderr:
             sys.stderr.write(line)
@@ -564,7 +565,7 @@ def _summary_json(info: dict[str, Any], full: dict[str, Any], sections: list[Sec
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="agentsdk bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="shorter runs (same structure)")
     ap.add_argument("--json", metavar="PATH", help="write the full results as JSON to PATH")
     ap.add_argument("--only", action="append", metavar="NAME", help="run only these benchmarks (repeatable, a,b)")

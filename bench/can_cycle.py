@@ -1,7 +1,7 @@
 """CAN control-cycle rates for 1, 3, 6 and 12 MIT motors, next to raw python-can and the wire limit.
 
 Not a test. For each motor count N it generates a robot (URDF with N revolute joints plus a
-robot.yaml whose ``backends.can`` maps them to CubeMars AK80-9 motors, ids 1..N) in a temp
+robot.yaml whose ``agentsdk.backends.can`` maps them to CubeMars AK80-9 motors, ids 1..N) in a temp
 directory, starts the MIT motor emulator for it, and measures against that same emulator:
 
 wire limit         the 1 Mbit/s classic-CAN bound (PROTOCOLS.md section 4): one 8-byte command
@@ -30,7 +30,7 @@ Usage (a real SocketCAN vcan0, e.g. inside ``scripts/run-in-vcan.sh``)::
     python bench/can_cycle.py --interface virtual        # quick look without vcan0 (emulator = thread)
     python bench/can_cycle.py --motors 1,3 --duration 1 --rate 1000 --json out.json
 
-On socketcan the emulator is a separate process (``python -m backends.can.emulator``), like
+On socketcan the emulator is a separate process (``python -m agentsdk.backends.can.emulator``), like
 real motors; on ``virtual`` it has to be a thread of this process, sharing the GIL, so the
 virtual figures are pessimistic. Prints a table, then the results as JSON.
 """
@@ -59,10 +59,10 @@ import can
 import yaml
 
 import agentsdk
+from agentsdk.backends.can.emulator import MotorEmulator
+from agentsdk.backends.can.mit import encode_command, profile_for, ranges_for
 from agentsdk.description import apply_overrides, resolve_robot
 from agentsdk.registry import load_backend
-from backends.can.emulator import MotorEmulator
-from backends.can.mit import encode_command, profile_for, ranges_for
 
 ROOT = Path(__file__).resolve().parents[1]
 MOTOR_COUNTS = (1, 3, 6, 12)
@@ -153,7 +153,7 @@ def emulator(robot_yaml: Path, interface: str, channel: str) -> Iterator[str]:
     fd, log_path = tempfile.mkstemp(prefix="can-bench-emulator-", suffix=".log")
     with os.fdopen(fd, "wb") as log:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "backends.can.emulator", "--robot", str(robot_yaml),
+            [sys.executable, "-m", "agentsdk.backends.can.emulator", "--robot", str(robot_yaml),
              "--interface", interface, "--channel", channel, "--log-level", "INFO"],
             stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
         )
@@ -474,11 +474,11 @@ def report(res: dict[str, Any]) -> str:
 
 # ------------------------------------------------------------------------------ entry points
 def run(quick: bool = False) -> Any:
-    """For ``python -m bench``: measure on vcan0 if there is one, else on the virtual bus; a Section."""
+    """For ``agentsdk bench``: measure on vcan0 if there is one, else on the virtual bus; a Section."""
     interface = "socketcan" if Path("/sys/class/net/vcan0").exists() else "virtual"
     res = measure(interface=interface, duration=0.5 if quick else 1.0, repeat=1 if quick else 3)
     try:
-        from bench.common import Comparison, Section, Table
+        from agentsdk.bench.common import Comparison, Section, Table
     except ImportError:
         print(report(res))
         return res

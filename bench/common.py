@@ -5,14 +5,14 @@ Every benchmark reports *figures* next to a *baseline measured in the same run*
 the ratios hold across machines even where absolute times do not. A benchmark
 module returns a :class:`Section`::
 
-    from bench.common import Comparison, Section
+    from agentsdk.bench.common import Comparison, Section
 
     def run(quick: bool = False) -> Section:
         sec = Section("my_bench", "What it measures")
         sec.comparisons.append(Comparison("arm3 mujoco: time per cycle", "µs", baseline=27.1, sdk=171.4))
         return sec
 
-``python -m bench`` prints each section as it finishes, then one summary table
+``agentsdk bench`` prints each section as it finishes, then one summary table
 of every comparison and the JSON of the whole run.
 """
 

@@ -15,8 +15,8 @@ same event loop, as in a real behavior), it measures, one after the other:
 All three are reduced with :meth:`LoopStats.from_wake_times` / the agent's own
 recorder, the same definitions: period error = |actual period - scheduled period|
 between consecutive wake-ups; missed = deadlines skipped (the baselines never skip).
-Prints a table and the JSON of every :class:`LoopStats`. ``python -m bench`` calls
-:func:`run` (a ``bench.common.Section``: agent vs the absolute-deadline baseline).
+Prints a table and the JSON of every :class:`LoopStats`. ``agentsdk bench`` calls
+:func:`run` (a ``agentsdk.bench.common.Section``: agent vs the absolute-deadline baseline).
 """
 
 from __future__ import annotations
@@ -114,13 +114,13 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 
 def run(quick: bool = False) -> Any:
-    """Entry point of ``python -m bench``: a :class:`bench.common.Section` comparing the agent with the
+    """Entry point of ``agentsdk bench``: a :class:`agentsdk.bench.common.Section` comparing the agent with the
     absolute-deadline asyncio baseline (the naive loop is in the table and the JSON)."""
     duration = 1.0 if quick else 3.0
     rows = asyncio.run(measure("mock", "arm3", [500.0, 1000.0], duration))
     print(table(rows))
     try:
-        from bench.common import Comparison, Section, Table
+        from agentsdk.bench.common import Comparison, Section, Table
     except ImportError:  # run outside the bench package
         return {"results": rows}
     us = 1e6

@@ -45,7 +45,9 @@ from typing import Any
 
 import numpy as np
 
-from bench.common import Comparison, Section, Table, fmt, median, progress, spread
+import agentsdk
+import agentsdk.backends
+from agentsdk.bench.common import Comparison, Section, Table, fmt, median, progress, spread
 
 ROBOTS = ("arm3", "humanoid")
 BACKENDS = ("mujoco", "pybullet")
@@ -57,7 +59,10 @@ FREQ = 0.5
 W = 2.0 * math.pi * FREQ
 
 _REPO = Path(__file__).resolve().parent.parent
-_SDK_DIRS = (str(_REPO / "agentsdk") + os.sep, str(_REPO / "backends") + os.sep)
+#: where SDK code lives (a checkout keeps backends/ beside agentsdk/; an install nests it)
+_SDK_DIRS = tuple(
+    {str(Path(m.__file__).resolve().parent) + os.sep for m in (agentsdk, agentsdk.backends)}
+)
 
 
 def _wave(q0: np.ndarray, k: int, period: float) -> np.ndarray:
@@ -99,7 +104,7 @@ class RawMujoco:
     def __init__(self, rb: _Robot) -> None:
         import mujoco
 
-        from backends.mujoco import MujocoOptions
+        from agentsdk.backends.mujoco import MujocoOptions
 
         self.mj = mujoco
         opts = MujocoOptions(**rb.config.backend_options("mujoco"))
@@ -202,7 +207,7 @@ class RawPybullet:
     def __init__(self, rb: _Robot, implicit: bool = True) -> None:
         import pybullet as p
 
-        from backends.pybullet import _SPEED_CAP, PybulletOptions
+        from agentsdk.backends.pybullet import _SPEED_CAP, PybulletOptions
 
         self.p = p
         opts = PybulletOptions(**rb.config.backend_options("pybullet"))

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.common import Comparison, Section, Table, fmt, median, progress, spread
+from agentsdk.bench.common import Comparison, Section, Table, fmt, median, progress, spread
 
 LOWER = np.array([-2.8, -1.7, -2.8, -3.0, -2.8, 0.0, -2.8])
 UPPER = np.array([2.8, 1.7, 2.8, -0.07, 2.8, 3.7, 2.8])

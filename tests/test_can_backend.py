@@ -27,10 +27,10 @@ import yaml
 
 import agentsdk
 from agentsdk import BackendFault, BackendStartError, EStopActive, JointCommand, Robot, SafetyFault, SafetyState
+from agentsdk.backends.can.emulator import MotorEmulator
+from agentsdk.backends.can.mit import DISABLE
 from agentsdk.cli import main as cli_main
 from agentsdk.testing import BackendConformance
-from backends.can.emulator import MotorEmulator
-from backends.can.mit import DISABLE
 
 ROOT = Path(__file__).resolve().parents[1]
 

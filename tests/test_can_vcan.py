@@ -48,9 +48,9 @@ import yaml
 
 import agentsdk
 from agentsdk import Robot
+from agentsdk.backends.can.config import load_can_config
+from agentsdk.backends.can.mit import CLEAR_ERROR, DISABLE, decode_reply, is_special, profile_for
 from agentsdk.testing import BackendConformance
-from backends.can.config import load_can_config
-from backends.can.mit import CLEAR_ERROR, DISABLE, decode_reply, is_special, profile_for
 
 ROOT = Path(__file__).resolve().parents[1]
 HAS_VCAN = Path("/sys/class/net/vcan0").exists()
@@ -122,7 +122,7 @@ class Proc:
 
 def start_emulator(robot: str, *args: str) -> Proc:
     return Proc(
-        [sys.executable, "-m", "backends.can.emulator", "--robot", robot,
+        [sys.executable, "-m", "agentsdk.backends.can.emulator", "--robot", robot,
          "--interface", "socketcan", "--channel", "vcan0", *args],
         "emulator",
     )

@@ -9,9 +9,9 @@ import pytest
 from tiny_backend import TinyController
 
 import agentsdk
+from agentsdk.backends.can.testing import EmulatedCanConformance
 from agentsdk.registry import available_backends
 from agentsdk.testing import BackendConformance
-from backends.can.testing import EmulatedCanConformance
 
 pytest_plugins = ["pytester"]
 

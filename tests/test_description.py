@@ -22,7 +22,7 @@ from agentsdk.description import (
     resolve_robot,
 )
 from agentsdk.errors import ConfigurationError, DescriptionError, UnknownJointError
-from robots import ROBOTS_DIR
+from agentsdk.robots import ROBOTS_DIR
 
 FIXTURES = Path(__file__).parent / "fixtures"
 MESH_PKG = FIXTURES / "mesh_pkg"

@@ -22,10 +22,9 @@ from pathlib import Path
 import can
 import pytest
 
-from agentsdk.errors import ConfigurationError
-from backends.can.config import CanBusConfig, load_can_config, parse_can_config
-from backends.can.emulator import EmulatedMotor, MotorEmulator, main
-from backends.can.mit import (
+from agentsdk.backends.can.config import CanBusConfig, load_can_config, parse_can_config
+from agentsdk.backends.can.emulator import EmulatedMotor, MotorEmulator, main
+from agentsdk.backends.can.mit import (
     CLEAR_ERROR,
     DISABLE,
     ENABLE,
@@ -37,6 +36,7 @@ from backends.can.mit import (
     encode_command,
     ranges_for,
 )
+from agentsdk.errors import ConfigurationError
 
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "tests" / "fixtures" / "can_leg" / "robot.yaml"
@@ -545,7 +545,7 @@ def test_cli_rejects_bad_config(tmp_path: Path, capsys: pytest.CaptureFixture[st
 def _spawn_cli(*args: str) -> subprocess.Popen[str]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
     return subprocess.Popen(
-        [sys.executable, "-m", "backends.can.emulator", "--robot", str(FIXTURE), *args],
+        [sys.executable, "-m", "agentsdk.backends.can.emulator", "--robot", str(FIXTURE), *args],
         cwd=ROOT,
         env=env,
         stdout=subprocess.PIPE,

@@ -8,8 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from agentsdk.errors import ConfigurationError, InvalidValueError, LimitViolation
-from backends.can.mit import (
+from agentsdk.backends.can.mit import (
     CLEAR_ERROR,
     DISABLE,
     ENABLE,
@@ -27,6 +26,7 @@ from backends.can.mit import (
     ranges_for,
     uint_to_float,
 )
+from agentsdk.errors import ConfigurationError, InvalidValueError, LimitViolation
 
 PROPS = settings(database=None, deadline=None, max_examples=300, suppress_health_check=[HealthCheck.too_slow])
 

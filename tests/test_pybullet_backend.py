@@ -11,8 +11,8 @@ import pytest
 
 import agentsdk
 from agentsdk import ConfigurationError, JointCommand, SafetyFault, SimulationDiverged
+from agentsdk.backends.pybullet import PybulletController
 from agentsdk.description import apply_overrides, resolve_robot
-from backends.pybullet import PybulletController
 
 pytestmark = pytest.mark.asyncio
 

@@ -38,14 +38,15 @@ from pydantic import (
     model_validator,
 )
 
+from agentsdk.backends.can.mit import PROFILES, MotorRanges, VendorProfile, profile_for, ranges_for
 from agentsdk.config import RobotConfig, load_robot_config
 from agentsdk.errors import ConfigurationError
-from backends.can.mit import PROFILES, MotorRanges, VendorProfile, profile_for, ranges_for
+from agentsdk.robots import ROBOTS_DIR as _SHIPPED_ROBOTS
 
 __all__ = ["ROBOTS_DIR", "CanBusConfig", "CanMotorConfig", "load_can_config", "parse_can_config", "robot_yaml_path"]
 
-#: Where robot names are looked up: ``robots/<name>/robot.yaml`` in the project checkout.
-ROBOTS_DIR = Path(__file__).resolve().parents[2] / "robots"
+#: Where robot names are looked up: ``<ROBOTS_DIR>/<name>/robot.yaml`` (the shipped robots).
+ROBOTS_DIR: Path = _SHIPPED_ROBOTS
 
 _MAX_STD_ID = 0x7FF
 _T = TypeVar("_T")

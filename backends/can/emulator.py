@@ -31,7 +31,7 @@ received frame, and independently its reply, is lost; seeded RNG), ``reply_laten
 ``error_code`` (reported in the reply; the motor goes limp), and a bus ``flood`` of junk
 frames at ``flood_rate`` Hz on ``flood_id``.
 
-CLI: ``python -m backends.can.emulator --robot mit_leg --interface socketcan --channel vcan0``.
+CLI: ``python -m agentsdk.backends.can.emulator --robot mit_leg --interface socketcan --channel vcan0``.
 """
 
 from __future__ import annotations
@@ -54,9 +54,8 @@ from typing import Any, Final
 
 import can
 
-from agentsdk.errors import AgentSDKError, ConfigurationError
-from backends.can.config import CanBusConfig, load_can_config
-from backends.can.mit import (
+from agentsdk.backends.can.config import CanBusConfig, load_can_config
+from agentsdk.backends.can.mit import (
     MotorRanges,
     SpecialFrame,
     VendorProfile,
@@ -66,6 +65,7 @@ from backends.can.mit import (
     profile_for,
     ranges_for,
 )
+from agentsdk.errors import AgentSDKError, ConfigurationError
 
 __all__ = [
     "EmulatedMotor",
@@ -334,8 +334,8 @@ class EmulatedMotor:
 class MotorEmulator:
     """Answers MIT frames on ``bus`` for ``motors`` (by CAN id), with real-time physics in a thread.
 
-    ``profile`` picks the reply layout (:data:`~backends.can.mit.PROFILES` name or a
-    :class:`~backends.can.mit.VendorProfile`); replies go to ``master_id``. The bus is the
+    ``profile`` picks the reply layout (:data:`~agentsdk.backends.can.mit.PROFILES` name or a
+    :class:`~agentsdk.backends.can.mit.VendorProfile`); replies go to ``master_id``. The bus is the
     caller's: :meth:`stop` does not shut it down. ``start()``/``stop()`` or ``with``::
 
         with can.Bus(interface="virtual", channel="t") as bus, MotorEmulator(bus, {1: EmulatedMotor(1)}):

@@ -38,9 +38,9 @@ def _source_checkout_subpackages() -> None:
 
 _source_checkout_subpackages()
 
+from .backend import Backend, Capabilities, JointReading, ModeCode, SetpointView
 from .clock import Clock, LockstepClock, RealtimeClock
 from .config import RobotConfig, load_robot_config
-from .controller import Capabilities, Controller, Setpoint, StateBuffer
 from .errors import (
     AgentSDKError,
     AgentTimeoutError,
@@ -61,12 +61,16 @@ from .errors import (
     UnsupportedModeError,
 )
 from .feedback import FeedbackAgent, LoopStats, run_feedback
+from .loop import HookHandle, Phase, Setpoint, StateView
 from .motion import Feedback, Motion, MotionResult, ResultCode, Tolerances
 from .registry import available_backends, load_backend, register_backend, unregister_backend
 from .robot import Robot, connect
-from .safety import SafetyConfig, SafetyEvent, SafetyState
+from .safety import SafetyCheck, SafetyConfig, SafetyEvent, SafetyState, SafetyViolation
 from .trajectory import Trajectory, TrajectoryPoint
-from .types import MODES, CommandMode, JointCommand, JointInfo, JointState
+from .types import MODES, AppliedCommand, CommandMode, JointCommand, JointInfo, JointState
+
+#: former name of :class:`Backend` (the base class backends subclass)
+Controller = Backend
 
 __version__ = "0.1.0"
 
@@ -74,6 +78,8 @@ __all__ = [
     "MODES",
     "AgentSDKError",
     "AgentTimeoutError",
+    "AppliedCommand",
+    "Backend",
     "BackendFault",
     "BackendStartError",
     "BackendUnavailableError",
@@ -87,28 +93,35 @@ __all__ = [
     "EStopActive",
     "Feedback",
     "FeedbackAgent",
+    "HookHandle",
     "InvalidValueError",
     "JointCommand",
     "JointInfo",
+    "JointReading",
     "JointState",
     "LimitViolation",
     "LockstepClock",
     "LoopStats",
+    "ModeCode",
     "Motion",
     "MotionResult",
+    "Phase",
     "RealtimeClock",
     "ResultCode",
     "Robot",
     "RobotClosedError",
     "RobotConfig",
+    "SafetyCheck",
     "SafetyConfig",
     "SafetyError",
     "SafetyEvent",
     "SafetyFault",
     "SafetyState",
+    "SafetyViolation",
     "Setpoint",
+    "SetpointView",
     "SimulationDiverged",
-    "StateBuffer",
+    "StateView",
     "Tolerances",
     "Trajectory",
     "TrajectoryPoint",

@@ -85,14 +85,16 @@ class RunSummary:
         return out
 
 
-def final_errors(robot: Any) -> dict[str, float]:
-    """Position error (last position target - measured) of joints in position mode."""
-    ctl = robot.controller
-    sp, st = ctl.setpoint, ctl.state
+async def final_errors(robot: Any) -> dict[str, float]:
+    """Position error (last position setpoint - measured) of the enabled joints in position mode."""
+    from .backend import ModeCode
+
+    sp = robot.setpoint
+    st = await robot.read()
     return {
         n: float(sp.position[i] - st.position[i])
-        for i, n in enumerate(ctl.names)
-        if sp.mode[i] == 0 and sp.enabled[i]
+        for i, n in enumerate(robot.joint_names)
+        if sp.mode[i] == ModeCode.POSITION and sp.enabled[i]
     }
 
 
@@ -160,7 +162,7 @@ async def run_behavior(
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
                     loop.remove_signal_handler(sig)
-        summary = RunSummary(bot.clock.now(), time.perf_counter() - t_wall, final_errors(bot), bot.realtime)
+        summary = RunSummary(bot.clock.now(), time.perf_counter() - t_wall, await final_errors(bot), bot.realtime)
     return summary
 
 
@@ -197,23 +199,21 @@ class _MujocoView:
     def __init__(self, robot: Any) -> None:
         import mujoco.viewer
 
-        ctl = robot.controller
-        self._handle = mujoco.viewer.launch_passive(ctl.model, ctl.data)
-        self._last = 0.0
-        self._ctl = ctl
-        ctl.tick_hooks.append(self._on_tick)
+        from .loop import Phase
 
-    def _on_tick(self, t: float, state: Any) -> None:
+        backend = robot.controller  # the MuJoCo backend's public model and data
+        self._handle = mujoco.viewer.launch_passive(backend.model, backend.data)
+        self._last = 0.0
+        self._hook = robot.add_tick_hook(Phase.OBSERVE, self._on_tick)
+
+    def _on_tick(self, t: float, state: Any, setpoint: Any) -> None:
         now = time.perf_counter()
         if now - self._last >= 1 / 60 and self._handle.is_running():
             self._last = now
             self._handle.sync()
 
     def close(self) -> None:
-        try:
-            self._ctl.tick_hooks.remove(self._on_tick)
-        except ValueError:
-            pass
+        self._hook.remove()
         self._handle.close()
 
 

@@ -66,8 +66,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
 
-from .controller import MODE_CODES
-from .errors import AgentSDKError, ConfigurationError, InvalidValueError
+from .backend import ModeCode
+from .errors import AgentSDKError, ConfigurationError, InvalidValueError, RobotClosedError
 from .types import JointCommand, JointState
 
 if TYPE_CHECKING:
@@ -77,7 +77,7 @@ __all__ = ["FeedbackAgent", "LoopStats", "UpdateFn", "run_feedback"]
 
 log = logging.getLogger("agentsdk.feedback")
 
-_POS = MODE_CODES["position"]
+_POS = ModeCode.POSITION
 
 #: a plain ``[async] def update(state) -> JointCommand | None`` accepted by run_feedback
 UpdateFn = Callable[[JointState], Awaitable[JointCommand | None] | JointCommand | None]
@@ -363,16 +363,19 @@ async def _hold_streamed(robot: Robot, commanded: set[int]) -> None:
     """Joints the agent left streaming (velocity/effort, or position with feed-forward) hold where they are."""
     if not commanded or robot.closed:
         return
-    ctl = robot.controller
-    sp, st = ctl.setpoint, ctl.state
-    owned = robot._motions.owned_mask  # joints a trajectory took over since are not ours any more
+    sp = robot.setpoint
+    st = await robot.read()
+    owned = set(robot.motion_joints)  # joints a trajectory took over since are not ours any more
+    names = robot.joint_names
     idx = [
         j
         for j in sorted(commanded)
-        if sp.enabled[j] and not owned[j] and (sp.mode[j] != _POS or sp.velocity[j] != 0.0 or sp.effort[j] != 0.0)
+        if sp.enabled[j]
+        and names[j] not in owned
+        and (sp.mode[j] != _POS or sp.velocity[j] != 0.0 or sp.effort[j] != 0.0)
     ]
     if idx:
-        await robot.command(JointCommand("position", {ctl.names[j]: float(st.position[j]) for j in idx}))
+        await robot.command(JointCommand("position", {names[j]: float(st.position[j]) for j in idx}))
 
 
 async def run_feedback(
@@ -412,7 +415,8 @@ async def run_feedback(
         n_end = max(0, math.ceil(duration / period - 1e-9))
     if max_samples < 1:
         raise InvalidValueError(f"max_samples must be >= 1, got {max_samples!r}")
-    robot.controller.check_open()
+    if robot.closed:
+        raise RobotClosedError(f"robot {robot.name!r} is closed")
 
     clock = robot.clock
     realtime = not clock.lockstep
@@ -447,7 +451,7 @@ async def run_feedback(
 
     watcher = asyncio.get_running_loop().create_task(_watch_stop(stop)) if stop is not None else None
     try:
-        index = robot.controller.index
+        index = robot.joint_index
         k = 0
         while True:
             if stop is not None and stop.is_set():

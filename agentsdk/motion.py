@@ -30,16 +30,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from . import scope
-from .controller import MODE_CODES, Controller, Setpoint, StateBuffer
+from .backend import ModeCode
 from .errors import InvalidValueError, UnknownJointError
+from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .trajectory import Trajectory, TrajectorySampler, plan_point_to_point, plan_stop
 
 if TYPE_CHECKING:
-    from .safety import SafetyLayer
+    from .safety import PositionBounds
 
 __all__ = ["Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
 
-_POS = MODE_CODES["position"]
+_POS = ModeCode.POSITION
 
 
 class ResultCode(enum.IntEnum):
@@ -155,7 +156,7 @@ class Motion:
         """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included)."""
         if not rate > 0:
             raise InvalidValueError(f"feedback rate must be > 0, got {rate!r}")
-        clock = self._mgr.ctl.clock
+        clock = self._mgr.loop.clock
         period = 1.0 / rate
         next_t = clock.now()
         last: Feedback | None = None
@@ -198,12 +199,15 @@ class _Exec:
 class MotionManager:
     """Owns the running motions of one robot; one executor per motion, run in the control tick."""
 
-    def __init__(self, ctl: Controller, safety: SafetyLayer) -> None:
-        self.ctl = ctl
-        self.safety = safety
-        safety.motions = self
-        n = len(ctl.joints)
+    def __init__(self, loop: ControlLoop, bounds: PositionBounds, decel_scale: float = 1.0) -> None:
+        self.loop = loop
+        #: position bounds every trajectory point must respect (URDF limits minus the safety margin)
+        self.bounds = bounds
+        #: scale of max_acceleration used by stop ramps
+        self.decel_scale = decel_scale
+        n = len(loop.joints)
         self._owner: list[_Exec | None] = [None] * n
+        #: joints currently driven by a motion or a stop ramp (read-only for other modules)
         self.owned_mask = np.zeros(n, dtype=bool)
 
     # ------------------------------------------------------------ queries
@@ -216,8 +220,8 @@ class MotionManager:
 
     def _desired(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Current desired (q, v, a) for joints: from their executor, else the setpoint/state."""
-        ctl = self.ctl
-        sp, st = ctl.setpoint, ctl.state
+        loop = self.loop
+        sp, st = loop.setpoint, loop.state
         q = np.where(sp.mode[idx] == _POS, sp.position[idx], st.position[idx])
         v = np.where(sp.mode[idx] == _POS, sp.velocity[idx], st.velocity[idx])
         a = np.zeros(len(idx))
@@ -236,18 +240,19 @@ class MotionManager:
         desired motion continues seamlessly; starting it from the last tick's state would
         repeat that position for one tick (a stall of v*dt while the desired velocity says v).
         """
-        return ex.sampler.sample(self.ctl.stamp)
+        return ex.sampler.sample(self.loop.stamp)
 
     # ------------------------------------------------------------- start
     def follow(self, traj: Trajectory, tolerances: Tolerances | None) -> Motion:
-        ctl = self.ctl
+        """Start executing ``traj`` (validated against the joints); returns its :class:`Motion` handle."""
+        ctl = self.loop
         if not isinstance(traj, Trajectory):
             raise InvalidValueError(f"expected a Trajectory, got {type(traj).__name__}")
         traj.validate(ctl.joints)
         names = tuple(traj.joint_names)
         idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
         for p in traj.points:
-            self.safety.check_trajectory_point(np.asarray(p.positions, dtype=float), idx)
+            self.bounds.check(np.asarray(p.positions, dtype=float), idx)
         tol = tolerances or Tolerances()
         path_tol = _per_joint(tol.path, names, "path")
         goal_tol = _per_joint(tol.goal, names, "goal")
@@ -267,7 +272,8 @@ class MotionManager:
         return motion
 
     def move_to(self, positions: Mapping[str, float], duration: float | None, tol: Tolerances | None) -> Motion:
-        ctl = self.ctl
+        """Plan a jerk-limited move from the current desired state to ``positions`` and follow it."""
+        ctl = self.loop
         if not isinstance(positions, Mapping) or not positions:
             raise InvalidValueError("move_to expects a non-empty {joint name: position} mapping")
         unknown = [n for n in positions if n not in ctl.index]
@@ -278,7 +284,7 @@ class MotionManager:
         goal = np.array([float(positions[n]) for n in names])
         if not np.isfinite(goal).all():
             raise InvalidValueError(f"move_to: non-finite target in {dict(positions)!r}")
-        self.safety.check_trajectory_point(goal, idx)
+        self.bounds.check(goal, idx)
         q0, v0, a0 = self._desired(idx)
         joints = [ctl.joints[i] for i in idx.tolist()]
         traj = plan_point_to_point((q0, v0, a0), goal, joints, duration=duration)
@@ -288,7 +294,7 @@ class MotionManager:
         for j in ex.idx.tolist():
             self._owner[j] = ex
         self.owned_mask[ex.idx] = True
-        self.ctl.add_updater(lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+        self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
 
     def _release(self, ex: _Exec) -> None:
         for j in ex.idx.tolist():
@@ -321,20 +327,20 @@ class MotionManager:
         if ex.phase == "stopping":
             return
         q, v, a = self._desired_next(ex)
-        joints = [self.ctl.joints[i] for i in ex.idx.tolist()]
-        stop = plan_stop(q, v, a, joints, decel_scale=self.safety.config.stop_deceleration_scale)
-        ex.sampler = TrajectorySampler(stop, start_time=self.ctl.stamp, start_positions=q, start_velocities=v,
+        joints = [self.loop.joints[i] for i in ex.idx.tolist()]
+        stop = plan_stop(q, v, a, joints, decel_scale=self.decel_scale)
+        ex.sampler = TrajectorySampler(stop, start_time=self.loop.stamp, start_positions=q, start_velocities=v,
                                        start_accelerations=a)
-        ex.t0 = self.ctl.stamp
+        ex.t0 = self.loop.stamp
         ex.phase = "stopping"
         ex.stop_code = code
         ex.stop_msg = msg
 
     def _start_ramp(self, idx: np.ndarray, q: Any, v: Any, a: Any, code: ResultCode | None, msg: str,
                     on_done: Any = None) -> _Exec:
-        joints = [self.ctl.joints[i] for i in idx.tolist()]
-        stop = plan_stop(q, v, a, joints, decel_scale=self.safety.config.stop_deceleration_scale)
-        t0 = self.ctl.stamp
+        joints = [self.loop.joints[i] for i in idx.tolist()]
+        stop = plan_stop(q, v, a, joints, decel_scale=self.decel_scale)
+        t0 = self.loop.stamp
         sampler = TrajectorySampler(stop, start_time=t0, start_positions=q, start_velocities=v,
                                     start_accelerations=a)
         n = len(idx)
@@ -344,31 +350,36 @@ class MotionManager:
         self._install(ex)
         return ex
 
-    async def stop_all_ramp(self, damp_only: bool = False) -> None:
-        """Decelerate every joint to rest (e-stop categories 1 and 2); returns when at rest."""
-        ctl = self.ctl
-        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        idx = np.arange(len(ctl.joints))
-        if damp_only:
-            sp = ctl.setpoint
-            sp.kp[:] = 0.0
-            sp.kd[:] = self.safety.config.stop_damping
-            sp.velocity[:] = 0.0
-            sp.effort[:] = 0.0
+    async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0) -> None:
+        """Decelerate every joint to rest (e-stop categories 1 and 2); returns when at rest.
 
-            def _until_still(t: float, st: StateBuffer, sp: Setpoint) -> bool:
+        ``damp_only`` (backends without position control): velocity mode at zero
+        velocity with gain ``damping`` until every joint is still.
+        """
+        loop = self.loop
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        idx = np.arange(len(loop.joints))
+        handle: HookHandle | None = None
+        if damp_only:
+            loop.damp(idx, damping)
+
+            def _until_still(t: float, st: StateView, sp: Setpoint) -> bool:
                 if np.all(np.abs(st.velocity) < 1e-2) and not done.done():
                     done.set_result(None)
                 return not done.done()
 
-            ctl.add_updater(_until_still)
+            handle = loop.add_hook(Phase.COMMAND, _until_still)
         else:
             q, v, a = self._desired(idx)
             for ex in set(self._owner):
                 if ex is not None:
                     self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
             self._start_ramp(idx, q, v, a, None, "", on_done=lambda: done.done() or done.set_result(None))
-        await done
+        try:
+            await done
+        finally:
+            if handle is not None:
+                handle.remove()
 
     def abort_all(self, reason: str = "robot closed") -> None:
         """Resolve every motion ABORTED (no ramp: the caller takes over the joints)."""
@@ -376,7 +387,17 @@ class MotionManager:
             if ex is not None and ex.motion is not None:
                 self._finish(ex, ResultCode.ABORTED, f"aborted: {reason}")
 
+    def end_all(self, reason: str) -> None:
+        """End every motion (ABORTED) and every stop ramp now, leaving the setpoint where it is.
+
+        Used by ``reset()``: nothing may keep driving the joints over time afterwards.
+        """
+        for ex in set(self._owner):
+            if ex is not None:
+                self._finish(ex, ResultCode.ABORTED if ex.motion is not None else None, f"aborted: {reason}")
+
     def fail_all(self, exc: BaseException) -> None:
+        """Fail every motion with ``exc`` (the control loop died)."""
         for ex in set(self._owner):
             if ex is None:
                 continue
@@ -390,28 +411,29 @@ class MotionManager:
         self._release(ex)
         ex.phase = "dead"
         if ex.motion is not None and code is not None and not ex.motion._future.done():
-            st = self.ctl.state
+            st = self.loop.state
             err = ex.goal - st.position[ex.idx]
-            res = MotionResult(code, dict(zip(ex.motion.joint_names, err.tolist(), strict=True)), msg, self.ctl.stamp)
+            res = MotionResult(code, dict(zip(ex.motion.joint_names, err.tolist(), strict=True)), msg, self.loop.stamp)
             ex.motion._future.set_result(res)
         if ex.on_done is not None:
             ex.on_done()
 
     # --------------------------------------------------------- every tick
-    def _update(self, ex: _Exec, t: float, st: StateBuffer, sp: Setpoint) -> bool:
+    def _update(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
         if ex.phase == "dead":
             return False
         idx = ex.idx
         q, v, a = ex.sampler.sample(t)
         ex.des_q, ex.des_v, ex.des_a = q, v, a
-        ctl = self.ctl
+        loop = self.loop
         sp.mode[idx] = _POS
         sp.enabled[idx] = True
         sp.position[idx] = q
         sp.velocity[idx] = v
         sp.effort[idx] = 0.0
-        sp.kp[idx] = ctl.gain_p[idx]
-        sp.kd[idx] = ctl.gain_d[idx]
+        sp.kp[idx] = loop.gain_p[idx]
+        sp.kd[idx] = loop.gain_d[idx]
+        sp.target[idx] = q
         actual = st.position[idx]
         err = q - actual
         m = ex.motion
@@ -454,9 +476,6 @@ class MotionManager:
         return True
 
     def _hold_at(self, idx: np.ndarray, q: np.ndarray) -> None:
-        sp = self.ctl.setpoint
-        sp.position[idx] = q
-        sp.velocity[idx] = 0.0
-        sp.effort[idx] = 0.0
+        self.loop.hold_at(idx, q)
 
 

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .controller import MODE_CODES
+from .backend import ModeCode
 from .errors import ConfigurationError
 
 if TYPE_CHECKING:
@@ -115,6 +115,6 @@ def _target_at(data: RunData) -> np.ndarray | None:
     ok = idx >= 0
     rows = idx[ok]
     out = np.full_like(data.position, np.nan)
-    servo = (data.cmd_mode[rows] == MODE_CODES["position"]) & data.cmd_enabled[rows]
+    servo = (data.cmd_mode[rows] == ModeCode.POSITION) & data.cmd_enabled[rows]
     out[ok] = np.where(servo, data.cmd_target[rows], np.nan)
     return out

@@ -80,7 +80,7 @@ Replay
 ------
 :func:`replay` connects a fresh robot (lockstep for simulators), and an
 updater writes the recorded setpoint (position, velocity, effort, kp, kd,
-enabled, mode) into ``robot.controller.setpoint`` at the same tick it was
+enabled, mode) into the robot's setpoint (a COMMAND-phase tick hook) at the same tick it was
 applied in the recording.  The safety layer filters it again, which leaves it
 unchanged (the recorded setpoint is already limited and ramped); the command
 watchdog is turned off because no commands are sent.  Lockstep MuJoCo is
@@ -103,14 +103,15 @@ from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
 
-from .controller import MODE_CODES, StateBuffer
+from .backend import ModeCode, SetpointView
 from .errors import ConfigurationError
+from .loop import Phase, Setpoint, StateView
+from .statemachine import StateMachine
 from .types import MODES
 
 if TYPE_CHECKING:
     from mcap.writer import Writer
 
-    from .controller import Controller, Setpoint
     from .robot import Robot
 
 __all__ = [
@@ -126,6 +127,9 @@ __all__ = [
 ]
 
 log = logging.getLogger("agentsdk.recording")
+
+#: OBSERVE-phase order of the recorder: before every other observer (it sees the setpoint as written)
+RECORDER_ORDER = -1000
 
 FORMAT = "agentsdk-recording/1"
 METADATA_NAME = "agentsdk"
@@ -304,7 +308,7 @@ class RunData:
         ok = idx >= 0
         rows = idx[ok]
         des = self.cmd_position[rows]
-        servo = (self.cmd_mode[rows] == MODE_CODES["position"]) & self.cmd_enabled[rows]
+        servo = (self.cmd_mode[rows] == ModeCode.POSITION) & self.cmd_enabled[rows]
         out[ok] = np.where(servo, des, np.nan)
         return out
 
@@ -391,11 +395,9 @@ class Recorder:
             raise ConfigurationError(f"record rate must be a positive number of Hz, got {rate!r}")
         if path is None and not keep:
             raise ConfigurationError("Recorder needs a path or keep=True")
-        ctl = robot.controller
         self._robot = robot
-        self._ctl: Controller = ctl
-        self.names: tuple[str, ...] = tuple(ctl.names)
-        self.period = float(ctl.period)
+        self.names: tuple[str, ...] = tuple(robot.joint_names)
+        self.period = float(robot.control_period)
         self.rate = rate
         self.keep = keep
         self.path = Path(path) if path is not None else None
@@ -403,14 +405,13 @@ class Recorder:
         self._cap = int(block_ticks)
         self._block = _Block(self._cap, n)
         self._k = 0
-        self._prev_t = float(ctl.stamp)
+        self._prev_t = float(robot.clock.now())
         self.ticks = 0
         # selection state carried across blocks
         self._last_sample = math.floor(self._prev_t * rate + 1e-6) if rate else 0
         self._last_cmd: tuple[np.ndarray, ...] | None = None
         self._chunks: list[_Chunk] = []  # kept for data()
-        self._events_src: deque[Any] = robot.safety.events
-        self._last_event: Any = self._events_src[-1] if self._events_src else None
+        self._event_cursor = robot.safety.event_count
         self._events: list[dict[str, Any]] = []
         self._transitions: list[dict[str, Any]] = []
         self._pending_side: list[tuple[int, str, dict[str, Any]]] = []
@@ -425,8 +426,9 @@ class Recorder:
         self._drain: Iterator[None] | None = None
         if self.path is not None:
             self._open_writer(self.path)
-        ctl.tick_hooks.insert(0, self._on_tick)  # first: sees the setpoint exactly as written
-        _add_transition_listener(self._on_transition)
+        # first observer: sees the setpoint exactly as written, before a watchdog changes it
+        self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, self._on_tick, order=RECORDER_ORDER)
+        self._transition_handle = StateMachine.add_transition_listener(self._on_transition)
 
     @classmethod
     def attach(
@@ -445,17 +447,17 @@ class Recorder:
     def _metadata(self, extra: Mapping[str, str]) -> dict[str, str]:
         from . import __version__
 
-        ctl = self._ctl
+        backend = self._robot.controller
         try:
-            config = json.dumps(ctl.config.model_dump(mode="json"), sort_keys=True)
+            config = json.dumps(backend.config.model_dump(mode="json"), sort_keys=True)
         except Exception:  # pragma: no cover - a config that does not serialize
             config = ""
-        opts = ctl.options.model_dump(mode="json") if hasattr(ctl.options, "model_dump") else {}
+        opts = backend.options.model_dump(mode="json") if hasattr(backend.options, "model_dump") else {}
         md = {
             "format": FORMAT,
             "robot": self._robot.name,
             "robot_name": self._robot.name,
-            "backend": ctl.name,
+            "backend": self._robot.backend,
             "backend_options": json.dumps(opts, sort_keys=True),
             "realtime": "true" if self._robot.realtime else "false",
             "control_period": repr(self.period),
@@ -486,14 +488,12 @@ class Recorder:
         self._writer = w
 
     # ----------------------------------------------------------- per tick
-    def _on_tick(self, t: float, st: StateBuffer) -> None:
+    def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
         k = self._k
         if k == self._cap:
             self._rotate()
             k = 0
         b = self._block
-        ctl = self._ctl
-        sp = ctl.setpoint
         b.t[k] = t
         b.tc[k] = self._prev_t
         self._prev_t = t
@@ -507,24 +507,19 @@ class Recorder:
         b.kd[k] = sp.kd
         b.en[k] = sp.enabled
         b.mode[k] = sp.mode
-        b.target[k] = ctl.target
+        b.target[k] = sp.target
         self._k = k + 1
         self.ticks += 1
-        ev = self._events_src
-        if ev and ev[-1] is not self._last_event:
+        if self._robot.safety.event_count != self._event_cursor:
             self._take_events()
         if self._backlog_ticks > DRAIN_AFTER_TICKS:
             self._write_some(_DRAIN_PER_TICK)
 
     def _take_events(self) -> None:
-        src = self._events_src
-        new = []
-        for ev in reversed(src):
-            if ev is self._last_event:
-                break
-            new.append(ev)
-        self._last_event = src[-1] if src else None
-        for ev in reversed(new):
+        safety = self._robot.safety
+        new = safety.events_since(self._event_cursor)
+        self._event_cursor = safety.event_count
+        for ev in new:
             msg = {"kind": ev.kind, "joint": ev.joint, "detail": ev.detail}
             self._events.append({"time": ev.time, **msg})
             self._pending_side.append((_ns(ev.time), SAFETY_EVENTS, msg))
@@ -669,12 +664,9 @@ class Recorder:
         if self._finished:
             return
         self._finished = True
-        try:
-            self._ctl.tick_hooks.remove(self._on_tick)
-        except ValueError:
-            pass
-        _remove_transition_listener(self._on_transition)
-        if self._events_src and self._events_src[-1] is not self._last_event:
+        self._tick_handle.remove()
+        self._transition_handle.remove()
+        if self._robot.safety.event_count != self._event_cursor:
             self._take_events()
         self._rotate()
         if self._writer is None:
@@ -741,49 +733,6 @@ def _from_chunks(names: tuple[str, ...], period: float, md: dict[str, str], chun
     )
 
 
-# ------------------------------------------------------- transition hook
-_listeners: list[Callable[[Any, Any], None]] = []
-
-
-def _add_transition_listener(fn: Callable[[Any, Any], None]) -> None:
-    from . import statemachine
-
-    cls = statemachine.StateMachine
-    original = getattr(cls, "_sm_record", None)
-    if original is None:  # pragma: no cover - the engine changed
-        log.debug("StateMachine has no _sm_record; transitions will not be recorded")
-        return
-    if not _listeners and getattr(original, "_agentsdk_recording", False) is False:
-
-        def _sm_record(self: Any, *args: Any, **kwargs: Any) -> None:
-            original(self, *args, **kwargs)
-            if self.history:
-                rec = self.history[-1]
-                for listener in tuple(_listeners):
-                    try:
-                        listener(self, rec)
-                    except Exception:  # a recorder must never break a behavior
-                        log.exception("transition listener failed")
-
-        _sm_record._agentsdk_recording = True  # type: ignore[attr-defined]
-        _sm_record.__wrapped__ = original  # type: ignore[attr-defined]
-        cls._sm_record = _sm_record  # type: ignore[method-assign]
-    _listeners.append(fn)
-
-
-def _remove_transition_listener(fn: Callable[[Any, Any], None]) -> None:
-    from . import statemachine
-
-    try:
-        _listeners.remove(fn)
-    except ValueError:
-        return
-    cls = statemachine.StateMachine
-    current = cls.__dict__.get("_sm_record")
-    if not _listeners and getattr(current, "_agentsdk_recording", False):
-        cls._sm_record = current.__wrapped__  # type: ignore[union-attr, method-assign]
-
-
 # ------------------------------------------------------------------ reading
 def read_recording(path: str | os.PathLike[str]) -> RunData:
     """Read an agentsdk MCAP recording; raises ConfigurationError for a missing or foreign file."""
@@ -843,7 +792,7 @@ def read_recording(path: str | os.PathLike[str]) -> RunData:
         out.cmd_position, out.cmd_velocity, out.cmd_effort = col("position"), col("velocity"), col("effort")
         out.cmd_kp, out.cmd_kd, out.cmd_target = col("kp"), col("kd"), col("target")
         out.cmd_enabled = col("enabled", bool)
-        out.cmd_mode = np.array([[MODE_CODES[x] for x in m["mode"]] for m in cm], dtype=np.int8).reshape(len(cm), n)
+        out.cmd_mode = np.array([[ModeCode.of(x) for x in m["mode"]] for m in cm], dtype=np.int8).reshape(len(cm), n)
     return out
 
 
@@ -903,25 +852,25 @@ async def replay(
     opts.update(options or {})
     end_ns = int(data.state_time[-1])
     async with connect(backend, robot=robot, safety={"watchdog_modes": ()}, **opts) as bot:
-        ctl = bot.controller
-        if abs(ctl.period - data.period) > 1e-12:
+        index = bot.joint_index
+        if abs(bot.control_period - data.period) > 1e-12:
             raise ConfigurationError(
-                f"control period of {bot.name} on {backend} is {ctl.period:g} s, "
+                f"control period of {bot.name} on {backend} is {bot.control_period:g} s, "
                 f"the recording's is {data.period:g} s; replay needs the same period"
             )
-        missing = [n for n in data.names if n not in ctl.index]
+        missing = [n for n in data.names if n not in index]
         if missing:
             raise ConfigurationError(
                 f"robot {bot.name!r} has no joint(s) {', '.join(missing)} from the recording "
-                f"(its joints: {', '.join(ctl.names)})"
+                f"(its joints: {', '.join(bot.joint_names)})"
             )
         config_changed = False
         recorded_config = data.metadata.get("robot_config")
         if recorded_config:
-            config_changed = json.loads(recorded_config) != ctl.config.model_dump(mode="json")
+            config_changed = json.loads(recorded_config) != bot.controller.config.model_dump(mode="json")
             if config_changed:
                 log.warning("robot.yaml of %s differs from the recorded one; replay may diverge", bot.name)
-        cols = np.array([ctl.index[n] for n in data.names], dtype=np.intp)
+        cols = np.array([index[n] for n in data.names], dtype=np.intp)
         rec = Recorder(
             bot,
             record,
@@ -934,13 +883,12 @@ async def replay(
             },
         )
         done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        half = _ns(ctl.period) // 2
+        half = _ns(bot.control_period) // 2
         cmd_ns = data.cmd_time
         pos, vel, eff = data.cmd_position, data.cmd_velocity, data.cmd_effort
         kp, kd, en, mode, tgt = data.cmd_kp, data.cmd_kd, data.cmd_enabled, data.cmd_mode, data.cmd_target
-        target = ctl.target
 
-        def update(t: float, st: StateBuffer, sp: Setpoint) -> bool:
+        def update(t: float, st: StateView, sp: Setpoint) -> bool:
             ns = _ns(t)
             if ns >= end_ns - half:
                 return False
@@ -953,31 +901,31 @@ async def replay(
                 sp.kd[cols] = kd[i]
                 sp.enabled[cols] = en[i]
                 sp.mode[cols] = mode[i]
-                target[cols] = tgt[i]
+                sp.target[cols] = tgt[i]
             return True
 
-        def watch(t: float, st: StateBuffer) -> None:
+        def watch(t: float, st: StateView, sp: SetpointView) -> None:
             if _ns(t) >= end_ns - half and not done.done():
-                ctl.remove_updater(update)
+                feeding.remove()
                 done.set_result(None)
 
         def fault(exc: BaseException) -> None:
             if not done.done():
                 done.set_exception(exc)
 
-        ctl.tick_hooks.append(watch)
-        ctl.fault_hooks.append(fault)
+        bot.add_tick_hook(Phase.OBSERVE, watch)
+        bot.add_fault_listener(fault)
         if on_robot is not None:
             on_robot(bot)
+        feeding = bot.add_tick_hook(Phase.COMMAND, update)
         try:
-            ctl.add_updater(update)
             await done
         except BaseException:
-            ctl.remove_updater(update)
+            feeding.remove()
             await bot.close()
             rec.finish()
             raise
-        ticks = ctl.ticks
+        ticks = bot.ticks
     rec.finish()  # after close: joining the writer must not stall the control loop
     return _compare(data, rec.data(), ticks, config_changed)
 

@@ -13,14 +13,14 @@ from typing import TYPE_CHECKING
 from .errors import BackendUnavailableError
 
 if TYPE_CHECKING:
-    from .controller import Controller
+    from .backend import Backend
 
 __all__ = ["available_backends", "load_backend", "register_backend", "unregister_backend"]
 
 GROUP = "agentsdk.backends"
 
 #: backends registered in-process (tests, notebooks); take precedence over entry points
-_local: dict[str, type[Controller]] = {}
+_local: dict[str, type[Backend]] = {}
 
 #: distribution extras hinted at when a backend's import fails
 _HINTS = {
@@ -49,7 +49,7 @@ def available_backends() -> list[str]:
     return sorted({*_entry_points(), *_local})
 
 
-def register_backend(name: str, cls: type[Controller]) -> None:
+def register_backend(name: str, cls: type[Backend]) -> None:
     """Register a backend class in-process under ``name``."""
     _local[name] = cls
 
@@ -58,9 +58,9 @@ def unregister_backend(name: str) -> None:
     _local.pop(name, None)
 
 
-def load_backend(name: str) -> type[Controller]:
+def load_backend(name: str) -> type[Backend]:
     """Import and return the backend class registered as ``name``."""
-    from .controller import Controller
+    from .backend import Backend
 
     if name in _local:
         return _local[name]
@@ -78,6 +78,6 @@ def load_backend(name: str) -> type[Controller]:
             f"backend {name!r} is not available: {exc.name or exc} is not installed ({hint})"
         ) from exc
     cls = getattr(module, attr, None)
-    if not (isinstance(cls, type) and issubclass(cls, Controller)):
-        raise BackendUnavailableError(f"entry point {name!r} -> {eps[name]!r} is not a Controller subclass")
+    if not (isinstance(cls, type) and issubclass(cls, Backend)):
+        raise BackendUnavailableError(f"entry point {name!r} -> {eps[name]!r} is not an agentsdk.Backend subclass")
     return cls

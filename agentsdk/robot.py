@@ -11,22 +11,24 @@ it in the safety layer and starts the control loop::
 
 from __future__ import annotations
 
+import asyncio
 import logging
-from collections.abc import Generator, Mapping
+from collections.abc import Callable, Generator, Mapping
 from pathlib import Path
-from types import TracebackType
+from types import MappingProxyType, TracebackType
 from typing import TYPE_CHECKING, Any
 
+from .backend import Backend, Capabilities, SetpointView
 from .clock import Clock
-from .controller import Controller
 from .description import apply_overrides, resolve_robot
 from .errors import AgentSDKError, BackendStartError, CommandRejected
+from .loop import ControlLoop, HookHandle, Phase
 from .registry import load_backend
-from .safety import SafetyConfig, SafetyLayer
-from .types import JointCommand, JointInfo, JointState
+from .safety import PositionBounds, SafetyConfig, SafetyLayer
+from .types import AppliedCommand, FloatArray, JointCommand, JointInfo, JointState
 
 if TYPE_CHECKING:
-    from .motion import Motion, MotionResult, Tolerances
+    from .motion import Motion, MotionManager, MotionResult, Tolerances
     from .trajectory import Trajectory
 
 __all__ = ["Robot", "connect"]
@@ -41,61 +43,127 @@ class Robot:
     After :meth:`close` every call raises :class:`RobotClosedError`.
     """
 
-    def __init__(self, controller: Controller, safety: SafetyLayer) -> None:
-        self._ctl = controller
+    def __init__(self, loop: ControlLoop, safety: SafetyLayer, motions: MotionManager) -> None:
+        self._loop = loop
+        #: the safety layer (state, events, e-stop)
         self.safety = safety
-        from .motion import MotionManager
-
-        self._motions = MotionManager(controller, safety)
+        self._motions = motions
 
     # ------------------------------------------------------------ metadata
     @property
     def joints(self) -> tuple[JointInfo, ...]:
         """Actuated joints in URDF order, with limits."""
-        return self._ctl.joints
+        return self._loop.joints
 
     @property
     def joint_names(self) -> tuple[str, ...]:
-        return self._ctl.names
+        """Names of the actuated joints, in :attr:`joints` order."""
+        return self._loop.names
+
+    @property
+    def joint_index(self) -> Mapping[str, int]:
+        """Joint name -> index in :attr:`joints` (read-only)."""
+        return MappingProxyType(self._loop.index)
 
     @property
     def clock(self) -> Clock:
         """Robot time: simulated in lockstep, wall clock in realtime."""
-        return self._ctl.clock
+        return self._loop.clock
 
     @property
     def backend(self) -> str:
-        return self._ctl.name
+        """Name of the backend (``"mujoco"``, ``"pybullet"``, ``"can"``, ``"mock"``...)."""
+        return self._loop.backend.name
+
+    @property
+    def capabilities(self) -> Capabilities:
+        """What this connection's backend supports (modes, time models)."""
+        return self._loop.backend.capabilities
 
     @property
     def name(self) -> str:
-        return self._ctl.description.name
+        """The robot's name (from the description)."""
+        return self._loop.backend.description.name
 
     @property
     def realtime(self) -> bool:
-        return self._ctl.realtime
+        """True when paced to the wall clock, False in lockstep simulated time."""
+        return self._loop.realtime
 
     @property
     def control_period(self) -> float:
-        return self._ctl.period
+        """Seconds per control tick (1 / update_rate)."""
+        return self._loop.period
 
     @property
-    def controller(self) -> Controller:
-        """The backend instance (for tools and tests; behaviors should not need it)."""
-        return self._ctl
+    def controller(self) -> Backend:
+        """The backend instance, for backend-specific extras (e.g. CAN ``set_zero``, ``stats``).
+
+        Behaviors should not need it; everything common to all backends is on the Robot.
+        """
+        return self._loop.backend
 
     @property
     def closed(self) -> bool:
-        return self._ctl.closed
+        """True after :meth:`close`."""
+        return self._loop.closed
+
+    # ------------------------------------------------------------ loop state
+    @property
+    def setpoint(self) -> SetpointView:
+        """Read-only view of the servo setpoint the backend was (or will next be) given, after safety."""
+        return self._loop.setpoint
+
+    def command_targets(self) -> FloatArray:
+        """Copy of the last commanded value per joint (position, velocity or effort per its mode)."""
+        return self._loop.targets.copy()
+
+    @property
+    def torque_enabled(self) -> bool:
+        """False after an emergency stop removed torque, until :meth:`enable`."""
+        return not self._loop.torque_off
+
+    @property
+    def busy(self) -> bool:
+        """True while a trajectory or a stop ramp drives some joints."""
+        return self._loop.busy
+
+    @property
+    def motion_joints(self) -> tuple[str, ...]:
+        """Names of the joints currently driven by a trajectory or a stop ramp."""
+        mask = self._motions.owned_mask
+        return tuple(n for n, owned in zip(self._loop.names, mask.tolist(), strict=True) if owned)
+
+    @property
+    def ticks(self) -> int:
+        """Control ticks run since connect."""
+        return self._loop.ticks
+
+    @property
+    def missed_deadlines(self) -> int:
+        """Control periods skipped because the realtime loop ran late (always 0 in lockstep)."""
+        return self._loop.missed_deadlines
+
+    def add_tick_hook(self, phase: Phase, fn: Callable[..., Any], *, order: int = 0) -> HookHandle:
+        """Register ``fn`` in a phase of every control tick (tools: recorders, viewers, replay).
+
+        See :class:`agentsdk.loop.Phase` for the signatures. Returns a handle; ``handle.remove()``.
+        """
+        self._loop.check_open()
+        return self._loop.add_hook(phase, fn, order=order)
+
+    def add_fault_listener(self, fn: Callable[[BaseException], None]) -> HookHandle:
+        """Call ``fn(exc)`` once if the control loop dies (backend fault, simulation divergence)."""
+        return self._loop.add_fault_listener(fn)
 
     # -------------------------------------------------------------- direct
     async def read(self) -> JointState:
         """The latest measured joint state (position, velocity, effort, stamp)."""
-        self._ctl.check_open()
+        self._loop.check_open()
         self.safety.check_fault()
-        return self._ctl.snapshot()
+        return self._loop.snapshot()
 
-    async def command(self, cmd: JointCommand) -> JointCommand:
+    async def command(self, cmd: JointCommand | AppliedCommand) -> AppliedCommand:
         """Apply a direct command now; returns the command actually applied.
 
         Raises a :class:`CommandRejected` subclass (state unchanged) for unknown
@@ -103,25 +171,31 @@ class Robot:
         the reject policy, or joints owned by a running trajectory; raises
         :class:`EStopActive` while the e-stop is latched.
         """
-        ctl = self._ctl
-        ctl.check_open()
-        async with ctl.lock:
-            ctl.check_open()
+        loop = self._loop
+        loop.check_open()
+        if isinstance(cmd, AppliedCommand):
+            cmd = cmd.as_command()
+        async with loop.lock:
+            loop.check_open()
             self.safety.check_motion_allowed()
-            idx, values, vel, eff = ctl.resolve(cmd)
+            idx, values, vel, eff = loop.resolve(cmd)
             owner = self._motions.owner_of(idx)
             if owner is not None:
                 raise CommandRejected(
-                    f"joint {ctl.names[owner[0]]!r} is driven by a running trajectory; "
+                    f"joint {loop.names[owner[0]]!r} is driven by a running trajectory; "
                     "cancel it (motion.cancel()) before sending direct commands"
                 )
             values = self.safety.limit_command(cmd.mode, idx, values)
             vel, eff = self.safety.limit_feedforward(idx, vel, eff)
-            ctl.apply(cmd.mode, idx, values, vel, eff)
-            self.safety.feed(cmd.mode, idx)
-            names = ctl.names
-            applied = {names[i]: v for i, v in zip(idx.tolist(), values.tolist(), strict=True)}
-            return JointCommand._trusted(cmd.mode, applied)
+            loop.apply(cmd.mode, idx, values, vel, eff, position_now=self.safety.ramp_start(cmd.mode, idx))
+            self.safety.feed(cmd.mode, idx, values)
+            names = [loop.names[i] for i in idx.tolist()]
+            return AppliedCommand(
+                cmd.mode,
+                MappingProxyType(dict(zip(names, values.tolist(), strict=True))),
+                None if vel is None else MappingProxyType(dict(zip(names, vel.tolist(), strict=True))),
+                None if eff is None else MappingProxyType(dict(zip(names, eff.tolist(), strict=True))),
+            )
 
     # ---------------------------------------------------------- trajectory
     def follow(self, trajectory: Trajectory, tolerances: Tolerances | None = None) -> Motion:
@@ -130,7 +204,7 @@ class Robot:
         A running trajectory on overlapping joints is preempted (its result is
         PREEMPTED) and the new one starts from its current desired state.
         """
-        self._ctl.check_open()
+        self._loop.check_open()
         self.safety.check_motion_allowed()
         return self._motions.follow(trajectory, tolerances)
 
@@ -141,7 +215,7 @@ class Robot:
         tolerances: Tolerances | None = None,
     ) -> MotionResult:
         """Plan from the current desired state to ``positions`` and follow it to the end."""
-        self._ctl.check_open()
+        self._loop.check_open()
         self.safety.check_motion_allowed()
         motion = self._motions.move_to(positions, duration, tolerances)
         return await motion
@@ -149,7 +223,7 @@ class Robot:
     # -------------------------------------------------------------- safety
     async def estop(self, category: int = 1) -> None:
         """Latched emergency stop, IEC 60204-1 category 0, 1 or 2 (see SafetyLayer)."""
-        self._ctl.check_open()
+        self._loop.check_open()
         await self.safety.estop(category)
 
     def estop_threadsafe(self, category: int = 0) -> None:
@@ -158,24 +232,38 @@ class Robot:
 
     async def reset(self) -> None:
         """Clear a latched e-stop or fault. Never moves the robot: call :meth:`enable` next."""
-        self._ctl.check_open()
+        self._loop.check_open()
         await self.safety.reset()
 
     async def enable(self) -> None:
         """Re-enable motion after :meth:`reset`: holds the current position with torque on."""
-        self._ctl.check_open()
+        self._loop.check_open()
         await self.safety.enable()
 
     # ----------------------------------------------------------- lifecycle
     async def close(self) -> None:
-        """Stop motions, leave actuators safe, release the backend. Idempotent; runs to completion if cancelled."""
-        if self._ctl.closed:
+        """Leave the robot safe and release the backend. Idempotent; runs to completion if cancelled.
+
+        A controlled stop (e-stop category 1 or 2) in progress is completed first, so
+        a category 1 stop reaches rest before torque is removed; then motions end,
+        the watchdogs stop and the backend closes (actuators safe).
+        """
+        if self._loop.closed:
             return
         try:
-            self._motions.abort_all()
+            if self.safety.stop_in_progress and self._loop.fault is None:
+                await asyncio.shield(self.safety.wait_stopped())
+        except asyncio.CancelledError:
+            pass  # closing anyway: the backend's close leaves the actuators safe
         finally:
-            self.safety.shutdown()
-            await self._ctl.stop()
+            try:
+                self._motions.abort_all()
+            finally:
+                self.safety.shutdown_now()
+                try:
+                    await asyncio.shield(self.safety.shutdown())
+                finally:
+                    await self._loop.stop()
 
     async def __aenter__(self) -> Robot:
         return self
@@ -196,23 +284,28 @@ async def _open_robot(
     safety: SafetyConfig | Mapping[str, Any] | None,
     options: dict[str, Any],
 ) -> Robot:
+    from .motion import MotionManager
+
     cls = load_backend(backend)
     config, description = resolve_robot(robot)
     joints = apply_overrides(description, config)
     safety_cfg = SafetyConfig.from_sources(config.safety, safety)
-    ctl = cls(config, description, joints, realtime=realtime, **options)
-    layer = SafetyLayer(ctl, safety_cfg)
+    bounds = PositionBounds(joints, safety_cfg.position_margin)
+    backend_obj = cls(config, description, joints, realtime=realtime, **options)
+    loop = ControlLoop(backend_obj)
+    motions = MotionManager(loop, bounds, safety_cfg.stop_deceleration_scale)
+    layer = SafetyLayer(loop, safety_cfg, bounds, motions)
     try:
-        await ctl.start()
+        await loop.start()
     except AgentSDKError:
-        layer.shutdown()
+        layer.shutdown_now()
         raise
     except Exception as exc:
-        layer.shutdown()
+        layer.shutdown_now()
         raise BackendStartError(f"backend {backend!r} failed to start: {exc}") from exc
     layer.start()
     log.debug("connected %s on %s (%d joints)", description.name, backend, len(joints))
-    return Robot(ctl, layer)
+    return Robot(loop, layer, motions)
 
 
 class _Connection:

@@ -36,14 +36,14 @@ import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from .controller import MODE_CODES, Controller, Setpoint, StateBuffer
+from .backend import ModeCode, SetpointView
 from .errors import (
     ConfigurationError,
     EStopActive,
@@ -52,12 +52,23 @@ from .errors import (
     RobotClosedError,
     SafetyFault,
 )
-from .types import MODES, CommandMode
+from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
+from .types import MODES, CommandMode, JointInfo
 
 if TYPE_CHECKING:
     from .motion import MotionManager
 
-__all__ = ["SafetyConfig", "SafetyEvent", "SafetyLayer", "SafetyState"]
+__all__ = [
+    "SAFETY_OBSERVE_ORDER",
+    "MeasuredPositionCheck",
+    "PositionBounds",
+    "SafetyCheck",
+    "SafetyConfig",
+    "SafetyEvent",
+    "SafetyLayer",
+    "SafetyState",
+    "SafetyViolation",
+]
 
 log = logging.getLogger("agentsdk.safety")
 
@@ -87,6 +98,10 @@ class SafetyConfig(BaseModel):
     stop_deceleration_scale: float = Field(default=1.0, gt=0.0, le=1.0)
     #: minimum seconds between two identical clamp warnings in the log
     warn_interval: float = Field(default=1.0, ge=0.0)
+    #: a measured position this far (rad or m) beyond a joint's limits is a protective stop; None = off
+    position_limit_tolerance: float | None = Field(default=0.1, gt=0.0)
+    #: stop category of that protective stop (IEC 60204-1)
+    position_limit_stop: Literal[0, 1, 2] = 2
 
     @classmethod
     def from_sources(
@@ -104,6 +119,8 @@ class SafetyConfig(BaseModel):
 
 
 class SafetyState(enum.Enum):
+    """State of the safety layer (see the module documentation)."""
+
     OK = "ok"
     HOLD = "hold"
     ESTOP = "estop"
@@ -121,16 +138,110 @@ class SafetyEvent:
     detail: str
 
 
-_POS, _VEL, _EFF = (MODE_CODES[m] for m in MODES)
+_POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
+
+#: OBSERVE-phase order of the safety layer's watchdogs: after recorders and other observers
+SAFETY_OBSERVE_ORDER = 1000
+
+
+
+#: a pluggable safety check: ``check(t, state) -> SafetyViolation | None``, run every tick while motion is allowed
+SafetyCheck = Callable[[float, StateView], "SafetyViolation | None"]
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyViolation:
+    """What a :data:`SafetyCheck` returns to stop the robot: a latched e-stop of ``category``."""
+
+    kind: str
+    detail: str
+    joint: str | None = None
+    #: IEC 60204-1 stop category of the e-stop it triggers
+    category: int = 2
+
+
+class PositionBounds:
+    """Joint position bounds the safety layer enforces: the URDF limits minus ``position_margin``."""
+
+    __slots__ = ("hi", "lo", "names")
+
+    def __init__(self, joints: tuple[JointInfo, ...], margin: float) -> None:
+        lower = np.array([j.lower for j in joints])
+        upper = np.array([j.upper for j in joints])
+        self.names = tuple(j.name for j in joints)
+        self.lo = np.where(np.isfinite(lower), lower + margin, -np.inf)
+        self.hi = np.where(np.isfinite(upper), upper - margin, np.inf)
+        bad = self.lo > self.hi
+        if bad.any():
+            name = self.names[int(np.argmax(bad))]
+            raise ConfigurationError(
+                f"safety position_margin {margin:g} is larger than half of joint {name!r}'s range"
+            )
+        self.lo.flags.writeable = False
+        self.hi.flags.writeable = False
+
+    def check(self, positions: np.ndarray, idx: np.ndarray) -> None:
+        """Raise :class:`LimitViolation` if a position of joints ``idx`` is outside the bounds."""
+        bad = (positions < self.lo[idx]) | (positions > self.hi[idx])
+        if bad.any():
+            k = int(np.argmax(bad))
+            j = int(idx[k])
+            raise LimitViolation(
+                f"trajectory position {positions[k]:.4g} for joint {self.names[j]!r} is outside "
+                f"[{self.lo[j]:.4g}, {self.hi[j]:.4g}]"
+            )
+
+
+class MeasuredPositionCheck:
+    """Built-in :data:`SafetyCheck`: a measured position beyond a joint's limits by more than ``tolerance``.
+
+    Simulated joint limits are soft and a real joint can be pushed past its limit
+    (a collision, a wrong effort command): that is a protective stop, not something
+    to keep driving. A joint is watched once it has been measured inside its limits
+    (+ tolerance): a robot switched on outside them can still be moved back in.
+    """
+
+    def __init__(self, joints: tuple[JointInfo, ...], tolerance: float, category: int) -> None:
+        self._lo = np.array([j.lower for j in joints]) - tolerance
+        self._hi = np.array([j.upper for j in joints]) + tolerance
+        self._names = tuple(j.name for j in joints)
+        self._tol = tolerance
+        self._category = category
+        self._armed = np.zeros(len(joints), dtype=bool)
+        self._all_armed = False
+
+    def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
+        """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""
+        q = state.position
+        inside = (q >= self._lo) & (q <= self._hi)  # (NaN is outside)
+        if not self._all_armed:
+            self._armed |= inside
+            self._all_armed = bool(self._armed.all())
+        bad = self._armed & ~inside
+        if not bad.any():
+            return None
+        j = int(np.argmax(bad))
+        return SafetyViolation(
+            "limit",
+            f"measured position {float(q[j]):.4g} of joint {self._names[j]!r} is more than {self._tol:g} outside "
+            f"its limits [{self._lo[j] + self._tol:.4g}, {self._hi[j] - self._tol:.4g}]",
+            self._names[j],
+            self._category,
+        )
 
 
 class SafetyLayer:
-    """Wraps one Controller. Created by :func:`agentsdk.connect`; reach it as ``robot.safety``."""
+    """Wraps one control loop. Created by :func:`agentsdk.connect`; reach it as ``robot.safety``."""
 
-    def __init__(self, ctl: Controller, config: SafetyConfig) -> None:
-        self.ctl = ctl
+    def __init__(
+        self, loop: ControlLoop, config: SafetyConfig, bounds: PositionBounds, motions: MotionManager
+    ) -> None:
+        self.loop = loop
         self.config = config
-        self.events: deque[SafetyEvent] = deque(maxlen=10_000)
+        self.motions = motions
+        self._events: deque[SafetyEvent] = deque(maxlen=10_000)
+        self._event_count = 0
+        self._events_lock = threading.Lock()
         self._state = SafetyState.OK
         self._cause: BaseException | None = None
         self._latched = threading.Event()  # set from any thread
@@ -139,18 +250,13 @@ class SafetyLayer:
         self._latch_category: int | None = None
         #: the loop side has taken over the current latch (see _enforce_latch)
         self._latch_handled = False
-        self._pending_thread_events: deque[SafetyEvent] = deque()
+        #: stack of the event-loop thread when the stall watchdog fired
         self.stall_traceback: str | None = None
-        self.motions: MotionManager | None = None
-        n = len(ctl.joints)
-        m = config.position_margin
-        self._lo = np.where(np.isfinite(ctl.lower), ctl.lower + m, -np.inf)
-        self._hi = np.where(np.isfinite(ctl.upper), ctl.upper - m, np.inf)
-        if np.any(self._lo > self._hi):
-            raise ConfigurationError("safety position_margin is larger than half a joint's range")
+        n = len(loop.joints)
+        self._lo, self._hi = bounds.lo, bounds.hi
         step = config.max_position_step
         if step == "auto":
-            self._step = ctl.max_velocity * ctl.period
+            self._step: np.ndarray | None = np.array([j.max_velocity for j in loop.joints]) * loop.period
         elif step is None:
             self._step = None
         else:
@@ -158,89 +264,143 @@ class SafetyLayer:
         #: watched[mode code] -> True if the command watchdog applies to that mode
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
         self._fed = np.zeros(n)  # robot time of the last command per joint
-        self._written = ctl.state.position.copy()
+        self._written = loop.state.position.copy()
         #: goal of a direct position command being ramped (max_position_step), per joint
-        self._goal = ctl.setpoint.position.copy()
+        self._goal = loop.setpoint.position.copy()
         self._ramping = np.zeros(n, dtype=bool)
         #: joints put on hold by the command watchdog (not watched again until commanded)
         self._held = np.zeros(n, dtype=bool)
-        self._vmax = np.where(np.isnan(ctl.max_velocity), np.inf, ctl.max_velocity)
-        self._emax = np.where(np.isnan(ctl.max_effort), np.inf, ctl.max_effort)
+        vmax = np.array([j.max_velocity for j in loop.joints])
+        emax = np.array([j.max_effort for j in loop.joints])
+        self._vmax = np.where(np.isnan(vmax), np.inf, vmax)
+        self._emax = np.where(np.isnan(emax), np.inf, emax)
         self._vmin = -self._vmax
         self._emin = -self._emax
+        #: deceleration available to stop a velocity stream before a position limit
+        self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
         self._stop_tasks: set[asyncio.Task[None]] = set()
         #: the controlled stop (category 1 or 2) in progress and the category its end state follows
         self._ramp_stop: asyncio.Task[None] | None = None
         self._ramp_category = 2
         self._fault_waiters: set[asyncio.Future[BaseException]] = set()
+        self._checks: list[SafetyCheck] = []
         # stall watchdog
         self._beat = time.monotonic()
         self._beat_handle: asyncio.TimerHandle | None = None
         self._thread: threading.Thread | None = None
         self._thread_stop = threading.Event()
-        self._loop: asyncio.AbstractEventLoop | None = None
+        self._aloop: asyncio.AbstractEventLoop | None = None
         self._loop_thread_id = threading.get_ident()
+        #: wall-clock time (time.monotonic) the stall watchdog fired, and how long after the last heartbeat
         self.stall_detected_at: float | None = None
         self.stall_latency: float | None = None
-        ctl.setpoint_filters.append(self._filter)
-        ctl.tick_hooks.append(self._on_tick)
-        ctl.fault_hooks.append(self._on_fault)
+        self._handles = [
+            loop.add_hook(Phase.LIMIT, self._filter),
+            loop.add_hook(Phase.OBSERVE, self._on_tick, order=SAFETY_OBSERVE_ORDER),
+            loop.add_fault_listener(self._on_fault),
+        ]
+        if config.position_limit_tolerance is not None:
+            self.add_check(
+                MeasuredPositionCheck(loop.joints, config.position_limit_tolerance, config.position_limit_stop)
+            )
 
     # ---------------------------------------------------------- lifecycle
     def start(self) -> None:
-        self._loop = asyncio.get_running_loop()
+        """Start the heartbeat and the stall watchdog thread (called by connect once the loop runs)."""
+        self._aloop = asyncio.get_running_loop()
         self._loop_thread_id = threading.get_ident()
-        self._written = self.ctl.setpoint.position.copy()
+        self._written = self.loop.setpoint.position.copy()
         self._goal = self._written.copy()
         if self.config.stall_timeout is not None:
             self._beat = time.monotonic()
             self._schedule_beat()
             self._thread = threading.Thread(
-                target=self._watch_stall, name=f"agentsdk-stall-watchdog-{self.ctl.name}", daemon=True
+                target=self._watch_stall, name=f"agentsdk-stall-watchdog-{self.loop.backend.name}", daemon=True
             )
             self._thread.start()
 
-    def shutdown(self) -> None:
-        """Stop the watchdog thread (joined) and heartbeat; called by Robot.close()."""
+    async def shutdown(self) -> None:
+        """Stop the watchdog thread and heartbeat, end stop tasks (awaited); called by Robot.close()."""
         self._thread_stop.set()
         if self._beat_handle is not None:
             self._beat_handle.cancel()
             self._beat_handle = None
-        if self._thread is not None and self._thread is not threading.current_thread():
-            self._thread.join(timeout=2.0)
-        self._thread = None
-        for task in list(self._stop_tasks):
+        thread, self._thread = self._thread, None
+        tasks = list(self._stop_tasks)
+        for task in tasks:
             task.cancel()
+        if tasks:
+            await asyncio.gather(*tasks, return_exceptions=True)
+        if thread is not None and thread is not threading.current_thread():
+            # the thread polls its stop event every few ms; wait for it without blocking the event loop
+            deadline = time.monotonic() + 2.0
+            while thread.is_alive() and time.monotonic() < deadline:  # noqa: ASYNC110 - polling a thread
+                await asyncio.sleep(0.002)
+            if thread.is_alive():
+                log.error("the stall watchdog thread did not stop within 2 s")
+
+    def shutdown_now(self) -> None:
+        """Synchronous part of :meth:`shutdown` (no event loop): signal the watchdog thread to stop."""
+        self._thread_stop.set()
+        if self._beat_handle is not None:
+            self._beat_handle.cancel()
+            self._beat_handle = None
 
     # --------------------------------------------------------------- state
     @property
     def state(self) -> SafetyState:
-        # no side effect here: the loop side must still see a latch set from another thread
+        """OK, HOLD, ESTOP, DISABLED or FAULT (an e-stop latched from another thread shows at once)."""
         if self._state is SafetyState.FAULT:
             return SafetyState.FAULT
         if self._latched.is_set():
-            return SafetyState.ESTOP  # possibly latched from another thread, not handled yet
+            return SafetyState.ESTOP
         return self._state
 
     @property
     def cause(self) -> BaseException | None:
+        """The exception behind a FAULT, or None."""
         return self._cause
 
+    @property
+    def events(self) -> tuple[SafetyEvent, ...]:
+        """Recorded safety events, oldest first (the last 10,000), including ones from the watchdog thread."""
+        with self._events_lock:
+            return tuple(self._events)
+
+    @property
+    def event_count(self) -> int:
+        """How many events were ever recorded (a cursor for :meth:`events_since`)."""
+        return self._event_count
+
+    def events_since(self, count: int) -> list[SafetyEvent]:
+        """Events recorded after the first ``count`` (``count`` from :attr:`event_count`)."""
+        with self._events_lock:
+            new = self._event_count - count
+            if new <= 0:
+                return []
+            return list(self._events)[-min(new, len(self._events)):]
+
+    @property
+    def stop_in_progress(self) -> bool:
+        """True while a controlled stop (category 1 or 2) is decelerating the robot."""
+        return any(not t.done() for t in self._stop_tasks)
+
     def record(self, kind: str, detail: str, joint: str | None = None) -> SafetyEvent:
-        ev = SafetyEvent(self.ctl.stamp, kind, joint, detail)
-        self.events.append(ev)
+        """Append an event (any thread) stamped with the robot time of the latest state."""
+        ev = SafetyEvent(self.loop.stamp, kind, joint, detail)
+        with self._events_lock:
+            self._events.append(ev)
+            self._event_count += 1
         return ev
 
-    def _drain_thread_events(self) -> None:
-        while self._pending_thread_events:
-            self.events.append(self._pending_thread_events.popleft())
-
     def check_fault(self) -> None:
+        """Raise :class:`SafetyFault` (with the cause) while in FAULT."""
         if self._state is SafetyState.FAULT:
             raise SafetyFault(f"safety FAULT: {self._cause}") from self._cause
 
     def check_motion_allowed(self) -> None:
+        """Raise :class:`EStopActive` / :class:`SafetyFault` unless commands are accepted (OK or HOLD)."""
         st = self.state
         if st is SafetyState.OK or st is SafetyState.HOLD:
             return
@@ -249,6 +409,14 @@ class SafetyLayer:
         if st is SafetyState.DISABLED:
             raise EStopActive("robot is disabled after reset(); call `await robot.enable()` to allow motion")
         raise EStopActive("e-stop is latched; call `await robot.reset()` then `await robot.enable()`")
+
+    def add_check(self, check: SafetyCheck) -> HookHandle:
+        """Run ``check(t, state)`` every tick while motion is allowed; a returned violation latches an e-stop."""
+        if not callable(check):
+            raise InvalidValueError(f"a safety check must be callable, got {check!r}")
+        self._checks.append(check)
+        checks = self._checks
+        return HookHandle(lambda: checks.remove(check) if check in checks else None, lambda: check in checks)
 
     # -------------------------------------------------------------- limits
     def _warn(self, kind: str, j: int, msg: str) -> None:
@@ -261,25 +429,25 @@ class SafetyLayer:
 
     def limit_command(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
         """Check a validated command against limits: returns the (possibly clamped) values or raises."""
-        ctl = self.ctl
         if mode == "position":
             lo, hi = self._lo[idx], self._hi[idx]
             what, unit = "position", "rad"
         elif mode == "velocity":
-            hi = ctl.max_velocity[idx]
+            hi = self._vmax[idx]
             lo = -hi
             what, unit = "velocity", "rad/s"
         else:
-            hi = ctl.max_effort[idx]
+            hi = self._emax[idx]
             lo = -hi
             what, unit = "effort", "N·m"
         out = np.minimum(np.maximum(values, lo), hi)
         bad = out != values
         reject = self.config.limit_policy == "reject"
+        names = self.loop.names
         if reject and bad.any():
             k = int(np.argmax(bad))
             raise LimitViolation(
-                f"{what} command {values[k]:.4g} {unit} for joint {ctl.names[int(idx[k])]!r} is outside "
+                f"{what} command {values[k]:.4g} {unit} for joint {names[int(idx[k])]!r} is outside "
                 f"[{lo[k]:.4g}, {hi[k]:.4g}]"
             )
         if mode == "position" and self._step is not None and reject:
@@ -288,7 +456,7 @@ class SafetyLayer:
                 k = int(np.argmax(jump))
                 j = int(idx[k])
                 raise LimitViolation(
-                    f"position step for joint {ctl.names[j]!r} is {abs(values[k] - self._written[j]):.4f} rad, "
+                    f"position step for joint {names[j]!r} is {abs(values[k] - self._written[j]):.4f} rad, "
                     f"above max_position_step {self._step[j]:.4f} rad per cycle (stream smaller steps, "
                     "use robot.move_to, or set limit_policy='clamp' to ramp)"
                 )
@@ -304,7 +472,7 @@ class SafetyLayer:
         hi = np.broadcast_to(hi, values.shape)
         for k in np.flatnonzero(out != values).tolist():
             j = int(idx[k])
-            name = self.ctl.names[j]
+            name = self.loop.names[j]
             msg = f"{what} command {values[k]:.4g} {unit} for joint {name!r} is outside [{lo[k]:.4g}, {hi[k]:.4g}]"
             self.record("clamp", f"{msg}; clamped to {out[k]:.4g}", name)
             self._warn(f"clamp {what}", j, msg + "; clamped")
@@ -331,7 +499,7 @@ class SafetyLayer:
                 if self.config.limit_policy == "reject":
                     k = int(np.argmax(bad))
                     raise LimitViolation(
-                        f"{what} {arr[k]:.4g} {unit} for joint {self.ctl.names[int(idx[k])]!r} is outside "
+                        f"{what} {arr[k]:.4g} {unit} for joint {self.loop.names[int(idx[k])]!r} is outside "
                         f"[{-hi[k]:.4g}, {hi[k]:.4g}]"
                     )
                 self._record_clamps(what, unit, idx, arr, clipped, -hi, hi)
@@ -339,19 +507,21 @@ class SafetyLayer:
             out.append(arr)
         return out[0], out[1]
 
-    def feed(self, mode: CommandMode, idx: np.ndarray) -> None:
+    def ramp_start(self, mode: CommandMode, idx: np.ndarray) -> np.ndarray | None:
+        """Where a direct position command's setpoint starts this tick (the ramp's current position)."""
+        return self._written[idx] if mode == "position" else None
+
+    def feed(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> None:
         """A command was applied to these joints: refresh the command watchdog, start position ramps.
 
         A direct position command becomes the *goal* of a ramp limited to
         ``max_position_step`` per cycle; the setpoint keeps showing where the
-        ramp is, so a stop started before the next tick starts from there.
+        ramp is (:meth:`ramp_start`), so a stop started before the next tick starts from there.
         """
-        self._fed[idx] = self.ctl.stamp
+        self._fed[idx] = self.loop.stamp
         self._held[idx] = False
         if mode == "position":
-            sp = self.ctl.setpoint
-            self._goal[idx] = sp.position[idx]
-            sp.position[idx] = self._written[idx]
+            self._goal[idx] = values
             self._ramping[idx] = True
         else:
             self._ramping[idx] = False
@@ -359,19 +529,9 @@ class SafetyLayer:
             self._state = SafetyState.OK
             self.record("resume", "command received; leaving HOLD")
 
-    def check_trajectory_point(self, positions: np.ndarray, idx: np.ndarray) -> None:
-        bad = (positions < self._lo[idx]) | (positions > self._hi[idx])
-        if bad.any():
-            k = int(np.argmax(bad))
-            j = int(idx[k])
-            raise LimitViolation(
-                f"trajectory position {positions[k]:.4g} for joint {self.ctl.names[j]!r} is outside "
-                f"[{self._lo[j]:.4g}, {self._hi[j]:.4g}]"
-            )
-
     # ---------------------------------------------------------- per cycle
-    def _filter(self, t: float, st: StateBuffer, sp: Setpoint) -> None:
-        """Setpoint filter, every tick: keep position setpoints in limits and ramp their steps.
+    def _filter(self, t: float, st: StateView, sp: Setpoint) -> None:
+        """LIMIT phase, every tick: keep position setpoints in limits and ramp their steps.
 
         A joint with a direct position command ramps towards its goal (see :meth:`feed`);
         every other position-mode joint (trajectory, stop ramp, hold) is limited to what
@@ -386,8 +546,7 @@ class SafetyLayer:
         np.copyto(written, st.position, where=~pos_mode)
         ramping = self._ramping
         ramping &= pos_mode
-        if self.motions is not None:
-            ramping &= ~self.motions.owned_mask
+        ramping &= ~self.motions.owned_mask
         target = np.where(ramping, self._goal, sp.position)
         # (ufuncs with out=: np.clip costs several µs of dispatch on small arrays)
         np.maximum(target, self._lo, out=target)
@@ -404,56 +563,77 @@ class SafetyLayer:
         np.minimum(sp.velocity, self._vmax, out=sp.velocity)
         np.maximum(sp.effort, self._emin, out=sp.effort)
         np.minimum(sp.effort, self._emax, out=sp.effort)
+        streamed = sp.enabled & (sp.mode != _POS)
+        if streamed.any():
+            self._limit_streams(st.position, sp, streamed)
 
-    def _on_tick(self, t: float, st: StateBuffer) -> None:
-        if self._pending_thread_events:
-            self._drain_thread_events()
-        sp = self.ctl.setpoint
+    def _limit_streams(self, q: np.ndarray, sp: Setpoint, streamed: np.ndarray) -> None:
+        """Keep velocity and effort streams from driving a joint through its position limits.
+
+        Like ros2_control's joint saturation limiter: a velocity command is limited so the
+        joint can still stop (at its deceleration limit) before the limit,
+        ``|v| <= sqrt(2 * a_max * distance)``; an effort command that pushes a joint at or
+        beyond a limit further out is dropped (it may rest against its stop).
+        """
+        vel = streamed & (sp.mode == _VEL)
+        if vel.any():
+            up = np.sqrt(2.0 * self._amax * np.maximum(self._hi - q, 0.0))
+            down = -np.sqrt(2.0 * self._amax * np.maximum(q - self._lo, 0.0))
+            limited = np.minimum(np.maximum(sp.velocity, down), up)
+            np.copyto(sp.velocity, limited, where=vel)
+        eff = streamed & (sp.mode == _EFF)
+        if eff.any():
+            outward = ((q >= self._hi) & (sp.effort > 0.0)) | ((q <= self._lo) & (sp.effort < 0.0))
+            sp.effort[eff & outward] = 0.0
+
+    def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
         # the ramp origin of joints outside position mode is their fresh measurement
         np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
         if self._state is not SafetyState.OK and self._state is not SafetyState.HOLD:
             return
+        if self._latched.is_set():
+            return
+        for check in self._checks:
+            violation = check(t, st)
+            if violation is not None:
+                self.record(violation.kind, violation.detail, violation.joint)
+                log.error("safety check: %s; e-stop category %d", violation.detail, violation.category)
+                self._begin_stop(violation.category, violation.kind)
+                return
         # in HOLD too: another joint's stream may go stale while the first one is held
         streamed = self._watched[sp.mode] & sp.enabled & ~self._held
         if not streamed.any():
             return
-        if self.motions is not None:
-            streamed &= ~self.motions.owned_mask
+        streamed &= ~self.motions.owned_mask
         stale = streamed & (t - self._fed > self.config.command_timeout)
         if stale.any():
             idx = np.flatnonzero(stale)
             self._hold(idx)
             self._held[idx] = True
             self._state = SafetyState.HOLD
-            names = ", ".join(self.ctl.names[i] for i in idx.tolist())
+            names = ", ".join(self.loop.names[i] for i in idx.tolist())
             self.record("watchdog", f"no command for {self.config.command_timeout:g} s; holding {names}")
             log.warning("command watchdog: holding %s", names)
 
     def _hold(self, idx: np.ndarray) -> None:
-        ctl = self.ctl
-        if self.config.hold == "position" and "position" in ctl.capabilities.modes:
-            ctl.hold_current(idx)
+        loop = self.loop
+        if self.config.hold == "position" and "position" in loop.backend.capabilities.modes:
+            loop.hold_current(idx)
         else:
-            sp = ctl.setpoint
-            sp.mode[idx] = _VEL
-            sp.kp[idx] = 0.0
-            sp.kd[idx] = ctl.gain_v[idx]
-            sp.velocity[idx] = 0.0
-            sp.effort[idx] = 0.0
+            loop.damp(idx, loop.gain_v[idx])
 
     def _on_fault(self, exc: BaseException) -> None:
         self._state = SafetyState.FAULT
         self._cause = exc
         self._ramping[:] = False
         self.record("fault", str(exc))
-        if self.motions is not None:
-            self.motions.fail_all(exc)
+        self.motions.fail_all(exc)
         for fut in self._fault_waiters:
             if not fut.done():
                 fut.set_result(exc)
 
     # --------------------------------------------------------------- e-stop
-    def _latch(self, category: int, source: str) -> bool:
+    def _latch(self, category: int) -> bool:
         """Latch the e-stop (any thread). Returns False if it was already latched."""
         with self._latch_lock:
             first = not self._latched.is_set()
@@ -473,8 +653,7 @@ class SafetyLayer:
             self._state = SafetyState.ESTOP
         if self._latch_category == 0:
             self._ramping[:] = False
-            if self.motions is not None:
-                self.motions.abort_all("e-stop")
+            self.motions.abort_all("e-stop")
 
     def _begin_stop(self, category: int, source: str) -> asyncio.Task[None]:
         """Loop side: latch, record and start the stop task of ``category``.
@@ -483,7 +662,7 @@ class SafetyLayer:
         ramp would end the first one early, at speed); a category 1 request makes it end
         with torque off, a category 0 request removes torque at once.
         """
-        self._latch(category, source)
+        self._latch(category)
         self._latch_handled = True
         if self._state is not SafetyState.FAULT:
             self._state = SafetyState.ESTOP
@@ -516,57 +695,42 @@ class SafetyLayer:
                 raise RobotClosedError("robot closed during the e-stop (actuators left safe by close)") from None
             raise
 
+    async def wait_stopped(self) -> None:
+        """Wait until every stop in progress has reached its end state (returns at once if none)."""
+        while self._stop_tasks:
+            await asyncio.gather(*list(self._stop_tasks), return_exceptions=True)
+
     def _stop_time_bound(self) -> float:
         """Robot seconds a controlled stop may take before the safety layer stops waiting for rest."""
         scale = self.config.stop_deceleration_scale
-        acc = np.array([j.max_acceleration for j in self.ctl.joints]) * scale
-        jerk = np.array([j.max_jerk for j in self.ctl.joints])
+        acc = np.array([j.max_acceleration for j in self.loop.joints]) * scale
+        jerk = np.array([j.max_jerk for j in self.loop.joints])
         t = self._vmax / acc + acc / jerk
         t = t[np.isfinite(t)]
         return 2.0 * float(t.max()) + 0.5 if t.size else 5.0
 
     async def _stop(self, category: int) -> None:
-        ctl = self.ctl
+        loop = self.loop
         motions = self.motions
-        ramping = self._ramping.copy()
-        self._ramping[:] = False
-        if category == 0 or motions is None or ctl.fault is not None or ctl.closed:
-            if motions is not None:
-                motions.abort_all("e-stop")
+        if category == 0 or loop.fault is not None or loop.closed:
+            self._ramping[:] = False
+            motions.abort_all("e-stop")
             self._torque_off()
             if category != 0:
                 self.record("estop", f"category {category}: control loop not running; torque removed")
             return
-        damp_only = "position" not in ctl.capabilities.modes
+        damp_only = "position" not in loop.backend.capabilities.modes
         if damp_only:
+            self._ramping[:] = False
             motions.abort_all("e-stop")
-        elif ramping.any():
-            # joints ramping to a direct position goal stop from where the ramp would be at
-            # the next tick, at the ramp's velocity (not from rest: that would be a step)
-            sp = ctl.setpoint
-            step = self._step if self._step is not None else np.inf
-            nxt = np.clip(np.clip(self._goal, self._lo, self._hi), self._written - step, self._written + step)
-            np.copyto(sp.velocity, (nxt - self._written) / ctl.period, where=ramping)
-            np.copyto(sp.position, nxt, where=ramping)
-        # running motions are not aborted first: the stop ramp starts from their desired state
-        loop = asyncio.get_running_loop()
-        fault: asyncio.Future[BaseException] = loop.create_future()
-        self._fault_waiters.add(fault)
-        bound = self._stop_time_bound()
-        ramp = loop.create_task(motions.stop_all_ramp(damp_only=damp_only), name="agentsdk-stop-ramp")
-        timer = loop.create_task(ctl.clock.sleep(bound), name="agentsdk-stop-bound")
-        try:
-            await asyncio.wait({ramp, fault, timer}, return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            self._fault_waiters.discard(fault)
-            for t in (ramp, timer):
-                t.cancel()
-            await asyncio.gather(ramp, timer, return_exceptions=True)
-        if fault.done() or ctl.fault is not None:
+        # running motions are not aborted first: the stop ramp starts from their state
+        outcome = await self._ramp_to_rest(damp_only)
+        if outcome == "fault":
             # the control loop died during the stop; it removed torque itself (category 0)
             self.record("estop", f"category {category}: interrupted by a fault; torque removed")
             return
-        if ramp.cancelled() or ramp.exception() is not None:
+        if outcome == "timeout":
+            bound = self._stop_time_bound()
             self.record("estop", f"category {category}: not at rest after {bound:g} s; ending the stop anyway")
             log.warning("e-stop category %d: joints not at rest after %g s", category, bound)
         category = min(category, self._ramp_category)  # escalated while stopping
@@ -577,69 +741,110 @@ class SafetyLayer:
             self._hold_where_stopped()
             self.record("estop", "category 2: stopped, holding with torque on")
 
+    async def _ramp_to_rest(self, damp_only: bool) -> Literal["rest", "fault", "timeout"]:
+        """Decelerate every joint to rest within its limits (bounded in robot time); how it ended."""
+        loop = self.loop
+        ramping = self._ramping.copy()
+        self._ramping[:] = False
+        if ramping.any() and not damp_only:
+            # joints ramping to a direct position goal stop from where the ramp would be at
+            # the next tick, at the ramp's velocity (not from rest: that would be a step)
+            step = self._step if self._step is not None else np.inf
+            nxt = np.clip(np.clip(self._goal, self._lo, self._hi), self._written - step, self._written + step)
+            idx = np.flatnonzero(ramping)
+            loop.set_reference(idx, nxt[idx], ((nxt - self._written) / loop.period)[idx])
+        aloop = asyncio.get_running_loop()
+        fault: asyncio.Future[BaseException] = aloop.create_future()
+        self._fault_waiters.add(fault)
+        bound = self._stop_time_bound()
+        ramp = aloop.create_task(
+            self.motions.stop_all_ramp(damp_only=damp_only, damping=self.config.stop_damping),
+            name="agentsdk-stop-ramp",
+        )
+        timer = aloop.create_task(loop.clock.sleep(bound), name="agentsdk-stop-bound")
+        try:
+            await asyncio.wait({ramp, fault, timer}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            self._fault_waiters.discard(fault)
+            for t in (ramp, timer):
+                t.cancel()
+            await asyncio.gather(ramp, timer, return_exceptions=True)
+        if fault.done() or loop.fault is not None:
+            return "fault"
+        if ramp.cancelled() or ramp.exception() is not None:
+            return "timeout"
+        return "rest"
+
     def _hold_where_stopped(self) -> None:
         """End of a category 2 stop: hold with torque on at the stop ramp's final desired position.
 
         (Re-targeting to the measured position instead would step the setpoint by the
         servo's tracking error, e.g. the gravity sag, and let the joint sag further.)
         """
-        ctl = self.ctl
-        sp = ctl.setpoint
-        pos = (sp.mode == _POS) & sp.enabled
-        keep = sp.position.copy()
-        ctl.hold_current()
-        np.copyto(sp.position, keep, where=pos)
-        np.copyto(ctl.target, keep, where=pos)
+        loop = self.loop
+        sp = loop.setpoint
+        pos = np.flatnonzero((sp.mode == _POS) & sp.enabled)
+        keep = sp.position[pos].copy()
+        loop.hold_current()
+        loop.hold_at(pos, keep)
 
     def _torque_off(self) -> None:
-        ctl = self.ctl
-        ctl.setpoint.enabled[:] = False
-        ctl.setpoint.kp[:] = 0.0
-        ctl.setpoint.kd[:] = 0.0
-        ctl.setpoint.effort[:] = 0.0
-        ctl.emergency_stop(0)
+        self.loop.remove_torque()
 
     def estop_threadsafe(self, category: int = 0) -> None:
         """Latch an e-stop from any thread. Category 0 acts at once in the calling thread;
         categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone)."""
         if category not in (0, 1, 2):
             raise InvalidValueError(f"stop category must be 0, 1 or 2 (IEC 60204-1), got {category!r}")
-        loop = self._loop
-        if category != 0 and loop is not None and not loop.is_closed() and not self.ctl.closed:
-            self._latch(category, "thread")
+        aloop = self._aloop
+        loop = self.loop
+        if category != 0 and aloop is not None and not aloop.is_closed() and not loop.closed:
+            self._latch(category)
 
             def _start() -> None:
-                if not self.ctl.closed:
+                if not loop.closed:
                     self._begin_stop(category, "threadsafe")
 
             try:
-                loop.call_soon_threadsafe(_start)
+                aloop.call_soon_threadsafe(_start)
                 return
-            except RuntimeError:  # the loop closed meanwhile: stop here
+            except RuntimeError:  # the event loop closed meanwhile: stop here
                 pass
-        self._latch(0, "thread")
-        if self.ctl.closed:
+        self._latch(0)
+        if loop.closed:
             return
-        self.ctl.emergency_stop(0)
-        self._pending_thread_events.append(
-            SafetyEvent(self.ctl.stamp, "estop", None, f"category {category} (threadsafe): torque removed at once")
-        )
+        loop.emergency_stop(0)
+        self.record("estop", f"category {category} (threadsafe): torque removed at once")
 
     async def reset(self) -> None:
-        """Clear the latch (ESTOP -> DISABLED) or recover a FAULT. Never moves the robot."""
-        if self._stop_tasks:
-            # a stop in progress completes first
-            await asyncio.gather(*self._stop_tasks, return_exceptions=True)
+        """Clear the latch (ESTOP -> DISABLED) or recover a FAULT. Never moves the robot.
+
+        A stop in progress completes first. Anything still driving the joints over time
+        (a trajectory, a stop ramp) ends here; the setpoint stays exactly as the stop
+        left it: torque off stays off, a hold keeps holding where it is.
+        """
+        await self.wait_stopped()
         if self._state is SafetyState.FAULT:
-            await self.ctl.recover()
+            await self.loop.recover()
             self._cause = None
+        if self._latched.is_set() and not self._latch_handled:
+            self._enforce_latch()
+        if not self._latched.is_set() and self._state in (SafetyState.OK, SafetyState.HOLD):
+            # nothing latched: the robot may be moving (a trajectory, a velocity stream, a
+            # position ramp). DISABLED means nothing moves: bring it to rest first (as a
+            # category 2 stop would, torque stays on), never freeze it at speed.
+            if "position" in self.loop.backend.capabilities.modes and self.loop.fault is None:
+                outcome = await self._ramp_to_rest(damp_only=False)
+                if outcome == "rest":
+                    self._hold_where_stopped()
+            self.motions.abort_all("reset")
+        self.motions.end_all("reset")
         with self._latch_lock:
             self._latched.clear()
             self._latch_category = None
         self._latch_handled = False
         self.stall_traceback = None
         self._ramping[:] = False
-        # stay exactly as the stop left us: torque off stays off, a hold keeps holding
         self._state = SafetyState.DISABLED
         self._beat = time.monotonic()
         self.record("reset", "latch cleared; call enable() to allow motion")
@@ -650,21 +855,20 @@ class SafetyLayer:
         if st is SafetyState.ESTOP:
             raise EStopActive("e-stop is latched; call `await robot.reset()` before `await robot.enable()`")
         self.check_fault()
-        ctl = self.ctl
-        await ctl.enable_hook()
-        ctl.hold_current()
-        self._written = ctl.state.position.copy()
+        loop = self.loop
+        await loop.enable()
+        self._written = loop.state.position.copy()
         self._goal = self._written.copy()
         self._ramping[:] = False
         self._held[:] = False
-        self._fed[:] = ctl.stamp
+        self._fed[:] = loop.stamp
         self._state = SafetyState.OK
         self.record("enable", "motion enabled; holding current position")
 
     # ------------------------------------------------------ stall watchdog
     def _schedule_beat(self) -> None:
-        loop = self._loop
-        if loop is None or self._thread_stop.is_set():
+        aloop = self._aloop
+        if aloop is None or self._thread_stop.is_set():
             return
         interval = min(0.005, (self.config.stall_timeout or 1.0) / 10)
 
@@ -672,7 +876,7 @@ class SafetyLayer:
             self._beat = time.monotonic()
             self._schedule_beat()
 
-        self._beat_handle = loop.call_later(interval, _beat)
+        self._beat_handle = aloop.call_later(interval, _beat)
 
     def _watch_stall(self) -> None:
         timeout = self.config.stall_timeout
@@ -681,15 +885,17 @@ class SafetyLayer:
         while not self._thread_stop.wait(poll):
             last = self._beat
             now = time.monotonic()
-            if now - last <= timeout or self._latched.is_set():
+            # watched as long as torque is on: a category 2 stop holds with torque on
+            if now - last <= timeout or self.loop.torque_off or self.loop.closed:
                 continue
             # the event loop is stuck: stop the actuators from this thread
             try:
-                self.ctl.emergency_stop(0)
+                self.loop.emergency_stop(0)
             except Exception:
                 log.exception("emergency stop hook failed in the stall watchdog")
             stopped = time.monotonic()
-            self._latch(0, "stall")
+            self._latch(0)
+            self._latch_handled = False  # the loop side still has to abort motions
             self.stall_latency = stopped - last
             self.stall_detected_at = stopped
             frame = sys._current_frames().get(self._loop_thread_id)
@@ -700,7 +906,7 @@ class SafetyLayer:
                 f"event loop stalled for more than {timeout:g} s (last heartbeat {stopped - last:.3f} s ago); "
                 f"e-stop category 0 latched; loop was at {where}"
             )
-            self._pending_thread_events.append(SafetyEvent(self.ctl.stamp, "stall", None, detail))
+            self.record("stall", detail)
             log.error("%s\n%s", detail, stack)
 
 

@@ -86,6 +86,7 @@ from types import MappingProxyType, ModuleType
 from typing import Any, ClassVar
 
 from .errors import AgentSDKError, ConfigurationError
+from .loop import HookHandle
 from .scope import DEFAULT_STOP_TIMEOUT, ClockLike, LoopClock, MotionScope, MotionStopTimeoutError
 
 __all__ = [
@@ -100,6 +101,7 @@ __all__ = [
     "StateMachineError",
     "Transition",
     "TransitionList",
+    "TransitionListener",
     "find_machines",
 ]
 
@@ -360,6 +362,11 @@ class _Waiter:
 # --------------------------------------------------------------------------- the machine
 
 
+#: ``fn(machine, record)``: told of every transition any state machine records
+TransitionListener = Callable[["StateMachine", HistoryRecord], None]
+_transition_listeners: list[TransitionListener] = []
+
+
 class StateMachine:
     """Base class of declared machines; see the module documentation.
 
@@ -562,6 +569,19 @@ class StateMachine:
             return True
         return any(p == target or p.endswith("/" + target) for p in self._sm_active_paths())
 
+    @staticmethod
+    def add_transition_listener(fn: TransitionListener) -> HookHandle:
+        """Call ``fn(machine, record)`` for every :class:`HistoryRecord` any machine records, in any process task.
+
+        Process-wide, like a logging handler (a recorder attached to a robot filters
+        on ``machine.robot``). A listener that raises is logged and never breaks the
+        machine. Returns a handle; ``handle.remove()`` unregisters.
+        """
+        if not callable(fn):
+            raise TypeError(f"a transition listener must be callable, got {fn!r}")
+        _transition_listeners.append(fn)
+        return HookHandle(lambda: _transition_listeners.remove(fn), lambda: fn in _transition_listeners)
+
     def _sm_record(
         self, source: str | None, target: str | None, event: str | None, *, note: str = "", time: float | None = None
     ) -> None:
@@ -577,6 +597,11 @@ class StateMachine:
         while m is not None:
             m.history.append(rec)
             m = m.parent
+        for listener in tuple(_transition_listeners):
+            try:
+                listener(self, rec)
+            except Exception:  # an observer must never break a behavior
+                _log.exception("transition listener %r failed", listener)
 
     def _sm_entered(self, name: str) -> None:
         self._sm_state = name

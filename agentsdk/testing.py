@@ -13,7 +13,8 @@ Use it from any test suite (ours or a third-party backend's)::
 Override :meth:`BackendConformance.open_robot` when the backend needs a fixture
 around it (a motor emulator, a simulator process). Tests are gated on the
 capabilities the backend declares (``Controller.capabilities``), never on its
-name. Requires ``pytest`` and ``pytest-asyncio``.
+name; capabilities are read from the opened robot (a backend may declare them
+per instance). Requires ``pytest`` and ``pytest-asyncio``.
 """
 
 from __future__ import annotations
@@ -23,12 +24,14 @@ import contextlib
 import itertools
 import math
 import threading
+import time
 from collections.abc import AsyncIterator
 from typing import Any, ClassVar
 
 import numpy as np
 import pytest
 
+from .backend import Capabilities
 from .description import apply_overrides, resolve_robot
 from .errors import (
     AgentSDKError,
@@ -42,6 +45,11 @@ from .robot import Robot, connect
 from .types import MODES, JointCommand
 
 __all__ = ["BackendConformance"]
+
+
+def _block(seconds: float) -> None:
+    """Block the calling thread (the event loop's): what the loop-stall watchdog must catch."""
+    time.sleep(seconds)
 
 
 def _mid_target(robot: Robot, j: int, offset: float = 0.3) -> float:
@@ -79,8 +87,18 @@ class BackendConformance:
         async with connect(self.backend, robot=self.robot, realtime=self.realtime, **opts) as robot:
             yield robot
 
-    def capabilities(self) -> Any:
-        return load_backend(self.backend).capabilities
+    def capabilities(self) -> Capabilities:
+        """The capabilities the backend declares for this configuration (read from an instance)."""
+        cached = type(self).__dict__.get("_caps")
+        if cached is not None:
+            return cached
+        config, desc = resolve_robot(self.robot)
+        cls = load_backend(self.backend)
+        instance = cls(config, desc, apply_overrides(desc, config), realtime=self.realtime,
+                       **self.connect_options)
+        caps: Capabilities = instance.capabilities
+        type.__setattr__(type(self), "_caps", caps)
+        return caps
 
     # ------------------------------------------------------- metadata
     async def test_joint_metadata_matches_description(self) -> None:
@@ -221,7 +239,7 @@ class BackendConformance:
                 )
                 assert list(ra.values.values()) == pytest.approx(a)
                 assert list(rb.values.values()) == pytest.approx(b)
-                target = robot.controller.setpoint_target()
+                target = robot.command_targets()
                 assert np.allclose(target, a) or np.allclose(target, b), f"interleaved setpoint {target}"
 
     # ----------------------------------------------------- determinism
@@ -264,12 +282,60 @@ class BackendConformance:
                                              else sorted(self.capabilities().modes)[0], {j: 0.0}))
             assert np.isfinite((await robot.read()).position).all()
 
+    # ------------------------------------------------------- torque off
+    async def _push(self, robot: Robot) -> tuple[str, float]:
+        """Apply a clear effort on the first joint and check it shows in the measured effort."""
+        j = robot.joints[0]
+        tau = 0.2 * j.max_effort
+        await robot.command(JointCommand("effort", {j.name: tau}))
+        await robot.clock.sleep(max(0.03, 3 * robot.control_period))
+        st = await robot.read()
+        assert abs(st.effort[0] - tau) < 0.25 * tau, f"effort on {j.name}: {st.effort[0]} != {tau}"
+        return j.name, tau
+
+    async def _ticks(self, robot: Robot, n: int) -> None:
+        target = robot.ticks + n
+        while robot.ticks < target:
+            await robot.clock.sleep(robot.control_period)
+
+    async def test_threadsafe_estop_removes_torque_within_one_tick(self) -> None:
+        if "effort" not in self.capabilities().modes:
+            pytest.skip("needs effort mode to observe the actuator torque")
+        async with self.open_robot() as robot:
+            name, tau = await self._push(robot)
+            button = threading.Thread(target=robot.estop_threadsafe, args=(0,), name="conformance-estop-button")
+            button.start()
+            while button.is_alive():  # noqa: ASYNC110 - waiting for a plain thread without blocking the loop
+                await asyncio.sleep(0.001)
+            button.join()
+            assert not robot.torque_enabled
+            # lockstep: no tick ran meanwhile, the next one writes torque off; realtime: a tick in
+            # flight when the stop landed may still show the old torque
+            await self._ticks(robot, 2 if robot.realtime else 1)
+            st = await robot.read()
+            assert abs(st.effort[0]) < 0.25 * tau, f"{name} still has effort {st.effort[0]} after an e-stop"
+            assert not robot.setpoint.enabled.any()
+
+    async def test_loop_stall_is_detected_and_removes_torque(self) -> None:
+        if "effort" not in self.capabilities().modes:
+            pytest.skip("needs effort mode to observe the actuator torque")
+        timeout = 0.1
+        async with self.open_robot(safety={"stall_timeout": timeout}) as robot:
+            name, tau = await self._push(robot)
+            _block(6 * timeout)  # a behavior that blocks the event loop
+            assert robot.safety.state.name == "ESTOP"
+            assert any(e.kind == "stall" for e in robot.safety.events), robot.safety.events
+            assert not robot.torque_enabled
+            await self._ticks(robot, 2 if robot.realtime else 1)
+            st = await robot.read()
+            assert abs(st.effort[0]) < 0.25 * tau, f"{name} still has effort {st.effort[0]} after a stall"
+
     # ------------------------------------------------------- bad input
     async def test_bad_input_is_rejected_and_state_unchanged(self) -> None:
         mode = "position" if "position" in self.capabilities().modes else sorted(self.capabilities().modes)[0]
         async with self.open_robot() as robot:
             await robot.clock.sleep(0.02)
-            before = robot.controller.setpoint_target().copy()
+            before = robot.command_targets()
             n = len(robot.joints)
             j = robot.joints[0].name
             bad: list[tuple[type[AgentSDKError], JointCommand]] = [
@@ -281,7 +347,7 @@ class BackendConformance:
             for exc_type, cmd in bad:
                 with pytest.raises(exc_type):
                     await robot.command(cmd)
-                assert np.array_equal(robot.controller.setpoint_target(), before), f"state changed by {cmd}"
+                assert np.array_equal(robot.command_targets(), before), f"state changed by {cmd}"
             # still usable
             await robot.command(JointCommand(mode, {j: 0.0}))
             await robot.clock.sleep(0.02)

@@ -16,7 +16,7 @@ import numpy.typing as npt
 
 from .errors import InvalidValueError, UnsupportedModeError
 
-__all__ = ["MODES", "CommandMode", "JointCommand", "JointInfo", "JointState"]
+__all__ = ["MODES", "AppliedCommand", "CommandMode", "JointCommand", "JointInfo", "JointState"]
 
 CommandMode = Literal["position", "velocity", "effort"]
 MODES: tuple[CommandMode, ...] = get_args(CommandMode)
@@ -75,10 +75,14 @@ class JointState:
                 object.__setattr__(self, attr, _frozen(arr))
 
     @classmethod
-    def _trusted(
+    def from_arrays(
         cls, names: tuple[str, ...], position: FloatArray, velocity: FloatArray, effort: FloatArray, stamp: float
     ) -> JointState:
-        """Build from private copies without re-validating (the control-loop hot path)."""
+        """Build from float64 arrays the caller hands over (they become read-only), without copying.
+
+        The control loop's fast path: the caller passes private copies of the right
+        shape and gives up writing to them; nothing is re-validated.
+        """
         self = object.__new__(cls)
         for attr, arr in (("position", position), ("velocity", velocity), ("effort", effort)):
             arr.flags.writeable = False
@@ -88,6 +92,7 @@ class JointState:
         return self
 
     def index(self, name: str) -> int:
+        """Index of joint ``name`` in ``names``."""
         return self.names.index(name)
 
     def positions(self) -> dict[str, float]:
@@ -95,9 +100,11 @@ class JointState:
         return dict(zip(self.names, self.position.tolist(), strict=True))
 
     def velocities(self) -> dict[str, float]:
+        """``{joint name: velocity}``."""
         return dict(zip(self.names, self.velocity.tolist(), strict=True))
 
     def efforts(self) -> dict[str, float]:
+        """``{joint name: effort}``."""
         return dict(zip(self.names, self.effort.tolist(), strict=True))
 
 
@@ -151,8 +158,9 @@ class JointCommand:
     (same shape as ``values``) are added by the joint servo:
     ``effort = kp*(q_des - q) + kd*(v_ff - v) + effort_ff``.
 
-    ``robot.command(cmd)`` returns the command actually applied, always as a
-    mapping covering the joints it touched, after safety limiting.
+    ``robot.command(cmd)`` returns the command actually applied, an
+    :class:`AppliedCommand` whose values are a mapping covering the joints it
+    touched, after safety limiting.
     """
 
     mode: CommandMode
@@ -176,17 +184,32 @@ class JointCommand:
         object.__setattr__(self, "velocity", _freeze_values(velocity, "velocity"))
         object.__setattr__(self, "effort", _freeze_values(effort, "effort"))
 
-    @classmethod
-    def _trusted(cls, mode: CommandMode, values: Mapping[str, float]) -> JointCommand:
-        """Build an already-validated command without re-validating (the hot path)."""
-        self = object.__new__(cls)
-        object.__setattr__(self, "mode", mode)
-        object.__setattr__(self, "values", MappingProxyType(values))
-        object.__setattr__(self, "velocity", None)
-        object.__setattr__(self, "effort", None)
-        return self
-
     def __repr__(self) -> str:
         vals = dict(self.values) if isinstance(self.values, Mapping) else list(self.values)
         return f"JointCommand(mode={self.mode!r}, values={vals!r})"
 
+
+
+@dataclass(frozen=True, slots=True)
+class AppliedCommand:
+    """The command a robot actually applied (returned by ``robot.command``), after safety limiting.
+
+    ``values`` (and the feed-forward ``velocity``/``effort``, when the command had
+    them) map each joint the command touched to the value written, in the
+    command's order. It can be sent again as is: ``await robot.command(applied)``.
+    """
+
+    mode: CommandMode
+    values: Mapping[str, float]
+    velocity: Mapping[str, float] | None = None
+    effort: Mapping[str, float] | None = None
+
+    def as_command(self) -> JointCommand:
+        """The same command as a :class:`JointCommand`."""
+        return JointCommand(self.mode, dict(self.values), velocity=self.velocity, effort=self.effort)
+
+    def __repr__(self) -> str:
+        ff = "".join(
+            f", {k}={dict(v)!r}" for k, v in (("velocity", self.velocity), ("effort", self.effort)) if v is not None
+        )
+        return f"AppliedCommand(mode={self.mode!r}, values={dict(self.values)!r}{ff})"

@@ -311,7 +311,7 @@ async def _backend_realtime(robot_yaml: Path, interface: str, channel: str, dura
                                 max_missed_replies=10**9) as robot:
         ctl = robot.controller
         await robot.clock.sleep(0.2)  # settle
-        ticks0, skipped0 = ctl.ticks, ctl.missed_deadlines
+        ticks0, skipped0 = robot.ticks, robot.missed_deadlines
         c0, m0, l0 = _missed(ctl)
         cpu0 = time.process_time()
         t0 = time.perf_counter()
@@ -319,7 +319,7 @@ async def _backend_realtime(robot_yaml: Path, interface: str, channel: str, dura
         elapsed = time.perf_counter() - t0
         cpu = time.process_time() - cpu0
         c1, m1, l1 = _missed(ctl)
-        ticks, skipped = ctl.ticks - ticks0, ctl.missed_deadlines - skipped0
+        ticks, skipped = robot.ticks - ticks0, robot.missed_deadlines - skipped0
         state = robot.safety.state.name
     cycles = max(c1 - c0, 1)
     return {

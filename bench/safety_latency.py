@@ -86,7 +86,6 @@ async def bench_estop(backend: str, trials: int, seed: int) -> dict[str, dict[st
     api_hook: list[float] = []
     api_return: list[float] = []
     async with agentsdk.connect(backend, robot="arm3") as robot:
-        ctl = robot.controller
         done = spy_emergency_stop(robot)
         for k in range(trials):
             # estop_threadsafe(0) from a "button" thread, at a random moment while the loop is busy
@@ -103,7 +102,7 @@ async def bench_estop(backend: str, trials: int, seed: int) -> dict[str, dict[st
             n_done = len(done)
             button = threading.Thread(target=press, name="bench-estop-button")
             button.start()
-            while not ctl.torque_disabled:
+            while robot.torque_enabled:
                 await robot.clock.sleep(robot.control_period)
             await asyncio.to_thread(button.join)
             assert len(done) == n_done + 1

@@ -57,8 +57,8 @@ class IgnoresVelocity(TinyController):
 
     def _write(self, sp):
         super()._write(sp)
-        self._sp.velocity[:] = 0.0
-        self._sp.kd[self._sp.kp == 0] = 0.0   # velocity commands do nothing
+        self.sp["velocity"][:] = 0.0
+        self.sp["kd"][self.sp["kp"] == 0] = 0.0   # velocity commands do nothing
 
 
 class LeaksAfterClose(TinyController):
@@ -74,8 +74,20 @@ class LeaksAfterClose(TinyController):
         pass          # forgets to stop its thread
 
 
+class IgnoresTorqueOff(TinyController):
+    name = "ignores_torque_off"
+
+    def _write(self, sp):
+        super()._write(sp)
+        self.on[:] = True             # keeps driving after an e-stop
+
+    def _emergency_stop(self, category):
+        pass
+
+
 agentsdk.register_backend("ignores_velocity", IgnoresVelocity)
 agentsdk.register_backend("leaks", LeaksAfterClose)
+agentsdk.register_backend("ignores_torque_off", IgnoresTorqueOff)
 
 
 class TestIgnoresVelocity(BackendConformance):
@@ -85,6 +97,10 @@ class TestIgnoresVelocity(BackendConformance):
 
 class TestLeaks(BackendConformance):
     backend = "leaks"
+
+
+class TestIgnoresTorqueOff(BackendConformance):
+    backend = "ignores_torque_off"
 '''
 
 
@@ -94,8 +110,10 @@ def test_kit_fails_broken_backends(pytester: pytest.Pytester) -> None:
     pytester.makeini("[pytest]\nasyncio_mode = auto\nasyncio_default_fixture_loop_scope = function\n")
     result = pytester.runpytest_subprocess("test_broken.py", "-q", "-p", "no:cacheprovider")
     outcomes = result.parseoutcomes()
-    assert outcomes.get("failed", 0) == 2, result.stdout.str()
+    assert outcomes.get("failed", 0) == 4, result.stdout.str()
     result.stdout.fnmatch_lines_random([
         "*FAILED test_broken.py::TestIgnoresVelocity::test_velocity_mode_reaches_target*",
         "*FAILED test_broken.py::TestLeaks::test_close_is_idempotent_and_later_calls_raise*",
+        "*FAILED test_broken.py::TestIgnoresTorqueOff::test_threadsafe_estop_removes_torque_within_one_tick*",
+        "*FAILED test_broken.py::TestIgnoresTorqueOff::test_loop_stall_is_detected_and_removes_torque*",
     ])

@@ -19,7 +19,7 @@ FIXTURES = Path(__file__).parent / "fixtures"
 
 
 def _record_positions(robot: agentsdk.Robot, out: list[np.ndarray]) -> None:
-    robot.controller.tick_hooks.append(lambda t, st: out.append(st.position.copy()))
+    robot.add_tick_hook(agentsdk.Phase.OBSERVE, lambda t, st, sp: out.append(st.position.copy()))
 
 
 async def test_wave_reaches_last_target_in_lockstep() -> None:
@@ -119,12 +119,12 @@ async def test_bad_command_rejected_state_unchanged(cmd: JointCommand, exc: type
     async with agentsdk.connect("mujoco", robot="arm3") as robot:
         await robot.command(JointCommand("position", {"joint1": 0.2}))
         await robot.clock.sleep(0.1)
-        target = robot.controller.setpoint_target()
-        modes = robot.controller.setpoint.mode.copy()
+        target = robot.command_targets()
+        modes = robot.setpoint.mode.copy()
         with pytest.raises(exc, match=match):
             await robot.command(cmd)
-        assert np.array_equal(robot.controller.setpoint_target(), target)
-        assert np.array_equal(robot.controller.setpoint.mode, modes)
+        assert np.array_equal(robot.command_targets(), target)
+        assert np.array_equal(robot.setpoint.mode, modes)
         # still usable
         await robot.command(JointCommand("position", {"joint1": 0.4}))
         await robot.clock.sleep(1.0)

@@ -203,10 +203,9 @@ async def test_commands_go_through_the_safety_layer(mock_arm: agentsdk.Robot) ->
     kinds = [e.kind for e in safety.events]
     assert "watchdog" not in kinds  # fed every period
     assert "clamp" in kinds  # 99 rad/s was limited to max_velocity
-    ctl = mock_arm.controller
     # on exit the streamed joints hold their measured position (not left to the watchdog)
-    j1, j3 = ctl.index["joint1"], ctl.index["joint3"]
-    assert ctl.setpoint.mode[j1] == ctl.setpoint.mode[j3] == 0  # position
+    j1, j3 = mock_arm.joint_index["joint1"], mock_arm.joint_index["joint3"]
+    assert mock_arm.setpoint.mode[j1] == mock_arm.setpoint.mode[j3] == 0  # position
     held = (await mock_arm.read()).position.copy()
     await mock_arm.clock.sleep(0.5)
     after = (await mock_arm.read()).position
@@ -297,7 +296,6 @@ async def test_without_exit_hold_the_watchdog_takes_over(mock_arm: agentsdk.Robo
         return JointCommand("velocity", {"joint1": 0.5})
 
     await run_feedback(mock_arm, spin, rate=100.0, duration=0.2, hold_on_exit=False)
-    ctl = mock_arm.controller
-    assert ctl.setpoint.mode[ctl.index["joint1"]] == 1  # still streaming velocity
+    assert mock_arm.setpoint.mode[mock_arm.joint_index["joint1"]] == 1  # still streaming velocity
     await mock_arm.clock.sleep(0.5)  # > command_timeout
     assert "watchdog" in [e.kind for e in mock_arm.safety.events]

@@ -1,7 +1,7 @@
 """Issue acceptance: trajectory execution (agentsdk.motion) on every simulated backend, in lockstep.
 
 Every test records the servo setpoint (desired position and velocity) and the
-measured position at every control tick through ``robot.controller.tick_hooks``
+measured position at every control tick through an OBSERVE-phase tick hook
 (or the motion's own feedback), so the checks are on the exact per-tick signals.
 Time is simulated (lockstep): nothing here depends on the wall clock.
 """
@@ -67,14 +67,12 @@ class TickLog:
     """Per control tick: time ``t`` the setpoint was written for, desired q/v, and the measured q after the tick."""
 
     def __init__(self, robot: agentsdk.Robot) -> None:
-        self.ctl = robot.controller
         self.dt = robot.control_period
         self.rows: list[tuple[float, np.ndarray, np.ndarray, np.ndarray]] = []
-        self.ctl.tick_hooks.append(self)
+        robot.add_tick_hook(agentsdk.Phase.OBSERVE, self)
 
-    def __call__(self, stamp: float, st: object) -> None:
-        sp = self.ctl.setpoint
-        self.rows.append((stamp - self.dt, sp.position.copy(), sp.velocity.copy(), self.ctl.state.position.copy()))
+    def __call__(self, stamp: float, st: agentsdk.StateView, sp: agentsdk.SetpointView) -> None:
+        self.rows.append((stamp - self.dt, sp.position.copy(), sp.velocity.copy(), st.position.copy()))
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         t = np.array([r[0] for r in self.rows])
@@ -129,7 +127,7 @@ def check_stop(
     robot: agentsdk.Robot, log: TickLog, names: Sequence[str], t_cancel: float, result: agentsdk.MotionResult
 ) -> float:
     """Desired velocity after ``t_cancel``: |dv/dt| within the deceleration limit, at rest in time. Returns t_rest."""
-    idx = [robot.controller.index[n] for n in names]
+    idx = [robot.joint_index[n] for n in names]
     amax, jmax = decel_limits(robot, names)
     dt = log.dt
     t, q, v, _ = log.arrays()
@@ -162,7 +160,7 @@ def check_stop(
 
 async def check_holds(robot: agentsdk.Robot, names: Sequence[str], seconds: float = 0.5, tol: float = 0.01) -> None:
     """Over ``seconds``: setpoint constant with zero velocity; measured position within ``tol`` of it."""
-    idx = [robot.controller.index[n] for n in names]
+    idx = [robot.joint_index[n] for n in names]
     log = TickLog(robot)
     await robot.clock.sleep(seconds)
     _, q, v, x = log.arrays()
@@ -251,7 +249,7 @@ async def test_preemption_keeps_desired_velocity_continuous(robot: agentsdk.Robo
     assert r2.code is ResultCode.SUCCESSFUL, r2
 
     amax, _ = decel_limits(robot, ["joint1", "joint3"])
-    idx = [robot.controller.index["joint1"], robot.controller.index["joint3"]]
+    idx = [robot.joint_index["joint1"], robot.joint_index["joint3"]]
     dt = log.dt
     t, q, v, _ = log.arrays()
     k = int(np.searchsorted(t, t_switch - 1e-9))  # the first tick of the new trajectory
@@ -289,10 +287,10 @@ async def test_frozen_joint_aborts_with_path_tolerance_violated_and_holds() -> N
         assert np.all(np.abs(acc) <= amax * (1 + ACC_RTOL) + 1e-9)
         assert np.all(v[-1, :2] == 0.0)
         await check_holds(robot, ["joint1"])
-        sp = robot.controller.setpoint
+        sp = robot.setpoint
         held = sp.position[:2].copy()
         await robot.clock.sleep(0.2)
-        assert np.array_equal(robot.controller.setpoint.position[:2], held)  # joint2's hold does not creep
+        assert np.array_equal(robot.setpoint.position[:2], held)  # joint2's hold does not creep
 
 
 async def test_path_tolerance_violated_on_tight_tolerance(robot: agentsdk.Robot) -> None:
@@ -328,7 +326,7 @@ async def test_goal_tolerance_violated(backend: str) -> None:
 
 
 def _setpoint(robot: agentsdk.Robot) -> tuple[np.ndarray, ...]:
-    sp = robot.controller.setpoint
+    sp = robot.setpoint
     return sp.position.copy(), sp.velocity.copy(), sp.mode.copy()
 
 
@@ -352,7 +350,7 @@ async def test_invalid_trajectories_rejected_state_unchanged(
     before = _setpoint(robot)
     with pytest.raises(exc, match=match):
         robot.follow(make())  # type: ignore[operator]
-    assert not robot.controller.busy  # nothing started
+    assert not robot.busy  # nothing started
     await robot.clock.sleep(0.05)
     after = _setpoint(robot)
     assert all(np.array_equal(a, b) for a, b in zip(before, after, strict=True))
@@ -367,7 +365,7 @@ async def test_non_increasing_times_rejected(robot: agentsdk.Robot, times: list[
     # rejected when the Trajectory is built, i.e. before follow() could start anything
     with pytest.raises(InvalidValueError, match="time_from_start"):
         robot.follow(Trajectory(["joint1"], [TrajectoryPoint(t, [0.1 * (i + 1)]) for i, t in enumerate(times)]))
-    assert not robot.controller.busy
+    assert not robot.busy
 
 
 async def test_direct_command_rejected_on_joint_driven_by_trajectory(robot: agentsdk.Robot) -> None:

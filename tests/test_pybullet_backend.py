@@ -13,6 +13,7 @@ import agentsdk
 from agentsdk import ConfigurationError, JointCommand, SafetyFault, SimulationDiverged
 from agentsdk.backends.pybullet import PybulletController
 from agentsdk.description import apply_overrides, resolve_robot
+from agentsdk.loop import Setpoint
 
 pytestmark = pytest.mark.asyncio
 
@@ -105,22 +106,25 @@ def _controller() -> PybulletController:
 
 
 async def _drive(ctls: list[PybulletController], poses: list[dict[str, float]], ticks: int = 250) -> list[np.ndarray]:
-    """Run the backends' own tick (write -> step -> read) by hand, interleaving the controllers."""
+    """Run the backends' own hooks (write -> step -> read) by hand, interleaving the backends."""
+    setpoints = []
     for ctl, pose in zip(ctls, poses, strict=True):
         await ctl._open()
-        ctl._read(ctl.state)
-        ctl.hold_current()
-        idx = np.array([ctl.index[n] for n in pose])
-        ctl.apply("position", idx, np.array(list(pose.values())))
+        sp = Setpoint(len(ctl.joints))
+        sp.position[:] = ctl._read()[0]
+        for name, q in pose.items():
+            sp.position[ctl.index[name]] = q
+        sp.kp[:] = [ctl.config.gains_for(j.name).p for j in ctl.joints]
+        sp.kd[:] = [ctl.config.gains_for(j.name).d for j in ctl.joints]
+        setpoints.append(sp)
     assert len({ctl._cid for ctl in ctls}) == len(ctls)  # one physics client each
     out: list[list[np.ndarray]] = [[] for _ in ctls]
     try:
         for _ in range(ticks):
             for k, ctl in enumerate(ctls):
-                ctl._write(ctl.setpoint)
+                ctl._write(setpoints[k].view)
                 await ctl._step(ctl.period)
-                ctl._read(ctl.state)
-                out[k].append(ctl.state.position.copy())
+                out[k].append(ctl._read()[0].copy())
     finally:
         for ctl in ctls:
             await ctl._close()

@@ -40,7 +40,6 @@ from agentsdk import (
     TrajectoryPoint,
 )
 from agentsdk.cli import run_behavior
-from agentsdk.controller import Controller
 
 #: every backend the safety layer wraps (the CAN backend is added by its own suite)
 BACKENDS = ("mock", "mujoco", "pybullet")
@@ -81,12 +80,10 @@ class Recorder:
     """Per-tick record of the measured state and the setpoint written in that tick."""
 
     def __init__(self, robot: agentsdk.Robot) -> None:
-        self.ctl = robot.controller
         self.rows: list[tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-        self.ctl.tick_hooks.append(self._on_tick)
+        robot.add_tick_hook(agentsdk.Phase.OBSERVE, self._on_tick)
 
-    def _on_tick(self, t: float, st: Any) -> None:
-        sp = self.ctl.setpoint
+    def _on_tick(self, t: float, st: Any, sp: Any) -> None:
         self.rows.append(
             (t, st.position.copy(), st.velocity.copy(), st.effort.copy(), sp.position.copy(), sp.velocity.copy(),
              sp.enabled.copy())
@@ -101,8 +98,8 @@ class Recorder:
         return {c: np.array([r[i] for r in rows]) for i, c in enumerate(cols)}
 
 
-def setpoint_copy(ctl: Controller) -> dict[str, np.ndarray]:
-    sp = ctl.setpoint
+def setpoint_copy(robot: agentsdk.Robot) -> dict[str, np.ndarray]:
+    sp = robot.setpoint
     return {a: getattr(sp, a).copy() for a in ("position", "velocity", "effort", "kp", "kd", "enabled", "mode")}
 
 
@@ -165,20 +162,19 @@ BAD_VALUES = [
 
 async def test_non_finite_commands_rejected_state_unchanged(backend: str) -> None:
     async with arm(backend) as robot:
-        ctl = robot.controller
         await robot.command(JointCommand("position", {"joint1": 0.2}))
         await robot.clock.sleep(0.3)
-        target, sp, n_ev = ctl.setpoint_target(), setpoint_copy(ctl), len(robot.safety.events)
+        target, sp, n_ev = robot.command_targets(), setpoint_copy(robot), len(robot.safety.events)
         for cmd in BAD_VALUES:
             with pytest.raises(InvalidValueError, match="non-finite"):
                 await robot.command(cmd)
-            assert np.array_equal(ctl.setpoint_target(), target), cmd
-            assert_setpoint_equal(sp, setpoint_copy(ctl))
+            assert np.array_equal(robot.command_targets(), target), cmd
+            assert_setpoint_equal(sp, setpoint_copy(robot))
         with pytest.raises(InvalidValueError, match="non-finite"):
             await robot.move_to({"joint1": math.nan})
         with pytest.raises(InvalidValueError):
             Trajectory(["joint1"], [TrajectoryPoint(1.0, [math.inf])])
-        assert_setpoint_equal(sp, setpoint_copy(ctl))
+        assert_setpoint_equal(sp, setpoint_copy(robot))
         assert len(robot.safety.events) == n_ev
         assert robot.safety.state is SafetyState.OK
         # still usable
@@ -204,19 +200,18 @@ def _limit_cases(robot: agentsdk.Robot) -> list[tuple[str, str, float, float]]:
 
 async def test_out_of_limit_commands_clamped_and_recorded(backend: str) -> None:
     async with arm(backend, limit_policy="clamp") as robot:
-        ctl = robot.controller
         for mode, name, value, clamped in _limit_cases(robot):
-            j = ctl.index[name]
+            j = robot.joint_index[name]
             n_ev = len(robot.safety.events)
             applied = await robot.command(JointCommand(mode, {name: value}))
             assert applied.mode == mode
             assert applied.values == {name: clamped}
-            assert ctl.setpoint_target()[j] == clamped
+            assert robot.command_targets()[j] == clamped
             (ev,) = events_since(robot, n_ev)
             assert (ev.kind, ev.joint, ev.time) == ("clamp", name, robot.clock.now())
             assert f"{mode} command {value:.4g}" in ev.detail and f"clamped to {clamped:.4g}" in ev.detail
             assert robot.safety.state is SafetyState.OK
-            assert ctl.setpoint.mode[j] == agentsdk.MODES.index(mode)
+            assert robot.setpoint.mode[j] == agentsdk.MODES.index(mode)
         # driven at a clamped position target, the joint stops at its limit
         await robot.command(JointCommand("position", [0.0, 0.0, 0.0]))
         applied = await robot.command(JointCommand("position", {"joint3": 1e3}))
@@ -235,14 +230,13 @@ async def test_position_margin_shrinks_the_clamp_range() -> None:
 
 async def test_out_of_limit_commands_rejected_state_unchanged(backend: str) -> None:
     async with arm(backend, limit_policy="reject") as robot:
-        ctl = robot.controller
         await robot.clock.sleep(0.1)
         for mode, name, value, _ in _limit_cases(robot):
-            target, sp, n_ev = ctl.setpoint_target(), setpoint_copy(ctl), len(robot.safety.events)
+            target, sp, n_ev = robot.command_targets(), setpoint_copy(robot), len(robot.safety.events)
             with pytest.raises(LimitViolation, match=rf"{mode} command .* for joint '{name}' is outside"):
                 await robot.command(JointCommand(mode, {name: value}))
-            assert np.array_equal(ctl.setpoint_target(), target)
-            assert_setpoint_equal(sp, setpoint_copy(ctl))
+            assert np.array_equal(robot.command_targets(), target)
+            assert_setpoint_equal(sp, setpoint_copy(robot))
             assert len(robot.safety.events) == n_ev
             assert robot.safety.state is SafetyState.OK
         # a position jump beyond max_position_step is refused too (stream small steps or move_to)
@@ -256,12 +250,11 @@ async def test_out_of_limit_commands_rejected_state_unchanged(backend: str) -> N
 
 async def test_feedforward_beyond_limits_never_reaches_the_backend() -> None:
     async with arm("mock", limit_policy="clamp") as robot:
-        ctl = robot.controller
         emax, vmax = limits(robot)["effort"][0], limits(robot)["vel"][0]
         await robot.command(JointCommand("position", {"joint1": 0.0}, velocity={"joint1": 1e3}, effort={"joint1": 1e3}))
         await robot.clock.sleep(robot.control_period)
-        assert ctl.setpoint.effort[0] == emax
-        assert ctl.setpoint.velocity[0] == vmax
+        assert robot.setpoint.effort[0] == emax
+        assert robot.setpoint.velocity[0] == vmax
 
 
 async def test_feedforward_beyond_limits_rejected_under_reject() -> None:
@@ -387,7 +380,7 @@ async def test_blocked_loop_is_stopped_by_the_watchdog_thread(backend: str, monk
         thread_name, t_stop = calls[0]
         assert thread_name.startswith("agentsdk-stall-watchdog")
         assert t0 < t_stop < t1
-        assert ctl.torque_disabled
+        assert (not robot.torque_enabled)
         assert safety.state is SafetyState.ESTOP
         # latency from the last heartbeat to the stop, as the thread measured it
         assert safety.stall_latency is not None
@@ -444,7 +437,7 @@ async def test_estop_latches_until_reset_and_enable(backend: str, category: int)
 
         await robot.enable()
         assert robot.safety.state is SafetyState.OK
-        assert not robot.controller.torque_disabled
+        assert not (not robot.torque_enabled)
         start = (await robot.read()).position[0]
         result = await robot.move_to({"joint1": start - 0.3})
         assert result.ok, result
@@ -468,7 +461,7 @@ async def test_behavior_exception_triggers_category_1_stop(backend: str) -> None
 
     def on_robot(robot: agentsdk.Robot) -> None:
         seen.append(robot)
-        robot.controller.tick_hooks.append(lambda t, st: records.append((t, st.velocity.copy())))
+        robot.add_tick_hook(agentsdk.Phase.OBSERVE, lambda t, st, sp: records.append((t, st.velocity.copy())))
 
     async def behavior(robot: agentsdk.Robot) -> None:
         await robot.command(JointCommand("velocity", {"joint1": 1.0}))
@@ -524,13 +517,12 @@ def _assert_decelerated_within_limits(robot: agentsdk.Robot, rec: Recorder, k0: 
 
 async def test_category_0_removes_torque_at_once(backend: str) -> None:
     async with arm(backend) as robot:
-        ctl = robot.controller
         motion, rec = await _moving_arm(robot)
         t0 = robot.clock.now()
         await robot.estop(0)
         assert robot.clock.now() == t0  # no control cycle needed
-        assert ctl.torque_disabled
-        assert not ctl.setpoint.enabled.any()
+        assert (not robot.torque_enabled)
+        assert not robot.setpoint.enabled.any()
         assert (await motion).code is ResultCode.ABORTED
         k = rec.mark()
         await robot.clock.sleep(0.3)
@@ -547,7 +539,6 @@ async def test_category_0_removes_torque_at_once(backend: str) -> None:
 
 async def test_category_1_decelerates_then_removes_torque(backend: str) -> None:
     async with arm(backend) as robot:
-        ctl = robot.controller
         motion, rec = await _moving_arm(robot)
         k0, t0 = rec.mark(), robot.clock.now()
         await robot.estop(1)
@@ -557,7 +548,7 @@ async def test_category_1_decelerates_then_removes_torque(backend: str) -> None:
         # torque stayed on during the ramp, then was removed
         d = rec.since(k0)
         assert d["enabled"][d["t"] <= t1 - 1e-9].all()
-        assert ctl.torque_disabled and not ctl.setpoint.enabled.any()
+        assert (not robot.torque_enabled) and not robot.setpoint.enabled.any()
         k = rec.mark()
         await robot.clock.sleep(0.3)
         d = rec.since(k)
@@ -569,14 +560,13 @@ async def test_category_1_decelerates_then_removes_torque(backend: str) -> None:
 
 async def test_category_2_decelerates_and_holds_with_torque(backend: str) -> None:
     async with arm(backend) as robot:
-        ctl = robot.controller
         motion, rec = await _moving_arm(robot)
         k0, t0 = rec.mark(), robot.clock.now()
         await robot.estop(2)
         t1 = robot.clock.now()
         assert (await motion).code is ResultCode.ABORTED
         _assert_decelerated_within_limits(robot, rec, k0, t0, t1)
-        assert not ctl.torque_disabled and ctl.setpoint.enabled.all()
+        assert not (not robot.torque_enabled) and robot.setpoint.enabled.all()
         k = rec.mark()
         await robot.clock.sleep(1.0)
         d = rec.since(k)
@@ -591,7 +581,6 @@ async def test_category_2_decelerates_and_holds_with_torque(backend: str) -> Non
 async def test_a_second_stop_request_joins_the_running_stop(backend: str, first: int, second: int) -> None:
     """E.g. the button pressed twice: the ramp is not restarted, the stronger category's end state wins."""
     async with arm(backend) as robot:
-        ctl = robot.controller
         motion, rec = await _moving_arm(robot)
         k0, t0 = rec.mark(), robot.clock.now()
         stop = spawn(robot.estop(first))
@@ -602,7 +591,7 @@ async def test_a_second_stop_request_joins_the_running_stop(backend: str, first:
         await stop
         assert (await motion).code is ResultCode.ABORTED
         _assert_decelerated_within_limits(robot, rec, k0, t0, t1)
-        assert ctl.torque_disabled is (min(first, second) == 1)
+        assert (not robot.torque_enabled) is (min(first, second) == 1)
         ends = [e.detail for e in robot.safety.events if e.detail.startswith("category") and "stopped" in e.detail]
         assert ends == [f"category {min(first, second)}: stopped, " + (
             "torque removed" if min(first, second) == 1 else "holding with torque on")]
@@ -615,25 +604,30 @@ async def test_category_0_during_a_category_2_stop_removes_torque_at_once() -> N
         await robot.clock.sleep(0.05)
         t = robot.clock.now()
         await robot.estop(0)
-        assert robot.clock.now() == t and robot.controller.torque_disabled
+        assert robot.clock.now() == t and (not robot.torque_enabled)
         await stop
-        assert robot.controller.torque_disabled  # the end of the category 2 stop does not re-enable torque
+        assert (not robot.torque_enabled)  # the end of the category 2 stop does not re-enable torque
         k = rec.mark()
         await robot.clock.sleep(0.1)
         assert not rec.since(k)["enabled"].any()
         assert (await motion).code is ResultCode.ABORTED
 
 
-async def test_close_during_a_stop_raises_robot_closed() -> None:
-    robot = await agentsdk.connect("mock", robot="arm3")
+async def test_close_during_a_stop_completes_the_stop_first(backend: str) -> None:
+    """Issue 10.1: close() in the middle of a category 1 stop lets it reach rest, then removes torque."""
+    robot = await agentsdk.connect(backend, robot="arm3")
+    rec = Recorder(robot)
     motion = robot.follow(Trajectory(["joint1"], [TrajectoryPoint(2.0, [2.0])]))
     await robot.clock.sleep(0.5)
     stop = spawn(robot.estop(1))
     await robot.clock.sleep(0.02)
     await robot.close()
-    with pytest.raises(agentsdk.RobotClosedError):
-        await stop
+    await stop  # completed, not cut short
     assert motion.done()
+    last = rec.since(0)
+    assert abs(last["v"][-1][0]) < 0.05, f"closed while moving at {last['v'][-1][0]:.3f} rad/s"
+    kinds = [e.detail for e in robot.safety.events]
+    assert "category 1: stopped, torque removed" in kinds
 
 
 @pytest.mark.parametrize("category", [1, 2])
@@ -677,7 +671,7 @@ async def test_mock_backend_fault_then_reset_and_enable(knob: str) -> None:
         assert safety.state is SafetyState.FAULT
         assert isinstance(safety.cause, BackendFault) and "injected" in str(safety.cause)
         assert safety.events[-1].kind == "fault" and "injected" in safety.events[-1].detail
-        assert ctl.torque_disabled
+        assert (not robot.torque_enabled)
         with pytest.raises(SafetyFault, match="injected"):
             await robot.command(JointCommand("position", {"joint1": 0.0}))
         with pytest.raises(SafetyFault, match="injected"):
@@ -718,8 +712,8 @@ async def test_injected_backend_fault_on_every_backend(backend: str, monkeypatch
             await motion
         assert robot.safety.state is SafetyState.FAULT
         assert "injected bus loss" in str(robot.safety.cause)
-        assert ctl.torque_disabled
-        if type(ctl)._recover is Controller._recover:
+        assert (not robot.torque_enabled)
+        if type(ctl)._recover is agentsdk.Backend._recover:
             with pytest.raises(BackendFault, match="cannot recover"):
                 await robot.reset()
             assert robot.safety.state is SafetyState.FAULT
@@ -808,7 +802,7 @@ async def test_estop_threadsafe_category_0_latches_and_stops(backend: str, monke
         _from_thread(robot.estop_threadsafe, 0)
         # acted in the calling thread, before any control cycle
         assert callers == ["test-estop-button"]
-        assert ctl.torque_disabled
+        assert (not robot.torque_enabled)
         assert robot.safety.state is SafetyState.ESTOP  # reading the state must not hide the latch from the loop
         with pytest.raises(EStopActive):
             await robot.command(JointCommand("position", {"joint1": 0.0}))
@@ -826,7 +820,6 @@ async def test_estop_threadsafe_category_0_latches_and_stops(backend: str, monke
 @pytest.mark.parametrize("category", [1, 2])
 async def test_estop_threadsafe_category_1_and_2_run_on_the_loop(backend: str, category: int) -> None:
     async with arm(backend) as robot:
-        ctl = robot.controller
         motion, rec = await _moving_arm(robot)
         k0, t0 = rec.mark(), robot.clock.now()
         _from_thread(robot.estop_threadsafe, category)
@@ -836,7 +829,7 @@ async def test_estop_threadsafe_category_1_and_2_run_on_the_loop(backend: str, c
         t1 = robot.clock.now()
         assert (await motion).code is ResultCode.ABORTED
         _assert_decelerated_within_limits(robot, rec, k0, t0, t1)
-        assert ctl.torque_disabled is (category == 1)
+        assert (not robot.torque_enabled) is (category == 1)
         assert ("estop", f"category {category} requested (threadsafe)") in kinds(robot)
 
 
@@ -867,3 +860,157 @@ async def test_safety_events_and_state_are_observable() -> None:
         assert [e.time for e in evs] == sorted(e.time for e in evs)
         with pytest.raises(AttributeError):
             evs[0].kind = "x"  # type: ignore[misc]
+
+
+# ------------------------------------------------- issue 10: regressions
+async def test_reset_while_a_trajectory_runs_brings_the_robot_to_rest(backend: str) -> None:
+    """Issue 10.2: reset() during a trajectory used to leave it running in DISABLED (0.10 -> 0.50 rad)."""
+    async with arm(backend) as robot:
+        motion = robot.follow(Trajectory(["joint1"], [TrajectoryPoint(1.5, [1.0])]))
+        await robot.clock.sleep(0.4)
+        await robot.reset()
+        assert robot.safety.state is SafetyState.DISABLED
+        assert motion.done() and motion.result().code is ResultCode.ABORTED
+        assert not robot.busy
+        before = (await robot.read()).position.copy()
+        await robot.clock.sleep(0.5)
+        after = await robot.read()
+        assert np.abs(after.position - before).max() < 0.01, (before, after.position)
+        assert np.abs(after.velocity).max() < 0.05
+        with pytest.raises(EStopActive):
+            await robot.command(JointCommand("position", {"joint1": 0.0}))
+        await robot.enable()
+        assert (await robot.move_to({"joint1": 0.0})).ok
+
+
+async def test_reset_while_a_velocity_stream_runs_brings_the_robot_to_rest(backend: str) -> None:
+    async with arm(backend) as robot:
+        await robot.command(JointCommand("velocity", {"joint1": 0.5}))
+        await robot.clock.sleep(0.1)
+        await robot.reset()
+        before = (await robot.read()).position.copy()
+        await robot.clock.sleep(0.5)
+        assert np.abs((await robot.read()).position - before).max() < 0.01
+
+
+def _block_event_loop(seconds: float) -> None:
+    time.sleep(seconds)  # deliberately blocking: the stall watchdog thread must see it
+
+
+async def test_stall_is_detected_while_holding_after_a_category_2_stop(backend: str) -> None:
+    """Issue 10.5: the stall watchdog skipped whenever a latch was set, even with torque on (category 2)."""
+    async with arm(backend, stall_timeout=0.1) as robot:
+        await robot.estop(2)
+        assert robot.torque_enabled  # category 2 holds with torque on
+        _block_event_loop(0.6)
+        assert any(e.kind == "stall" for e in robot.safety.events)
+        assert not robot.torque_enabled
+        await robot.clock.sleep(robot.control_period)
+        assert not robot.setpoint.enabled.any()
+
+
+async def test_stall_event_is_visible_as_soon_as_the_watchdog_latches() -> None:
+    """Issue 10.6: the event log used to lag the latch until a later tick drained the thread's events."""
+    async with arm("mock", stall_timeout=0.1) as robot:
+        await robot.clock.sleep(0.05)
+        _block_event_loop(0.6)
+        assert robot.safety.state is SafetyState.ESTOP
+        kinds = [e.kind for e in robot.safety.events]  # no tick has run since the thread latched
+        assert "stall" in kinds
+
+
+async def test_measured_position_outside_the_limits_is_a_protective_stop() -> None:
+    """The README's known gap: a joint pushed past its (soft) limit now latches a category 2 stop."""
+    async with arm("mujoco", position_limit_tolerance=0.005) as robot:
+        upper = robot.joints[0].upper
+        await robot.command(JointCommand("position", {"joint1": upper}))
+        await robot.clock.sleep(1.0)
+        assert robot.safety.state is SafetyState.OK
+        await robot.command(JointCommand("effort", {"joint1": robot.joints[0].max_effort}))
+        for _ in range(200):
+            await robot.clock.sleep(0.01)
+            if robot.safety.state is not SafetyState.OK:
+                break
+        assert robot.safety.state is SafetyState.ESTOP
+        (ev,) = [e for e in robot.safety.events if e.kind == "limit"]
+        assert ev.joint == "joint1" and "outside its limits" in ev.detail
+        await robot.safety.wait_stopped()
+        assert robot.torque_enabled  # category 2 by default
+
+
+def test_measured_position_check_watches_a_joint_once_it_was_inside() -> None:
+    from agentsdk.loop import StateBuffer
+    from agentsdk.safety import MeasuredPositionCheck
+
+    joints = (agentsdk.JointInfo("a", "revolute", -1.0, 1.0, 1.0, 1.0), agentsdk.JointInfo("b", "revolute", 0.5, 2.0,
+                                                                                          1.0, 1.0))
+    check = MeasuredPositionCheck(joints, tolerance=0.1, category=1)
+    st = StateBuffer(2)
+    st.position[:] = [0.0, 0.0]  # b starts outside its limits: not watched yet (it can be moved back in)
+    assert check(0.0, st.view) is None
+    st.position[:] = [0.0, 0.45]  # b enters [0.4, 2.1]
+    assert check(0.1, st.view) is None
+    st.position[:] = [0.0, 0.3]
+    v = check(0.2, st.view)
+    assert v is not None and v.joint == "b" and v.category == 1
+    st.position[:] = [math.nan, 1.0]
+    v = check(0.3, st.view)
+    assert v is not None and v.joint == "a"
+
+
+async def test_a_pluggable_safety_check_latches_its_stop_and_can_be_removed() -> None:
+    async with arm("mock") as robot:
+        calls: list[float] = []
+
+        def never(t: float, st: Any) -> None:
+            calls.append(t)
+
+        handle = robot.safety.add_check(never)
+        await robot.clock.sleep(0.05)
+        assert calls and handle.active
+        handle.remove()
+        handle.remove()  # idempotent
+        n = len(calls)
+        await robot.clock.sleep(0.05)
+        assert len(calls) == n and not handle.active
+
+        def too_far(t: float, st: Any) -> agentsdk.SafetyViolation | None:
+            if st.position[0] > 0.3:
+                return agentsdk.SafetyViolation("workspace", "joint1 left the allowed workspace", "joint1", 1)
+            return None
+
+        robot.safety.add_check(too_far)
+        await robot.command(JointCommand("position", {"joint1": 0.6}))
+        await robot.clock.sleep(1.0)
+        assert robot.safety.state is SafetyState.ESTOP
+        assert any(e.kind == "workspace" for e in robot.safety.events)
+        assert not robot.torque_enabled  # category 1 ends with torque off
+
+
+async def test_velocity_stream_stops_at_the_position_limit(backend: str) -> None:
+    """Like ros2_control's saturation limiter: a velocity stream decelerates to stop at the limit."""
+    async with arm(backend) as robot:
+        j = robot.joints[2]  # joint3
+        rec = Recorder(robot)
+        for _ in range(300):
+            await robot.command(JointCommand("velocity", {j.name: j.max_velocity}))
+            await robot.clock.sleep(0.01)
+        data = rec.since(0)
+        q = data["q"][:, 2]
+        assert q.max() <= j.upper + 0.01, f"passed its upper limit {j.upper}: {q.max()}"
+        assert q[-1] == pytest.approx(j.upper, abs=0.02)
+        assert abs(data["v"][-1, 2]) < 0.05
+        assert robot.safety.state is SafetyState.OK
+
+
+async def test_effort_pushing_a_joint_out_of_its_limit_is_dropped() -> None:
+    async with arm("mock") as robot:
+        j = robot.joints[0]
+        await robot.command(JointCommand("position", {j.name: j.upper}))
+        await robot.clock.sleep(2.0)
+        await robot.command(JointCommand("effort", {j.name: 0.5 * j.max_effort}))
+        await robot.clock.sleep(robot.control_period)
+        assert robot.setpoint.effort[0] == 0.0  # outward: dropped
+        await robot.command(JointCommand("effort", {j.name: -0.5 * j.max_effort}))
+        await robot.clock.sleep(robot.control_period)
+        assert robot.setpoint.effort[0] == -0.5 * j.max_effort  # inward: applied

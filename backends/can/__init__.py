@@ -48,7 +48,7 @@ import can
 import numpy as np
 from pydantic import Field, PositiveFloat, PositiveInt
 
-from agentsdk.controller import Capabilities, Controller, Setpoint, StateBuffer
+from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
 from agentsdk.errors import BackendFault, BackendStartError, ConfigurationError
 from agentsdk.types import MODES
 
@@ -92,7 +92,7 @@ class MotorStats:
     last_reply_time: float = field(default=0.0)
 
 
-class CanController(Controller):
+class CanController(Backend):
     name = "can"
     capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True)
     options_model = CanOptions
@@ -118,6 +118,10 @@ class CanController(Controller):
         self.unexpected_replies = 0
         n = len(self.joints)
         self._reply: list[Any] = [None] * n
+        # the joint-frame state of the newest replies (what _read returns)
+        self._q = np.zeros(n)
+        self._v = np.zeros(n)
+        self._tau = np.zeros(n)
         self._got = np.zeros(n, dtype=bool)
         self._all_in: asyncio.Event | None = None
         self._bus: can.BusABC | None = None
@@ -189,7 +193,7 @@ class CanController(Controller):
         except BaseException:
             self._disable_all()
             raise
-        self._fill_state(self.state)
+        self._fill_state()
 
     async def _special_and_wait(self, k: int, frame: bytes, wait: float) -> bool:
         """Send a special frame to motor ``k`` and wait for a reply from it that left after it.
@@ -242,7 +246,7 @@ class CanController(Controller):
         for k, m in enumerate(self._motors):
             if not await self._special_and_wait(k, ENABLE, opts.open_timeout):
                 raise BackendFault(f"motor id {m.id} (joint {self.names[k]!r}) did not answer the enable frame")
-        self._fill_state(self.state)
+        self._fill_state()
 
     async def _recover(self) -> None:
         """After a fault: clear counters and re-enable (the safety layer keeps torque off until enable())."""
@@ -311,17 +315,17 @@ class CanController(Controller):
         ts = msg.timestamp
         return ts if now - 1.0 < ts <= now + 0.001 else now
 
-    def _fill_state(self, out: StateBuffer) -> None:
+    def _fill_state(self) -> None:
         for k, rep in enumerate(self._reply):
             if rep is None:
                 continue
             d, g = self._dir[k], self._gear[k]
-            out.position[k] = d * (rep.position - self._zero[k]) / g
-            out.velocity[k] = d * rep.velocity / g
-            out.effort[k] = d * rep.torque * g
+            self._q[k] = d * (rep.position - self._zero[k]) / g
+            self._v[k] = d * rep.velocity / g
+            self._tau[k] = d * rep.torque * g
 
     # ------------------------------------------------------------- the cycle
-    def _write(self, sp: Setpoint) -> None:
+    def _write(self, sp: SetpointView) -> None:
         d, g, z = self._dir, self._gear, self._zero
         pos = d * g * sp.position + z
         vel = d * g * sp.velocity
@@ -418,8 +422,9 @@ class CanController(Controller):
         except (can.CanError, OSError):
             pass
 
-    def _read(self, out: StateBuffer) -> None:
-        self._fill_state(out)
+    def _read(self) -> JointReading:
+        self._fill_state()
+        return self._q, self._v, self._tau
 
     @property
     def stale(self) -> np.ndarray:

@@ -23,13 +23,13 @@ import threading
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from agentsdk.controller import MODE_CODES, Capabilities, Controller, Setpoint, StateBuffer
+from agentsdk.backend import Backend, Capabilities, JointReading, ModeCode, SetpointView
 from agentsdk.errors import BackendFault, ConfigurationError
 from agentsdk.types import MODES
 
 __all__ = ["MockController", "MockOptions"]
 
-_POS, _VEL, _EFF = (MODE_CODES[m] for m in MODES)
+_POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
 
 
 class MockOptions(BaseModel):
@@ -50,7 +50,7 @@ class MockOptions(BaseModel):
     modes: tuple[str, ...] = MODES
 
 
-class MockController(Controller):
+class MockController(Backend):
     name = "mock"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
@@ -80,12 +80,9 @@ class MockController(Controller):
 
     async def _open(self) -> None:
         n = len(self.joints)
-        self._q = np.zeros(n)
+        self._q = self.initial_positions.copy()
         self._v = np.zeros(n)
         self._tau = np.zeros(n)
-        for name, q in self.config.initial_positions.items():
-            if name in self.index:
-                self._q[self.index[name]] = q
         self._sp_mode = np.zeros(n, dtype=np.int8)
         self._sp_q = self._q.copy()
         self._sp_v = np.zeros(n)
@@ -96,15 +93,13 @@ class MockController(Controller):
         if hasattr(self, "_enabled"):
             self._enabled[:] = False
 
-    def _write(self, sp: Setpoint) -> None:
+    def _write(self, sp: SetpointView) -> None:
         with self._lock:
             np.copyto(self._sp_mode, sp.mode)
             np.copyto(self._sp_q, sp.position)
             np.copyto(self._sp_v, sp.velocity)
             np.copyto(self._sp_tau, sp.effort)
             np.copyto(self._enabled, sp.enabled)
-            if self.torque_disabled:
-                self._enabled[:] = False
 
     async def _step(self, dt: float) -> None:
         if self.step_error:
@@ -134,14 +129,12 @@ class MockController(Controller):
             self._q = q_next
             self._tau = np.where(eff, self._sp_tau, 0.0)
 
-    def _read(self, out: StateBuffer) -> None:
+    def _read(self) -> JointReading:
         if self.read_error:
             self.read_error = False
             raise BackendFault("mock: injected read error")
         with self._lock:
-            out.position[:] = self._q
-            out.velocity[:] = self._v
-            out.effort[:] = self._tau
+            return self._q, self._v, self._tau
 
     def _emergency_stop(self, category: int) -> None:
         with self._lock:

@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from agentsdk.controller import Capabilities, Controller, Setpoint, StateBuffer
+from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
 from agentsdk.errors import BackendStartError, ConfigurationError, SimulationDiverged
 from agentsdk.types import MODES
 
@@ -53,7 +53,7 @@ class MujocoOptions(BaseModel):
     floating_base: bool = False
 
 
-class MujocoController(Controller):
+class MujocoController(Backend):
     name = "mujoco"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
@@ -114,6 +114,8 @@ class MujocoController(Controller):
         self._qadr = np.array([m.jnt_qposadr[i] for i in jids])
         self._dadr = np.array([m.jnt_dofadr[i] for i in jids])
         self._ctrl = np.zeros(m.nu)
+        self._q = np.zeros(len(self.joints))
+        self._v = np.zeros(len(self.joints))
         self._bias = m.actuator_biasprm  # view: (nu, 10)
         self._warn = np.zeros(len(_WARNINGS), dtype=np.int64)
         self._reset_state()
@@ -133,9 +135,7 @@ class MujocoController(Controller):
     def _reset_state(self) -> None:
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
-        for name, q in self.config.initial_positions.items():
-            if name in self.index:
-                d.qpos[self._qadr[self.index[name]]] = q
+        d.qpos[self._qadr] = self.initial_positions
         mujoco.mj_forward(m, d)
         self._warn[:] = [d.warning[w].number for w in _WARNINGS]
 
@@ -144,7 +144,7 @@ class MujocoController(Controller):
         if hasattr(self, "data"):
             self.data.ctrl[:] = 0.0
 
-    def _write(self, sp: Setpoint) -> None:
+    def _write(self, sp: SetpointView) -> None:
         en = sp.enabled
         ctrl = self._ctrl
         np.multiply(sp.kp, sp.position, out=ctrl)
@@ -178,11 +178,11 @@ class MujocoController(Controller):
         if not np.isfinite(d.qacc).all():
             raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
 
-    def _read(self, out: StateBuffer) -> None:
+    def _read(self) -> JointReading:
         d = self.data
-        np.take(d.qpos, self._qadr, out=out.position)
-        np.take(d.qvel, self._dadr, out=out.velocity)
-        out.effort[:] = d.actuator_force
+        np.take(d.qpos, self._qadr, out=self._q)
+        np.take(d.qvel, self._dadr, out=self._v)
+        return self._q, self._v, d.actuator_force
 
     def _emergency_stop(self, category: int) -> None:
         # thread-safe enough: plain stores into arrays the loop thread reads at its next step

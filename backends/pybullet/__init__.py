@@ -49,7 +49,7 @@ import numpy as np
 import pybullet as p
 from pydantic import BaseModel, ConfigDict, Field
 
-from agentsdk.controller import Capabilities, Controller, Setpoint, StateBuffer
+from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
 from agentsdk.errors import BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
 from agentsdk.types import MODES
 
@@ -85,7 +85,7 @@ class PybulletOptions(BaseModel):
     gui: bool = False
 
 
-class PybulletController(Controller):
+class PybulletController(Backend):
     name = "pybullet"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
@@ -124,6 +124,9 @@ class PybulletController(Controller):
         self._neg_lim = -self.max_effort
         self._q = np.zeros(n)
         self._v = np.zeros(n)
+        # what _read returns (the substep scratch arrays above change inside _step)
+        self._rq = np.zeros(n)
+        self._rv = np.zeros(n)
 
     # ------------------------------------------------------------ open/close
     async def _open(self) -> None:
@@ -235,10 +238,7 @@ class PybulletController(Controller):
     def _reset_state(self) -> None:
         cid, body = self._cid, self._body
         q0 = np.zeros(len(self._dofs))
-        for name, q in self.config.initial_positions.items():
-            i = self.index.get(name)
-            if i is not None:
-                q0[self._sel[i]] = q
+        q0[self._sel] = self.initial_positions
         for k, j in enumerate(self._dofs):
             p.resetJointState(body, j, float(q0[k]), 0.0, physicsClientId=cid)
         if self.options.floating_base:
@@ -257,15 +257,13 @@ class PybulletController(Controller):
                 pass
 
     # ------------------------------------------------------------ servo
-    def _write(self, sp: Setpoint) -> None:
+    def _write(self, sp: SetpointView) -> None:
         np.copyto(self._qd, sp.position)
         np.copyto(self._vd, sp.velocity)
         np.copyto(self._ff, sp.effort)
         np.copyto(self._kp, sp.kp)
         np.copyto(self._kd, sp.kd)
         np.copyto(self._en, sp.enabled)
-        if self.torque_disabled:
-            self._en[:] = False
 
     async def _step(self, dt: float) -> None:
         cid, body, dofs = self._cid, self._body, self._dofs
@@ -284,11 +282,8 @@ class PybulletController(Controller):
             raw += self._ff
             np.maximum(raw, self._neg_lim, out=tau)  # ufuncs: np.clip dispatch costs µs here
             np.minimum(tau, lim, out=tau)
-            en = self._en
-            if self.torque_disabled:
-                tau[:] = 0.0
-                en = np.zeros_like(en)
-            elif not en.all():
+            en = self._en  # cleared by _emergency_stop from any thread: takes effect at the next substep
+            if not en.all():
                 tau[~en] = 0.0
             # generalized force on every dof: servo torque minus passive damping
             np.multiply(self._damping, self._v_all, out=f_all)
@@ -327,10 +322,10 @@ class PybulletController(Controller):
                 f"(joint {name!r}: q={q[bad]:.4g}, v={v[bad]:.4g}); lower the gains or the timestep"
             )
 
-    def _read(self, out: StateBuffer) -> None:
-        np.take(self._q_all, self._sel, out=out.position)
-        np.take(self._v_all, self._sel, out=out.velocity)
-        out.effort[:] = self._tau
+    def _read(self) -> JointReading:
+        np.take(self._q_all, self._sel, out=self._rq)
+        np.take(self._v_all, self._sel, out=self._rv)
+        return self._rq, self._rv, self._tau
 
     def _emergency_stop(self, category: int) -> None:
         # plain stores into arrays the loop thread reads at its next substep; no PyBullet call here

@@ -1,0 +1,256 @@
+"""The backend contract: what a backend author implements, documented in one place.
+
+A backend is a subclass of :class:`Backend` that implements a few narrow hooks.
+The control loop (:mod:`agentsdk.loop`) owns everything else -- the setpoint and
+state buffers, the clocks, the tick phases, the torque-off rule, validation --
+the way python-can's ``BusABC.recv`` owns the logic around ``_recv_internal``.
+Hooks receive values and return values; none of them sees the loop's buffers::
+
+    class MyBackend(Backend):
+        name = "mine"
+        capabilities = Capabilities(modes=frozenset({"position", "velocity", "effort"}),
+                                    lockstep=True, realtime=True, deterministic=True)
+
+        async def _open(self) -> None: ...                  # connect / build the simulation
+        async def _close(self) -> None: ...                 # leave actuators safe; idempotent
+        def _write(self, sp: SetpointView) -> None: ...     # apply the servo setpoint (read-only arrays)
+        async def _step(self, dt: float) -> None: ...       # advance one control period / bus cycle
+        def _read(self) -> JointReading: ...                # (position, velocity, effort) arrays
+        def _emergency_stop(self, category: int) -> None: ...  # sync, thread-safe, no event loop
+
+Optional hooks: ``async _enable()`` (re-arm actuators after an e-stop) and
+``async _recover()`` (bring a faulted backend back; default: not recoverable).
+
+The joint servo law every backend implements is the MIT / ros2_control one::
+
+    effort = kp * (q_des - q) + kd * (v_des - v) + effort_ff     (clamped to +-max_effort)
+
+and a joint whose ``enabled`` flag is False produces no torque. Position,
+velocity and effort commands are all expressed in this law (velocity: kp = 0;
+effort: kp = kd = 0), so a backend needs one code path. The loop enforces the
+torque-off rule itself: after an emergency stop every setpoint it writes has
+``enabled`` all False until the robot is deliberately re-enabled, and if an
+emergency stop from another thread lands while ``_write`` runs, the loop calls
+``_emergency_stop(0)`` again before stepping.
+
+Read-only information a backend may use: :attr:`Backend.description`,
+:attr:`~Backend.config`, :attr:`~Backend.joints` (with limits, after robot.yaml
+overrides), :attr:`~Backend.names`, :attr:`~Backend.index`,
+:attr:`~Backend.period`, :attr:`~Backend.realtime`, :attr:`~Backend.options`
+(validated by :attr:`~Backend.options_model`), :attr:`~Backend.initial_positions`,
+and the limit arrays :attr:`~Backend.lower`, :attr:`~Backend.upper`,
+:attr:`~Backend.max_velocity`, :attr:`~Backend.max_effort`.
+
+Capabilities are read from the instance: a backend may set ``self.capabilities``
+in ``__init__`` (e.g. a configuration that supports fewer modes).
+"""
+
+from __future__ import annotations
+
+import enum
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias
+
+import numpy as np
+from pydantic import BaseModel, ValidationError
+
+from .errors import BackendFault, ConfigurationError
+from .types import MODES, CommandMode, FloatArray, JointInfo
+
+if TYPE_CHECKING:
+    from .config import RobotConfig
+    from .description import RobotDescription
+
+__all__ = ["Backend", "Capabilities", "JointReading", "ModeCode", "SetpointView"]
+
+
+class ModeCode(enum.IntEnum):
+    """Command mode of a joint, as stored per joint in the servo setpoint (``SetpointView.mode``)."""
+
+    POSITION = 0
+    VELOCITY = 1
+    EFFORT = 2
+
+    @classmethod
+    def of(cls, mode: CommandMode) -> ModeCode:
+        """The code of a command mode name (``"position"``, ``"velocity"``, ``"effort"``)."""
+        return _CODE_OF[mode]
+
+    @property
+    def mode(self) -> CommandMode:
+        """The command mode name of this code."""
+        return MODES[self.value]
+
+
+_CODE_OF: dict[str, ModeCode] = {m: ModeCode(i) for i, m in enumerate(MODES)}
+
+
+@dataclass(frozen=True, slots=True)
+class Capabilities:
+    """What a backend declares; the conformance kit gates its tests on this (never on names)."""
+
+    #: command modes the backend accepts
+    modes: frozenset[CommandMode]
+    #: runs in lockstep simulated time
+    lockstep: bool
+    #: runs paced to the wall clock
+    realtime: bool
+    #: True when the same inputs always give bit-identical states (lockstep simulators)
+    deterministic: bool = False
+
+
+class SetpointView:
+    """The per-joint servo setpoint a backend's ``_write`` receives, in ``joints`` order.
+
+    Every attribute is a read-only ``numpy`` array (the loop reuses the same
+    object every tick; copy what you keep): ``position``, ``velocity``,
+    ``effort`` (feed-forward), ``kp``, ``kd``, ``enabled`` (bool) and ``mode``
+    (int8 :class:`ModeCode` values, informational: the servo law covers every mode),
+    and ``target`` (the last commanded value per joint, informational).
+    """
+
+    __slots__ = ("effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity")
+
+    position: FloatArray
+    velocity: FloatArray
+    effort: FloatArray
+    kp: FloatArray
+    kd: FloatArray
+    enabled: np.ndarray
+    mode: np.ndarray
+    target: FloatArray
+
+    def __init__(self, **arrays: np.ndarray) -> None:
+        for name in self.__slots__:
+            view = arrays[name].view()
+            view.flags.writeable = False
+            object.__setattr__(self, name, view)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"SetpointView is read-only (cannot set {name!r})")
+
+    def __repr__(self) -> str:
+        return (
+            f"SetpointView(position={self.position.tolist()}, velocity={self.velocity.tolist()}, "
+            f"effort={self.effort.tolist()}, kp={self.kp.tolist()}, kd={self.kd.tolist()}, "
+            f"enabled={self.enabled.tolist()}, mode={self.mode.tolist()})"
+        )
+
+
+#: what ``Backend._read`` returns: ``(position, velocity, effort)``, each shape ``(n_joints,)``.
+#: The arrays may be the backend's own (the loop copies them at once).
+JointReading: TypeAlias = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+class Backend(ABC):
+    """Base class of every backend. Users never see it directly: they get a :class:`~agentsdk.Robot`.
+
+    Construction only validates (options, capabilities); hardware or simulators
+    are opened in :meth:`_open`, called by the loop from a running event loop.
+    """
+
+    #: entry-point name, set by subclasses
+    name: ClassVar[str] = ""
+    #: declared capabilities; read from the instance (a backend may narrow them per instance)
+    capabilities: Capabilities
+    #: pydantic model validating the backend options (robot.yaml ``backends.<name>`` + connect kwargs)
+    options_model: ClassVar[type[BaseModel] | None] = None
+
+    def __init__(
+        self,
+        config: RobotConfig,
+        description: RobotDescription,
+        joints: tuple[JointInfo, ...],
+        *,
+        realtime: bool | None = None,
+        **options: Any,
+    ) -> None:
+        caps = self.capabilities
+        if realtime is None:
+            realtime = not caps.lockstep
+        if realtime and not caps.realtime:
+            raise ConfigurationError(f"backend {self.name!r} does not support realtime=True")
+        if not realtime and not caps.lockstep:
+            raise ConfigurationError(f"backend {self.name!r} runs in real time only; lockstep is not supported")
+        #: the validated robot.yaml (or defaults for a bare description)
+        self.config = config
+        #: the loaded robot description
+        self.description = description
+        #: actuated joints in order, with limits after robot.yaml overrides
+        self.joints = joints
+        #: True when paced to the wall clock, False in lockstep
+        self.realtime = bool(realtime)
+        #: joint names in ``joints`` order
+        self.names: tuple[str, ...] = tuple(j.name for j in joints)
+        #: joint name -> index
+        self.index: dict[str, int] = {n: i for i, n in enumerate(self.names)}
+        #: control period (s)
+        self.period: float = config.control_period
+        merged = {**config.backend_options(self.name), **options}
+        #: the validated options (an instance of ``options_model``, or None)
+        self.options: Any = self._validate_options(merged)
+        self.lower = _readonly([j.lower for j in joints])
+        self.upper = _readonly([j.upper for j in joints])
+        self.max_velocity = _readonly([j.max_velocity for j in joints])
+        self.max_effort = _readonly([j.max_effort for j in joints])
+        q0 = np.zeros(len(joints))
+        for name, q in config.initial_positions.items():
+            if name in self.index:
+                q0[self.index[name]] = q
+        #: where the joints start (robot.yaml ``initial_positions``, else 0)
+        self.initial_positions = _readonly(q0)
+
+    def _validate_options(self, options: dict[str, Any]) -> Any:
+        model = self.options_model
+        if model is None:
+            if options:
+                raise ConfigurationError(f"backend {self.name!r} takes no options, got {', '.join(sorted(options))}")
+            return None
+        try:
+            return model(**options)
+        except ValidationError as exc:
+            raise ConfigurationError(f"invalid options for backend {self.name!r}:\n{exc}") from exc
+
+    # ------------------------------------------------------------------ hooks
+    @abstractmethod
+    async def _open(self) -> None:
+        """Connect to the hardware or build the simulation; raise BackendStartError on failure."""
+
+    @abstractmethod
+    async def _close(self) -> None:
+        """Leave actuators safe and release resources. Idempotent; also called after a failed open."""
+
+    @abstractmethod
+    def _write(self, sp: SetpointView) -> None:
+        """Apply the servo setpoint (called once per tick, before ``_step``)."""
+
+    @abstractmethod
+    async def _step(self, dt: float) -> None:
+        """Advance one control period (simulation step, or one bus cycle)."""
+
+    @abstractmethod
+    def _read(self) -> JointReading:
+        """The latest measured ``(position, velocity, effort)``, each of shape ``(n_joints,)``."""
+
+    @abstractmethod
+    def _emergency_stop(self, category: int) -> None:
+        """Remove actuator torque now: synchronous, thread-safe, needs no event loop.
+
+        Called from any thread (the loop-stall watchdog, ``estop_threadsafe``).
+        Categories 1 and 2 are driven by the safety layer through setpoints; this
+        hook does what the backend can do without the loop (always torque off).
+        """
+
+    async def _enable(self) -> None:  # noqa: B027 - optional hook
+        """Optional: re-arm actuators after an e-stop (CAN: enter motor mode again)."""
+
+    async def _recover(self) -> None:
+        """Optional: bring a faulted backend back to a usable state (simulators: reset the world)."""
+        raise BackendFault(f"backend {self.name!r} cannot recover from a fault; close and reconnect")
+
+
+def _readonly(values: Any) -> FloatArray:
+    arr = np.array(values, dtype=np.float64)
+    arr.flags.writeable = False
+    return arr

@@ -1,0 +1,677 @@
+"""The control loop: one per robot, owning the setpoint, the measured state and the tick phases.
+
+One tick, like ros2_control's read -> update -> write::
+
+    COMMAND hooks   write the reference for time t (trajectories, stop ramps, replay)
+    LIMIT hooks     filter it (the safety layer: limits, ramps)
+    torque-off rule every joint disabled while an emergency stop holds
+    backend._write(setpoint view) -> await backend._step(dt) -> backend._read()
+    OBSERVE hooks   see the fresh state and the setpoint that was written
+                    (recorders first, watchdogs last: ``order``)
+
+Extension points are explicit: :meth:`ControlLoop.add_hook` registers a
+function in a named :class:`Phase` and returns a :class:`HookHandle`
+(``handle.remove()``); :meth:`ControlLoop.add_fault_listener` is told once if
+the loop dies. No module writes the loop's buffers except through these
+hooks (which receive the writable :class:`Setpoint` in the COMMAND and LIMIT
+phases only) and the loop's own methods.
+
+Time models: in lockstep the loop advances the :class:`~agentsdk.clock.LockstepClock`
+by one control period per tick, only while every other task on the event loop
+is waiting (see :func:`_settle`); in realtime it runs paced to the wall clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import enum
+import logging
+import math
+import threading
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from .backend import Backend, ModeCode, SetpointView
+from .clock import Clock, LockstepClock, RealtimeClock
+from .errors import (
+    AgentSDKError,
+    BackendFault,
+    BackendStartError,
+    InvalidValueError,
+    RobotClosedError,
+    UnknownJointError,
+    UnsupportedModeError,
+)
+from .types import CommandMode, FloatArray, JointCommand, JointState
+
+__all__ = [
+    "CommandHook",
+    "ControlLoop",
+    "FaultListener",
+    "HookHandle",
+    "ObserveHook",
+    "Phase",
+    "Setpoint",
+    "StateBuffer",
+    "StateView",
+]
+
+log = logging.getLogger("agentsdk.loop")
+
+_POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
+
+
+class Phase(enum.Enum):
+    """The named phases of a control tick, in the order they run."""
+
+    #: write the reference setpoint for this tick: ``fn(t, state, setpoint) -> bool | None``;
+    #: returning False unregisters the hook (a finished trajectory)
+    COMMAND = "command"
+    #: filter the setpoint before it is written: ``fn(t, state, setpoint) -> None``
+    LIMIT = "limit"
+    #: after the backend stepped and was read: ``fn(t, state, setpoint_view) -> None``
+    OBSERVE = "observe"
+
+
+class StateView:
+    """Read-only measured joint state: ``position``, ``velocity``, ``effort`` arrays in joint order."""
+
+    __slots__ = ("effort", "position", "velocity")
+
+    position: FloatArray
+    velocity: FloatArray
+    effort: FloatArray
+
+    def __init__(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
+        for name, arr in (("position", position), ("velocity", velocity), ("effort", effort)):
+            view = arr.view()
+            view.flags.writeable = False
+            object.__setattr__(self, name, view)
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"StateView is read-only (cannot set {name!r})")
+
+
+class StateBuffer:
+    """The loop's measured-state arrays (written only by the loop, from ``Backend._read``)."""
+
+    __slots__ = ("effort", "position", "velocity", "view")
+
+    def __init__(self, n: int) -> None:
+        self.position = np.zeros(n)
+        self.velocity = np.zeros(n)
+        self.effort = np.zeros(n)
+        #: a read-only view of these arrays (what hooks receive)
+        self.view = StateView(self.position, self.velocity, self.effort)
+
+
+class Setpoint:
+    """The per-joint servo setpoint, in joint order; COMMAND and LIMIT hooks may write it.
+
+    ``position``/``velocity``/``effort`` (feed-forward), ``kp``/``kd`` gains,
+    ``enabled`` (bool), ``mode`` (:class:`~agentsdk.backend.ModeCode` values) and
+    ``target`` (the last commanded value per joint, before any ramping: a
+    position, velocity or effort according to ``mode``). ``view`` is the
+    read-only :class:`~agentsdk.backend.SetpointView` backends and observers get.
+    """
+
+    __slots__ = ("effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity", "view")
+
+    def __init__(self, n: int) -> None:
+        self.position = np.zeros(n)
+        self.velocity = np.zeros(n)
+        self.effort = np.zeros(n)
+        self.kp = np.zeros(n)
+        self.kd = np.zeros(n)
+        self.enabled = np.ones(n, dtype=bool)
+        self.mode = np.zeros(n, dtype=np.int8)
+        self.target = np.zeros(n)
+        self.view = SetpointView(
+            position=self.position, velocity=self.velocity, effort=self.effort, kp=self.kp, kd=self.kd,
+            enabled=self.enabled, mode=self.mode, target=self.target,
+        )
+
+
+#: COMMAND / LIMIT hook: ``fn(t, state_view, setpoint)``; a COMMAND hook may return False to unregister
+CommandHook = Callable[[float, StateView, Setpoint], bool | None]
+#: OBSERVE hook: ``fn(t, state_view, setpoint_view)``
+ObserveHook = Callable[[float, StateView, SetpointView], None]
+#: told once when the control loop dies
+FaultListener = Callable[[BaseException], None]
+
+
+class HookHandle:
+    """Returned by every registration (tick hooks, fault listeners, safety checks); :meth:`remove` undoes it."""
+
+    __slots__ = ("_is_active", "_remove")
+
+    def __init__(self, remove: Callable[[], None], is_active: Callable[[], bool]) -> None:
+        self._remove = remove
+        self._is_active = is_active
+
+    @property
+    def active(self) -> bool:
+        """True while the registration is in effect."""
+        return self._is_active()
+
+    def remove(self) -> None:
+        """Unregister (idempotent; safe to call from inside the hook itself)."""
+        if self._is_active():
+            self._remove()
+
+
+class _Hook:
+    __slots__ = ("active", "fn", "order", "seq")
+
+    def __init__(self, fn: Callable[..., Any], order: int, seq: int) -> None:
+        self.fn = fn
+        self.order = order
+        self.seq = seq
+        self.active = True
+
+
+class _HookList:
+    """Hooks of one phase, sorted by (order, registration); ``fns`` is the tuple the tick iterates."""
+
+    __slots__ = ("_entries", "_seq", "fns")
+
+    def __init__(self) -> None:
+        self._entries: list[_Hook] = []
+        self._seq = 0
+        self.fns: tuple[Callable[..., Any], ...] = ()
+
+    def add(self, fn: Callable[..., Any], order: int) -> HookHandle:
+        self._seq += 1
+        entry = _Hook(fn, order, self._seq)
+        self._entries.append(entry)
+        self._entries.sort(key=lambda e: (e.order, e.seq))
+        self._rebuild()
+        return HookHandle(lambda: self.remove(entry), lambda: entry.active)
+
+    def remove(self, entry: _Hook) -> None:
+        if entry.active:
+            entry.active = False
+            self._entries.remove(entry)
+            self._rebuild()
+
+    def remove_fn(self, fn: Callable[..., Any]) -> None:
+        for e in self._entries:
+            if e.fn is fn:
+                self.remove(e)
+                return
+
+    def clear(self) -> None:
+        for e in self._entries:
+            e.active = False
+        self._entries.clear()
+        self._rebuild()
+
+    def _rebuild(self) -> None:
+        self.fns = tuple(e.fn for e in self._entries)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+class ControlLoop:
+    """Runs one backend: owns the buffers, the clock, the tick phases and the torque-off rule.
+
+    Created by :func:`agentsdk.connect`; the safety layer, the motion executor
+    and tools (recorders, replay) attach to it through :meth:`add_hook`.
+    """
+
+    def __init__(self, backend: Backend) -> None:
+        self.backend = backend
+        config = backend.config
+        joints = backend.joints
+        self.joints = joints
+        self.names = backend.names
+        self.index = backend.index
+        self.period = backend.period
+        self.realtime = backend.realtime
+        n = len(joints)
+        self._state = StateBuffer(n)
+        self._sp = Setpoint(n)
+        #: robot time of the latest state (s)
+        self.stamp = 0.0
+        gains = [config.gains_for(j.name) for j in joints]
+        self.gain_p = _readonly([g.p for g in gains])
+        self.gain_d = _readonly([g.d for g in gains])
+        self.gain_v = _readonly([g.d if g.v is None else g.v for g in gains])
+        self.clock: Clock = RealtimeClock() if self.realtime else LockstepClock(self.period)
+        self._hooks = {phase: _HookList() for phase in Phase}
+        self._fault_listeners = _HookList()
+        self._task: asyncio.Task[None] | None = None
+        self._fault: BaseException | None = None
+        #: set by emergency_stop (any thread); every write is torque-off until enable()
+        self._torque_off = False
+        self._torque_lock = threading.Lock()
+        self._closed = False
+        #: serializes commands (Robot.command, follow)
+        self.lock = asyncio.Lock()
+        self.ticks = 0
+        self.missed_deadlines = 0
+
+    # ------------------------------------------------------------ views
+    @property
+    def state(self) -> StateView:
+        """Read-only view of the latest measured state."""
+        return self._state.view
+
+    @property
+    def setpoint(self) -> SetpointView:
+        """Read-only view of the setpoint (as last written, or as it will be written next tick)."""
+        return self._sp.view
+
+    @property
+    def targets(self) -> FloatArray:
+        """Read-only view of the last commanded value per joint (position, velocity or effort per its mode)."""
+        view = self._sp.target.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def torque_off(self) -> bool:
+        """True after an emergency stop removed torque, until :meth:`enable`."""
+        return self._torque_off
+
+    @property
+    def closed(self) -> bool:
+        """True once :meth:`stop` ran."""
+        return self._closed
+
+    @property
+    def fault(self) -> BaseException | None:
+        """Why the control loop died, or None while it runs."""
+        return self._fault
+
+    @property
+    def busy(self) -> bool:
+        """True while a time-dependent COMMAND hook (trajectory, stop ramp, replay) is registered."""
+        return bool(self._hooks[Phase.COMMAND].fns)
+
+    def check_open(self) -> None:
+        """Raise :class:`RobotClosedError` after :meth:`stop`."""
+        if self._closed:
+            raise RobotClosedError(f"robot on backend {self.backend.name!r} is closed")
+
+    # ------------------------------------------------------------ hooks
+    def add_hook(self, phase: Phase, fn: Callable[..., Any], *, order: int = 0) -> HookHandle:
+        """Call ``fn`` every tick in ``phase``, after hooks of lower ``order`` (ties: first registered first)."""
+        if not isinstance(phase, Phase):
+            raise InvalidValueError(f"phase must be an agentsdk.loop.Phase, got {phase!r}")
+        handle = self._hooks[phase].add(fn, order)
+        if phase is Phase.COMMAND and isinstance(self.clock, LockstepClock):
+            self.clock.wakeup.set()  # an idle lockstep loop starts ticking again
+        return handle
+
+    def add_fault_listener(self, fn: FaultListener) -> HookHandle:
+        """Call ``fn(exc)`` once if the control loop dies (backend fault, divergence)."""
+        return self._fault_listeners.add(fn, 0)
+
+    # ------------------------------------------------------------ lifecycle
+    async def start(self) -> None:
+        """Open the backend, read the initial state, hold it, start the control loop task."""
+        backend = self.backend
+        try:
+            await backend._open()
+        except asyncio.CancelledError:
+            await backend._close()
+            raise
+        except AgentSDKError:
+            await backend._close()
+            raise
+        except Exception as exc:
+            await backend._close()
+            raise BackendStartError(f"backend {backend.name!r} failed to start: {exc}") from exc
+        self._read()
+        self.hold_current()
+        backend._write(self._sp.view)
+        self._spawn()
+
+    def _spawn(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(
+            self._run_realtime() if self.realtime else self._run_lockstep(),
+            name=f"agentsdk-{self.backend.name}-control",
+        )
+
+    async def stop(self) -> None:
+        """Stop the control loop and close the backend. Idempotent; completes even if cancelled."""
+        if self._closed:
+            return
+        self._closed = True
+        task, self._task = self._task, None
+        cancelled = False
+        if task is not None:
+            task.cancel()
+            try:
+                await asyncio.shield(asyncio.gather(task, return_exceptions=True))
+            except asyncio.CancelledError:
+                cancelled = True
+        if isinstance(self.clock, LockstepClock):
+            self.clock.cancel_all(RobotClosedError("robot closed"))
+        self._hooks[Phase.COMMAND].clear()
+        try:
+            await asyncio.shield(self.backend._close())
+        except asyncio.CancelledError:
+            cancelled = True
+        if cancelled:
+            raise asyncio.CancelledError
+
+    def emergency_stop(self, category: int = 0) -> None:
+        """Thread-safe: remove torque now; every later write is torque-off until :meth:`enable`."""
+        with self._torque_lock:
+            self._torque_off = True
+        self.backend._emergency_stop(category)
+
+    async def enable(self) -> None:
+        """Re-arm the backend and hold the measured position with torque on."""
+        await self.backend._enable()
+        self._read()
+        self.hold_current()
+        with self._torque_lock:
+            self._torque_off = False
+
+    async def recover(self) -> None:
+        """Recover from a fault: backend ``_recover``, then restart the loop holding position, torque off."""
+        if self._fault is None:
+            return
+        await self.backend._recover()
+        self._fault = None
+        self._read()
+        self.hold_current()
+        with self._torque_lock:
+            self._torque_off = True  # stays limp until enable()
+        self._sp.enabled[:] = False
+        self._spawn()
+
+    # ------------------------------------------------------------ the tick
+    def _read(self) -> None:
+        q, v, e = self.backend._read()
+        st = self._state
+        np.copyto(st.position, q)
+        np.copyto(st.velocity, v)
+        np.copyto(st.effort, e)
+
+    async def _tick(self) -> None:
+        sp, stv, t = self._sp, self._state.view, self.stamp
+        command = self._hooks[Phase.COMMAND]
+        if command.fns:
+            for fn in command.fns:
+                if fn(t, stv, sp) is False:
+                    command.remove_fn(fn)
+        for fn in self._hooks[Phase.LIMIT].fns:
+            fn(t, stv, sp)
+        off = self._torque_off
+        if off:
+            sp.enabled[:] = False
+        backend = self.backend
+        backend._write(sp.view)
+        if not off and self._torque_off:
+            # an emergency stop from another thread landed during _write: enforce it again
+            backend._emergency_stop(0)
+        await backend._step(self.period)
+
+    def _after_tick(self) -> None:
+        self._read()
+        self.stamp = self.clock.now()
+        self.ticks += 1
+        t, stv, spv = self.stamp, self._state.view, self._sp.view
+        for fn in self._hooks[Phase.OBSERVE].fns:
+            fn(t, stv, spv)
+
+    async def _run_lockstep(self) -> None:
+        clock = self.clock
+        assert isinstance(clock, LockstepClock)
+        loop = asyncio.get_running_loop()
+        command = self._hooks[Phase.COMMAND]
+        try:
+            while True:
+                await _settle(loop)
+                if clock.next_deadline() is None and not command.fns:
+                    clock.wakeup.clear()
+                    await clock.wakeup.wait()
+                    continue
+                await self._tick()
+                clock.advance()
+                self._after_tick()
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            self._on_loop_fault(exc)
+
+    async def _run_realtime(self) -> None:
+        clock = self.clock
+        period = self.period
+        deadline = clock.now()
+        try:
+            while True:
+                await self._tick()
+                self._after_tick()
+                deadline += period
+                late = clock.now() - deadline
+                if late > period:
+                    # skip the missed periods instead of bursting to catch up
+                    skipped = math.floor(late / period)
+                    self.missed_deadlines += skipped
+                    deadline += skipped * period
+                await clock.sleep_until(deadline)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            self._on_loop_fault(exc)
+
+    def _on_loop_fault(self, exc: BaseException) -> None:
+        """The control loop died: remove torque and tell every fault listener."""
+        if isinstance(exc, BackendFault):
+            fault: BaseException = exc
+        else:
+            fault = BackendFault(f"control loop of backend {self.backend.name!r} failed: {exc!r}")
+            fault.__cause__ = exc
+        self._fault = fault
+        log.error("control loop stopped: %s", fault)
+        try:
+            self.emergency_stop(0)
+        except Exception:  # the hook must not mask the original fault
+            log.exception("emergency stop hook failed")
+        for listener in self._fault_listeners.fns:
+            try:
+                listener(fault)
+            except Exception:
+                log.exception("fault listener failed")
+        if isinstance(self.clock, LockstepClock):
+            self.clock.cancel_all(fault)
+
+    # ------------------------------------------------------------ setpoint writers
+    def hold_current(self, joints: np.ndarray | None = None) -> None:
+        """Position-hold at the measured position (all joints, or the given indices)."""
+        sp, st = self._sp, self._state
+        idx: Any = slice(None) if joints is None else joints
+        sp.position[idx] = st.position[idx]
+        sp.velocity[idx] = 0.0
+        sp.effort[idx] = 0.0
+        sp.kp[idx] = self.gain_p[idx]
+        sp.kd[idx] = self.gain_d[idx]
+        sp.enabled[idx] = True
+        sp.mode[idx] = _POS
+        sp.target[idx] = st.position[idx]
+
+    def hold_at(self, joints: np.ndarray, positions: np.ndarray) -> None:
+        """Position-hold the given joints at ``positions`` (zero velocity and feed-forward, default gains)."""
+        sp = self._sp
+        sp.position[joints] = positions
+        sp.velocity[joints] = 0.0
+        sp.effort[joints] = 0.0
+        sp.kp[joints] = self.gain_p[joints]
+        sp.kd[joints] = self.gain_d[joints]
+        sp.enabled[joints] = True
+        sp.mode[joints] = _POS
+        sp.target[joints] = positions
+
+    def damp(self, joints: np.ndarray, kd: np.ndarray | float) -> None:
+        """Velocity mode at zero velocity with gain ``kd``: the joints only damp (no position hold)."""
+        sp = self._sp
+        sp.mode[joints] = _VEL
+        sp.kp[joints] = 0.0
+        sp.kd[joints] = kd
+        sp.velocity[joints] = 0.0
+        sp.effort[joints] = 0.0
+        sp.target[joints] = 0.0
+
+    def set_reference(self, joints: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
+        """Overwrite the desired position and velocity of position-mode joints (a stop's starting point)."""
+        sp = self._sp
+        sp.position[joints] = positions
+        sp.velocity[joints] = velocities
+
+    def remove_torque(self) -> None:
+        """Torque off on every joint now (zero gains and feed-forward, the backend's emergency stop)."""
+        sp = self._sp
+        sp.enabled[:] = False
+        sp.kp[:] = 0.0
+        sp.kd[:] = 0.0
+        sp.effort[:] = 0.0
+        self.emergency_stop(0)
+
+    def apply(
+        self,
+        mode: CommandMode,
+        idx: np.ndarray,
+        values: np.ndarray,
+        vel: np.ndarray | None = None,
+        eff: np.ndarray | None = None,
+        *,
+        position_now: np.ndarray | None = None,
+    ) -> None:
+        """Write an already-validated, already-limited command into the setpoint.
+
+        ``position_now`` (position mode) is where the setpoint starts this tick when it
+        differs from the commanded value (the safety layer ramps towards ``values``).
+        """
+        sp = self._sp
+        sp.mode[idx] = ModeCode.of(mode)
+        sp.enabled[idx] = True
+        sp.target[idx] = values
+        if mode == "position":
+            sp.position[idx] = values if position_now is None else position_now
+            sp.velocity[idx] = 0.0 if vel is None else vel
+            sp.effort[idx] = 0.0 if eff is None else eff
+            sp.kp[idx] = self.gain_p[idx]
+            sp.kd[idx] = self.gain_d[idx]
+        elif mode == "velocity":
+            sp.position[idx] = self._state.position[idx]
+            sp.velocity[idx] = values
+            sp.effort[idx] = 0.0
+            sp.kp[idx] = 0.0
+            sp.kd[idx] = self.gain_v[idx]
+        else:
+            sp.position[idx] = self._state.position[idx]
+            sp.velocity[idx] = 0.0
+            sp.effort[idx] = values
+            sp.kp[idx] = 0.0
+            sp.kd[idx] = 0.0
+
+    # ------------------------------------------------------------ commands in
+    def resolve(self, cmd: JointCommand) -> tuple[np.ndarray, FloatArray, FloatArray | None, FloatArray | None]:
+        """Map a command onto joint indices; validate mode, names, length, finiteness.
+
+        Returns ``(indices, values, velocity_ff, effort_ff)``. Raises a
+        :class:`~agentsdk.errors.CommandRejected` subclass; nothing is modified.
+        """
+        if not isinstance(cmd, JointCommand):
+            raise InvalidValueError(f"expected a JointCommand, got {type(cmd).__name__}")
+        modes = self.backend.capabilities.modes
+        if cmd.mode not in modes:
+            raise UnsupportedModeError(
+                f"backend {self.backend.name!r} does not support {cmd.mode!r} commands "
+                f"(supported: {', '.join(sorted(modes))})"
+            )
+        idx, values = self.map_values(cmd.values, "values")
+        vel = eff = None
+        if cmd.velocity is not None:
+            vidx, vel = self.map_values(cmd.velocity, "velocity")
+            if not np.array_equal(vidx, idx):
+                raise InvalidValueError("velocity feed-forward must name the same joints as values")
+        if cmd.effort is not None:
+            eidx, eff = self.map_values(cmd.effort, "effort")
+            if not np.array_equal(eidx, idx):
+                raise InvalidValueError("effort feed-forward must name the same joints as values")
+        return idx, values, vel, eff
+
+    def map_values(self, values: Mapping[str, float] | tuple[float, ...], what: str) -> tuple[np.ndarray, FloatArray]:
+        """``(indices, values)`` of a mapping by joint name or a full-length sequence; checks finiteness."""
+        if isinstance(values, Mapping):
+            if not values:
+                raise InvalidValueError(f"{what}: empty command")
+            try:
+                idx = np.fromiter((self.index[k] for k in values), dtype=np.intp, count=len(values))
+            except KeyError as exc:
+                raise UnknownJointError(
+                    f"unknown joint {exc.args[0]!r}; this robot's joints are: {', '.join(self.names)}"
+                ) from None
+            arr = np.fromiter(values.values(), dtype=np.float64, count=len(values))
+        else:
+            if len(values) != len(self.names):
+                raise InvalidValueError(
+                    f"{what}: expected {len(self.names)} values (one per joint: {', '.join(self.names)}), "
+                    f"got {len(values)}"
+                )
+            idx = np.arange(len(self.names))
+            arr = np.asarray(values, dtype=np.float64)
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            j = int(idx[int(np.argmax(bad))])
+            raise InvalidValueError(f"{what}: non-finite value {float(arr[bad][0])} for joint {self.names[j]!r}")
+        return idx, arr
+
+    def snapshot(self) -> JointState:
+        """The latest measured state as an immutable :class:`JointState` (private copies)."""
+        st = self._state
+        return JointState.from_arrays(self.names, st.position.copy(), st.velocity.copy(), st.effort.copy(), self.stamp)
+
+
+def _readonly(values: Any) -> FloatArray:
+    arr = np.array(values, dtype=np.float64)
+    arr.flags.writeable = False
+    return arr
+
+
+#: lockstep control loops currently settling, per event loop (their own yields are not "work")
+_settling: dict[asyncio.AbstractEventLoop, int] = {}
+
+
+async def _settle(loop: asyncio.AbstractEventLoop) -> None:
+    """Yield until no other task on the event loop is ready to run.
+
+    Lockstep time may only advance when every task is waiting, and asyncio has no
+    public way to ask "is anything runnable?". CPython's ``BaseEventLoop`` keeps
+    its ready queue in ``_ready`` (a deque of handles, stable since Python 3.4);
+    this is the one place the SDK reads a private asyncio attribute, because
+    without it lockstep time would have to guess when the behavior has finished
+    reacting (it would not be deterministic). Event loops without ``_ready``
+    (uvloop) fall back to yielding a fixed number of times, which is correct for
+    chains of up to 64 hand-offs per tick. Tested in tests/test_core.py.
+
+    Several lockstep robots on one loop each yield here: their own settle steps
+    are discounted, or they would keep each other spinning.
+    """
+    _settling[loop] = _settling.get(loop, 0) + 1
+    try:
+        await asyncio.sleep(0)
+        ready = getattr(loop, "_ready", None)
+        if ready is None:
+            for _ in range(64):
+                await asyncio.sleep(0)
+            return
+        spins = 0
+        while len(ready) > _settling[loop] - 1 and spins < 100_000:
+            await asyncio.sleep(0)
+            spins += 1
+    finally:
+        n = _settling[loop] - 1
+        if n:
+            _settling[loop] = n
+        else:
+            del _settling[loop]

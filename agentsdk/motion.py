@@ -77,8 +77,8 @@ class MotionResult:
 class Tolerances:
     """Per-joint tolerances (a float for all joints, or ``{joint: value}``).
 
-    ``path``: max |desired - actual| position error while moving (None: not checked).
-    ``goal``: max |goal - actual| position error at the end.
+    ``path``: max ``|desired - actual|`` position error while moving (None: not checked).
+    ``goal``: max ``|goal - actual|`` position error at the end.
     ``goal_time``: how long after the trajectory's end the goal tolerance may take to be met.
     """
 

@@ -6,23 +6,23 @@
 Channels (all ``jsonschema`` schemas, ``json`` message encoding)
 ----------------------------------------------------------------
 
-=======================  =============================  ====================================================
-topic                    schema name                    content
-=======================  =============================  ====================================================
-``/joint_states``        ``sensor_msgs/msg/JointState``  measured state after every control tick (or
-                                                        decimated to ``record_rate`` Hz): ``header.stamp``
-                                                        {sec, nanosec}, ``name[]``, ``position[]``,
-                                                        ``velocity[]``, ``effort[]``
-``/joint_commands``      ``agentsdk/msg/JointCommand``   the servo setpoint actually written to the backend
-                                                        (after the safety layer): the JointState fields
-                                                        (desired position/velocity/effort) plus ``mode[]``
-                                                        ("position"/"velocity"/"effort"), ``enabled[]``,
-                                                        ``kp[]``, ``kd[]`` and ``target[]`` (the last
-                                                        commanded value before ramping)
-``/safety/events``       ``agentsdk/msg/SafetyEvent``    ``kind``, ``joint`` (or null), ``detail``
-``/behavior/transitions`` ``agentsdk/msg/Transition``    state-machine history records: ``machine``,
-                                                        ``source``, ``target``, ``event``, ``note``
-=======================  =============================  ====================================================
+=========================  ==============================  ==================================================
+topic                      schema name                     content
+=========================  ==============================  ==================================================
+``/joint_states``          ``sensor_msgs/msg/JointState``  measured state after every control tick (or
+                                                           decimated to ``record_rate`` Hz): ``header.stamp``
+                                                           {sec, nanosec}, ``name[]``, ``position[]``,
+                                                           ``velocity[]``, ``effort[]``
+``/joint_commands``        ``agentsdk/msg/JointCommand``   the servo setpoint actually written to the backend
+                                                           (after the safety layer): the JointState fields
+                                                           (desired position/velocity/effort) plus ``mode[]``
+                                                           ("position"/"velocity"/"effort"), ``enabled[]``
+                                                           ``kp[]``, ``kd[]`` and ``target[]`` (the last
+                                                           commanded value before ramping)
+``/safety/events``         ``agentsdk/msg/SafetyEvent``    ``kind``, ``joint`` (or null), ``detail``
+``/behavior/transitions``  ``agentsdk/msg/Transition``     state-machine history records: ``machine``,
+                                                           ``source``, ``target``, ``event``, ``note``
+=========================  ==============================  ==================================================
 
 A metadata record named ``agentsdk`` holds what replay needs: the robot (name,
 or absolute path of its robot.yaml/URDF), the backend and its options, the

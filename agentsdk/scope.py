@@ -35,7 +35,7 @@ __all__ = [
     "DEFAULT_STOP_TIMEOUT",
     "ClockLike",
     "LoopClock",
-    "Motion",
+    "StoppableMotion",
     "MotionScope",
     "MotionStopTimeoutError",
     "current_scope",
@@ -70,7 +70,7 @@ class LoopClock:
 
 
 @runtime_checkable
-class Motion(Protocol):
+class StoppableMotion(Protocol):
     """What a scope needs from a motion handle.
 
     ``cancel()`` requests decelerate-and-hold and returns at once; awaiting the
@@ -87,7 +87,7 @@ class Motion(Protocol):
 class MotionStopTimeoutError(AgentTimeoutError):
     """Motions were asked to stop but did not stop in time; escalate (e-stop)."""
 
-    def __init__(self, message: str, motions: list[Motion]) -> None:
+    def __init__(self, message: str, motions: list[StoppableMotion]) -> None:
         super().__init__(message)
         self.motions = motions
 
@@ -100,7 +100,7 @@ def current_scope() -> MotionScope | None:
     return _current.get()
 
 
-def register(motion: Motion) -> None:
+def register(motion: StoppableMotion) -> None:
     """Add ``motion`` to the current scope (called by the robot when a motion starts).
 
     No-op outside a scope.  A motion started in a scope that is already closed
@@ -124,7 +124,7 @@ class MotionScope:
         self.name = name
         self.clock: ClockLike = clock if clock is not None else LoopClock()
         self.stop_timeout = stop_timeout
-        self._motions: list[Motion] = []
+        self._motions: list[StoppableMotion] = []
         self._cancelled: set[int] = set()  # ids of motions already asked to stop (motions are kept alive)
         self._closed = False
         self._token: contextvars.Token[MotionScope | None] | None = None
@@ -137,11 +137,11 @@ class MotionScope:
         return self._closed
 
     @property
-    def motions(self) -> tuple[Motion, ...]:
+    def motions(self) -> tuple[StoppableMotion, ...]:
         """Every motion registered so far (finished ones included)."""
         return tuple(self._motions)
 
-    def add(self, motion: Motion) -> None:
+    def add(self, motion: StoppableMotion) -> None:
         if self._closed:
             _log.warning("motion %r started in closed scope %r: stopping it", motion, self.name)
             motion.cancel()
@@ -156,7 +156,7 @@ class MotionScope:
         """
         _current.set(self)
 
-    def cancel_all(self) -> list[Motion]:
+    def cancel_all(self) -> list[StoppableMotion]:
         """Request decelerate-and-hold on every running motion (synchronous).
 
         Each motion is asked once.  Returns the motions that were still running.
@@ -220,7 +220,7 @@ class MotionScope:
             _log.error("%s: motions did not stop while %s propagated", self.name, exc_type.__name__ if exc_type else "")
 
 
-async def _settle(motion: Motion) -> None:
+async def _settle(motion: StoppableMotion) -> None:
     """Wait until ``motion`` has stopped, whatever it resolves to."""
     try:
         await motion

@@ -19,6 +19,9 @@ fi
 
 "$PY" -m ruff check .
 
+# The API reference (docs/, Sphinx autodoc): docstring or cross-reference problems fail the build.
+"$PY" -m sphinx -W --keep-going -q -b html docs build/docs
+
 # Main suite (vcan-marked tests are skipped here: this kernel has no CAN).
 set +e
 "$PY" -m pytest -m "not vcan" "$@"

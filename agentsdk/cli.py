@@ -32,7 +32,7 @@ from typing import Any
 
 from .errors import AgentSDKError, ConfigurationError
 
-__all__ = ["load_behavior", "main", "run_behavior"]
+__all__ = ["Interrupted", "load_behavior", "main", "run_behavior"]
 
 EXIT_USER_ERROR = 2
 EXIT_BEHAVIOR_FAILED = 1
@@ -98,6 +98,24 @@ async def final_errors(robot: Any) -> dict[str, float]:
     }
 
 
+class Interrupted(Exception):
+    """The run was stopped by a signal (SIGINT/SIGTERM): the robot was brought to a category 1 stop.
+
+    ``exit_code`` follows the shell convention ``128 + signal number`` (130, 143).
+    """
+
+    def __init__(self, signum: int, detail: str) -> None:
+        self.signum = signum
+        self.signame = signal.Signals(signum).name
+        self.detail = detail
+        super().__init__(f"{self.signame}: {detail}")
+
+    @property
+    def exit_code(self) -> int:
+        """``128 + signum``: 130 for SIGINT, 143 for SIGTERM."""
+        return 128 + self.signum
+
+
 async def run_behavior(
     main_fn: Callable[[Any], Awaitable[Any]],
     *,
@@ -110,9 +128,11 @@ async def run_behavior(
 ) -> RunSummary:
     """Connect, run ``main_fn(robot)`` and stop safely.
 
-    An exception in the behavior triggers a category-1 stop before it propagates;
-    SIGINT/SIGTERM (when handlers are installed) trigger a category-1 stop, then
-    the behavior is cancelled.
+    An exception in the behavior triggers a category-1 stop before it propagates.
+    SIGINT/SIGTERM (when handlers are installed) start a category-1 stop at once;
+    the stop runs to completion (decelerate to rest, then torque off) while the
+    behavior is cancelled, then :class:`Interrupted` is raised. A second signal
+    escalates to category 0 (torque off at once).
     """
     from .robot import connect
 
@@ -120,48 +140,53 @@ async def run_behavior(
     async with connect(backend, robot=robot, realtime=realtime, **(options or {})) as bot:
         if on_robot is not None:
             on_robot(bot)
-        loop = asyncio.get_running_loop()
-        task = loop.create_task(main_fn(bot), name="agentsdk-behavior")
+        aloop = asyncio.get_running_loop()
+        task = aloop.create_task(main_fn(bot), name="agentsdk-behavior")
         stop_task: asyncio.Task[None] | None = None
-        interrupted = False
+        signals: list[int] = []
 
-        def _on_signal(signame: str) -> None:
-            nonlocal stop_task, interrupted
-            if interrupted:
+        def _on_signal(signum: int) -> None:
+            nonlocal stop_task
+            signals.append(signum)
+            if len(signals) > 1:  # pressed again: no more waiting for the controlled stop
+                bot.estop_threadsafe(0)
+                task.cancel()
                 return
-            interrupted = True
-            logging.getLogger("agentsdk").warning("%s: category-1 stop, then exit", signame)
-
-            async def _stop_then_cancel() -> None:
-                try:
-                    await bot.estop(category=1)
-                finally:
-                    task.cancel()
-
-            stop_task = loop.create_task(_stop_then_cancel())
+            stop_task = aloop.create_task(bot.estop(category=1), name="agentsdk-signal-stop")
+            task.cancel()
 
         if install_signal_handlers:
             for sig in (signal.SIGINT, signal.SIGTERM):
-                loop.add_signal_handler(sig, _on_signal, sig.name)
+                aloop.add_signal_handler(sig, _on_signal, sig)
         try:
-            await task
-        except asyncio.CancelledError:
-            if not interrupted:
-                raise
+            try:
+                await task
+            except asyncio.CancelledError:
+                if not signals:
+                    raise
+            except BaseException:
+                if not signals:
+                    if not bot.closed and bot.safety.state.name not in ("ESTOP", "FAULT"):
+                        try:
+                            await bot.estop(category=1)
+                        except AgentSDKError:
+                            pass
+                    raise
+                # after a signal, whatever the behavior raised while being stopped is part of the stop
+                logging.getLogger("agentsdk").debug("behavior ended while stopping", exc_info=True)
             if stop_task is not None:
-                await stop_task
-            raise KeyboardInterrupt from None
-        except BaseException:
-            if not bot.closed and bot.safety.state.name not in ("ESTOP", "FAULT"):
                 try:
-                    await bot.estop(category=1)
-                except AgentSDKError:
-                    pass
-            raise
+                    await stop_task  # the stop completes (to rest, then torque off) before close
+                except AgentSDKError as exc:
+                    logging.getLogger("agentsdk").debug("signal stop: %s", exc)
         finally:
             if install_signal_handlers:
                 for sig in (signal.SIGINT, signal.SIGTERM):
-                    loop.remove_signal_handler(sig)
+                    aloop.remove_signal_handler(sig)
+        if signals:
+            events = [e.detail for e in bot.safety.events if e.kind == "estop"]
+            detail = events[-1] if events else "robot stopped"
+            raise Interrupted(signals[0], detail)
         summary = RunSummary(bot.clock.now(), time.perf_counter() - t_wall, await final_errors(bot), bot.realtime)
     return summary
 
@@ -329,9 +354,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
                 install_signal_handlers=True,
             )
         )
-    except KeyboardInterrupt:
+    except Interrupted as exc:
         _close_extras(extras, args.quiet)
-        print("interrupted: robot stopped (category 1)", file=sys.stderr)
+        print(f"interrupted by {exc.signame}: {exc.detail}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:  # a signal before the handlers were installed (while connecting)
+        _close_extras(extras, args.quiet)
+        print("interrupted while connecting", file=sys.stderr)
         return EXIT_INTERRUPTED
     except AgentSDKError:
         _close_extras(extras, args.quiet)

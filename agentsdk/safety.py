@@ -98,6 +98,10 @@ class SafetyConfig(BaseModel):
     stop_deceleration_scale: float = Field(default=1.0, gt=0.0, le=1.0)
     #: minimum seconds between two identical clamp warnings in the log
     warn_interval: float = Field(default=1.0, ge=0.0)
+    #: a controlled stop is achieved once every measured speed is below this (rad/s or m/s) ...
+    rest_velocity: float = Field(default=0.05, gt=0.0)
+    #: ... waiting at most this long (robot s) after the deceleration ramp ended
+    rest_timeout: float = Field(default=1.0, ge=0.0)
     #: a measured position this far (rad or m) beyond a joint's limits is a protective stop; None = off
     position_limit_tolerance: float | None = Field(default=0.1, gt=0.0)
     #: stop category of that protective stop (IEC 60204-1)
@@ -773,6 +777,13 @@ class SafetyLayer:
             return "fault"
         if ramp.cancelled() or ramp.exception() is not None:
             return "timeout"
+        # the reference is at rest; the stop is achieved when the joints are (IEC 60204-1)
+        clock, vel = loop.clock, loop.state.velocity
+        deadline = clock.now() + self.config.rest_timeout
+        while np.abs(vel).max(initial=0.0) >= self.config.rest_velocity:
+            if clock.now() >= deadline or loop.fault is not None or loop.closed:
+                return "fault" if loop.fault is not None else "timeout"
+            await clock.sleep(loop.period)
         return "rest"
 
     def _hold_where_stopped(self) -> None:

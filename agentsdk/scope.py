@@ -35,9 +35,9 @@ __all__ = [
     "DEFAULT_STOP_TIMEOUT",
     "ClockLike",
     "LoopClock",
-    "StoppableMotion",
     "MotionScope",
     "MotionStopTimeoutError",
+    "StoppableMotion",
     "current_scope",
     "register",
 ]

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import can
+import numpy as np
 import pytest
 import yaml
 
@@ -384,3 +385,54 @@ def test_event_loop_stall_sends_disable_from_the_watchdog(tmp_path: Path, leg: s
     assert stall_timeout - 0.02 < gap < stall_timeout + 0.15, gap
     # the loop was still stuck for ~0.75 s after the DISABLE burst: nothing else was sent meanwhile
     assert not resumed or resumed[0].timestamp - first.timestamp > 0.5
+
+
+# ------------------------------------------------------------------ signals (issue 10.1)
+SIGNAL_BEHAVIOR = """\
+from agentsdk import Trajectory, TrajectoryPoint
+
+async def main(robot):
+    q = (await robot.read()).positions()   # the emulated leg stays where the last trial left it
+    knee = 1.9 if q["knee"] < 1.35 else 0.8
+    hip = 0.3 if q["hip_pitch"] < 0.0 else -0.4
+    motion = robot.follow(Trajectory(["hip_pitch", "knee"], [TrajectoryPoint(2.0, [hip, knee])]))
+    await robot.clock.sleep(0.3)
+    print("MOVING", flush=True)
+    await motion   # the README's own pattern
+"""
+SIGNAL_TRIALS = int(os.environ.get("AGENTSDK_SIGNAL_TRIALS", "5"))
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_stops_the_motors_at_rest_before_disabling_them(tmp_path: Path, leg: str, sig: int) -> None:
+    """Ctrl-C/SIGTERM mid-trajectory: a category 1 stop to rest, then DISABLE; exit 128 + signal.
+
+    Before the fix the knee was disabled at 0.69 rad/s and coasted (a category 0 stop). The host
+    records its run; the test reads back the measured velocity when torque was removed.
+    """
+    from agentsdk.recording import read_recording
+
+    behavior = write_behavior(tmp_path, "move", SIGNAL_BEHAVIOR)
+    with emulator_process(leg):
+        for k in range(SIGNAL_TRIALS):
+            record = tmp_path / f"run-{sig}-{k}.mcap"
+            host = agentsdk_run(behavior, leg, "--quiet", "--record", str(record))
+            try:
+                host.wait_for("MOVING")
+                time.sleep(0.2 + 0.05 * (k % 4))
+                host.popen.send_signal(sig)
+                rc = host.popen.wait(60)
+                out = host.output()
+            finally:
+                host.stop()
+            assert rc == 128 + sig, f"trial {k}: exit {rc}\n{out}"
+            assert "never retrieved" not in out and "Traceback" not in out, out
+            assert f"interrupted by {signal.Signals(sig).name}: category 1: stopped, torque removed" in out, out
+            data = read_recording(record)
+            (ev,) = [e for e in data.events if e["detail"] == "category 1: stopped, torque removed"]
+            t_off = round(ev["time"] * 1e9)
+            before = np.flatnonzero(data.state_time <= t_off)
+            assert np.abs(data.velocity[before]).max() > 0.3, f"trial {k}: was not moving"
+            v_off = np.abs(data.velocity[before[-1]]).max()
+            assert v_off < 0.1, f"trial {k}: motors disabled at {v_off:.3f} rad/s (category 0, not 1)"

@@ -51,21 +51,18 @@ def _jsonable(value: Any) -> Any:
 
 async def _probe_async(robot: str, backend: str, duration: float, options: Mapping[str, Any]) -> dict[str, Any]:
     import agentsdk
+    from agentsdk.errors import AgentSDKError
 
     async with agentsdk.connect(backend, robot=robot, **options) as bot:
-        await bot.clock.sleep(duration)
-        state = await bot.read()
         ctl = bot.controller
         desc = ctl.description
         out: dict[str, Any] = {
-            "ok": True,
+            "loaded": True,
             "name": desc.name,
             "format": desc.format,
             "joints": list(bot.joint_names),
             "limits": [[j.lower, j.upper, j.max_velocity, j.max_effort] for j in bot.joints],
             "repairs": [str(r) for r in desc.repairs],
-            "position": state.position.tolist(),
-            "state": bot.safety.state.name,
         }
         report = getattr(ctl, "simulator_report", None)
         if callable(report):
@@ -73,22 +70,38 @@ async def _probe_async(robot: str, backend: str, duration: float, options: Mappi
         collision = getattr(ctl, "collision", None)
         if collision is not None:
             out["collision_repairs"] = [str(r) for r in collision.repairs]
+        run_error: str | None = None
+        try:
+            start = await bot.read()
+            out["start"] = start.position.tolist()
+            await bot.clock.sleep(duration)
+            state = await bot.read()
+            out["position"] = state.position.tolist()
+        except AgentSDKError as exc:
+            run_error = f"{type(exc).__name__}: {exc}"
+        out["ok"] = run_error is None
+        out["run_error"] = run_error
+        out["state"] = bot.safety.state.name
         return out
 
 
 def probe(
     robot: str, backend: str, *, duration: float = 0.02, options: Mapping[str, Any] | None = None
 ) -> dict[str, Any]:
-    """Connect ``robot`` on ``backend`` in this process, run ``duration`` s (lockstep) and report (JSON-able)."""
+    """Connect ``robot`` on ``backend`` in this process, run ``duration`` s (lockstep) and report (JSON-able).
+
+    ``loaded``: the connection opened; ``ok``: it also ran ``duration`` without
+    a fault (``run_error`` says which); on failure ``error_type``/``error``.
+    """
     from .errors import AgentSDKError
 
     t0 = time.perf_counter()
     try:
         out = asyncio.run(_probe_async(robot, backend, duration, dict(options or {})))
     except AgentSDKError as exc:
-        out = {"ok": False, "error_type": type(exc).__name__, "error": str(exc)}
+        out = {"ok": False, "loaded": False, "error_type": type(exc).__name__, "error": str(exc)}
     except Exception as exc:  # a non-SDK exception is a bug the caller must see, with its type
-        out = {"ok": False, "error_type": type(exc).__name__, "error": str(exc), "unexpected": True}
+        out = {"ok": False, "loaded": False, "error_type": type(exc).__name__, "error": str(exc), "unexpected": True}
     out["seconds"] = time.perf_counter() - t0
     return _jsonable(out)
 
@@ -258,6 +271,7 @@ class ProbePool:
         what = f"timed out after {self.timeout:g} s" if timed_out else f"process died (exit status {rc})"
         results[w.job] = {
             "ok": False,
+            "loaded": False,
             "died": True,
             "error_type": "WorkerDied",
             "error": f"{what}: {self._stderr_tail(w)}",

@@ -84,7 +84,7 @@ def repair_inertials(
     link's line in the file. Returns the repaired link records (unchanged
     records are returned as they are) and the repairs made.
     """
-    repairs: list[Repair] = []
+    notes_of: dict[str, list[str]] = {}
     out: dict[str, LinkRecord] = {}
     # pass 1: tensor validity (rules 1 and 3), every link
     for name, rec in links.items():
@@ -119,7 +119,7 @@ def repair_inertials(
             new = _principal_inertial(inertial.mass, inertial.xyz, rot, (fixed[0], fixed[1], fixed[2]))
             out[name] = LinkRecord(name, new, rec.visuals, rec.collisions, rec.inertial_as_written or inertial)
             if notes:
-                repairs.append(Repair(f"link '{name}'", "; ".join(notes), lines.get(name)))
+                notes_of.setdefault(name, []).extend(notes)
         else:
             out[name] = rec
 
@@ -158,8 +158,9 @@ def repair_inertials(
             f"moving link (joint '{joint.name}') {what}: raised to {became} "
             f"(MuJoCo boundmass={_g(MIN_MASS)}, boundinertia={_g(MIN_INERTIA)})"
         )
-        repairs.append(Repair(f"link '{name}'", detail, lines.get(name)))
+        notes_of.setdefault(name, []).append(detail)
         new = _principal_inertial(new_mass, xyz, rot, (new_moments[0], new_moments[1], new_moments[2]))
         out[name] = LinkRecord(name, new, rec.visuals, rec.collisions, rec.inertial_as_written or inertial)
     assert all(math.isfinite(r.mass) for r in out.values())
+    repairs = [Repair(f"link '{name}'", "; ".join(notes_of[name]), lines.get(name)) for name in links if name in notes_of]
     return out, repairs

@@ -188,12 +188,14 @@ def resolve_robot(
     lower = path.name.lower()
     if lower.endswith(_CONFIG_SUFFIXES):
         config = load_robot_config(path)
-        description = load_description(
-            config.description_path, config.xacro_args, strict=config.strict if strict is None else strict
-        )
+        if strict is not None and strict != config.strict:
+            config = config.model_copy(update={"strict": strict})
+        description = load_description(config.description_path, config.xacro_args, strict=config.strict)
     elif lower.endswith(_DESCRIPTION_SUFFIXES):
         description = load_description(path, strict=bool(strict))
-        config = RobotConfig(name=description.name, description=path.name, base_dir=path.resolve().parent)
+        config = RobotConfig(
+            name=description.name, description=path.name, base_dir=path.resolve().parent, strict=bool(strict)
+        )
     else:
         raise ConfigurationError(f"{path}: expected a .urdf, .xacro, MJCF .xml or robot.yaml file")
     check_config(config, description)

@@ -83,7 +83,8 @@ class MockController(Controller):
         self._q = np.zeros(n)
         self._v = np.zeros(n)
         self._tau = np.zeros(n)
-        for name, q in self.config.initial_positions.items():
+        # start pose: the description's own (an MJCF home keyframe), then robot.yaml initial_positions
+        for name, q in {**self.description.default_positions, **self.config.initial_positions}.items():
             if name in self.index:
                 self._q[self.index[name]] = q
         self._sp_mode = np.zeros(n, dtype=np.int8)

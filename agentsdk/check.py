@@ -79,15 +79,22 @@ def check_robot(
         report.problems.extend(line.strip() for line in str(exc).splitlines()[1:] if line.strip())
         return report
 
+    try:
+        collision = from_mjcf(desc) if desc.format == "mjcf" else for_robot(desc, config)
+    except AgentSDKError as exc:
+        report.problems.append(f"self-collision model: {' '.join(str(exc).split())}")
+        collision = None
+    repairs = [*desc.repairs, *(collision.repairs if collision is not None else ())]
+
     kind = {"urdf": "URDF", "mjcf": "MJCF"}[desc.format]
     out.append(f"robot '{desc.name}' ({kind}): {desc.source}")
     out.append("")
     out.append("joint tree:")
     out.extend("  " + line for line in desc.tree_lines())
     out.append("")
-    if desc.repairs:
-        out.append(f"repairs ({len(desc.repairs)}, so that every simulator can load it; strict: true refuses them):")
-        out.extend(f"  - {r}" for r in desc.repairs)
+    if repairs:
+        out.append(f"repairs ({len(repairs)}, so that every simulator can load it; strict: true refuses them):")
+        out.extend(f"  - {r}" for r in repairs)
     else:
         out.append("repairs: none")
     if desc.defaults:
@@ -116,11 +123,6 @@ def check_robot(
         out.append(f"  note: {', '.join(outside)} start outside their limits; set initial_positions in robot.yaml")
     out.append("")
 
-    try:
-        collision = from_mjcf(desc) if desc.format == "mjcf" else for_robot(desc, config)
-    except AgentSDKError as exc:
-        report.problems.append(f"self-collision model: {' '.join(str(exc).split())}")
-        collision = None
     if collision is not None:
         mode = "the model's own contact settings" if desc.format == "mjcf" else collision.mode
         reasons = ", ".join(f"{k} {v}" for k, v in sorted(collision.reasons().items())) or "none"
@@ -130,8 +132,6 @@ def check_robot(
         )
         if collision.srdf is not None:
             out.append(f"  SRDF: {collision.srdf}")
-        for r in collision.repairs:
-            out.append(f"  repair: {r}")
         by_reason: dict[str, list[str]] = {}
         for (a, b), reason in sorted(collision.excluded.items()):
             by_reason.setdefault(reason, []).append(f"{a}–{b}")
@@ -155,7 +155,8 @@ def check_robot(
     for backend, r in zip(chosen, results, strict=True):
         if r.get("loaded"):
             note = "loads and runs" if r.get("ok") else f"loads, then {r.get('run_error')}"
-            out.append(f"  {backend:9s} ✓ {note} ({len(r['joints'])} joints, {r.get('seconds', math.nan):.2f} s)")
+            n, seconds = len(r["joints"]), r.get("seconds", math.nan)
+            out.append(f"  {backend:9s} ✓ {note} ({n} joint{'s' if n != 1 else ''}, {seconds:.2f} s)")
         else:
             out.append(f"  {backend:9s} ✗ {r.get('error_type')}")
             report.problems.append(f"{backend}: {' '.join(str(r.get('error')).split())}")

@@ -162,5 +162,7 @@ def repair_inertials(
         new = _principal_inertial(new_mass, xyz, rot, (new_moments[0], new_moments[1], new_moments[2]))
         out[name] = LinkRecord(name, new, rec.visuals, rec.collisions, rec.inertial_as_written or inertial)
     assert all(math.isfinite(r.mass) for r in out.values())
-    repairs = [Repair(f"link '{name}'", "; ".join(notes_of[name]), lines.get(name)) for name in links if name in notes_of]
+    repairs = [
+        Repair(f"link '{name}'", "; ".join(notes_of[name]), lines.get(name)) for name in links if name in notes_of
+    ]
     return out, repairs

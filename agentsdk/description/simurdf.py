@@ -29,7 +29,7 @@ def _v(values: Sequence[float]) -> str:
     return " ".join(repr(float(v)) for v in values)
 
 
-def _geometry(tag: str, geom: Geometry) -> str:
+def _geometry(tag: str, geom: Geometry, label: str = "") -> str:
     if geom.kind == "box":
         shape = f'<box size="{_v(geom.size)}"/>'
     elif geom.kind == "sphere":
@@ -41,7 +41,7 @@ def _geometry(tag: str, geom: Geometry) -> str:
         shape = f'<mesh filename={quoteattr(str(simulator_mesh(geom.filename)))} scale="{_v(geom.size)}"/>'
     color = ""
     if tag == "visual" and geom.rgba is not None:
-        color = f'<material name=""><color rgba="{_v(geom.rgba)}"/></material>'
+        color = f'<material name={quoteattr(label)}><color rgba="{_v(geom.rgba)}"/></material>'
     return f'<{tag}><origin xyz="{_v(geom.xyz)}" rpy="{_v(geom.rpy)}"/><geometry>{shape}</geometry>{color}</{tag}>'
 
 
@@ -117,7 +117,7 @@ def simulator_urdf(
         rec = records[name]
         parts = [f"<link name={quoteattr(name)}>", _inertial(rec.inertial)]
         if visuals:
-            parts.extend(_geometry("visual", g) for g in rec.visuals)
+            parts.extend(_geometry("visual", g, f"{name}/visual{k}") for k, g in enumerate(rec.visuals))
         parts.extend(_geometry("collision", g) for _, g in collisions.get(name, ()))
         parts.append("</link>")
         out.append("".join(parts))

@@ -140,9 +140,11 @@ class PybulletController(Controller):
         try:
             self._cid = p.connect(p.GUI if opts.gui else p.DIRECT)
         except p.error as exc:  # e.g. a second GUI in the same process
-            raise BackendStartError(f"PyBullet could not open a physics client: {exc}") from exc
+            raise BackendStartError(
+                f"PyBullet could not open a physics client for robot {self.description.name!r}: {exc}"
+            ) from exc
         if self._cid < 0:
-            raise BackendStartError("PyBullet could not open a physics client")
+            raise BackendStartError(f"PyBullet could not open a physics client for robot {self.description.name!r}")
         cid = self._cid
         if opts.gui:
             p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=cid)

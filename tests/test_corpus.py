@@ -172,3 +172,63 @@ def test_readme_compatibility_table_is_generated(results: dict[str, dict[str, di
     assert current.strip() == table.strip(), (
         "README.md's corpus table is out of date; run AGENTSDK_UPDATE_README=1 pytest tests/test_corpus.py"
     )
+
+
+# --------------------------------------------------------------------------- a second corpus: pybullet_data
+
+#: pybullet_data files urdfdom (or MuJoCo, for MJCF) refuses, and the error each must give
+PYBULLET_DATA_BROKEN = {
+    "biped/biped2d_pybullet.urdf": r"line 115: joint 'torso_to_rightleg': <limit lower=\"-1\.57\.\">: not a number",
+    "humanoid/humanoid.urdf": r"line 40: joint 'chest': unknown joint type 'spherical'",
+    "spherical_joint_limit.urdf": r"joint 'neck': unknown joint type 'spherical'",
+    "quadruped/microtaur/microtaur.urdf": r"line 300: joint 'dynamixel7_chassis_left': <origin rpy=.*needs 3",
+    "torus_deform.urdf": r"line 2: the robot has no <link>",
+}
+
+
+def pybullet_data_files() -> list[Path]:
+    import pybullet_data
+
+    root = Path(pybullet_data.getDataPath())
+    urdfs = [p for p in root.rglob("*.urdf") if "random_urdfs" not in p.parts]
+    return sorted(urdfs + list((root / "mjcf").glob("*.xml")))
+
+
+def test_pybullet_data_descriptions_never_kill_a_process_and_agree() -> None:
+    """PyBullet's own example robots (URDF, some with quirks tinyxml2 accepts; MJCF) on both simulators."""
+    import pybullet_data
+
+    root = Path(pybullet_data.getDataPath())
+    files = pybullet_data_files()
+    assert len(files) > 100
+    jobs = [{"robot": str(f), "backend": b, "duration": RUN} for f in files for b in BACKENDS]
+    with ProbePool(workers=2, timeout=300) as pool:
+        out = pool.run(jobs)
+    results: dict[str, dict[str, dict[str, Any]]] = {}
+    for job, r in zip(jobs, out, strict=True):
+        results.setdefault(str(Path(job["robot"]).relative_to(root)), {})[job["backend"]] = r
+    problems = []
+    for name, per in results.items():
+        mj, pb = per["mujoco"], per["pybullet"]
+        for backend, r in per.items():
+            if r.get("died") or r.get("unexpected"):
+                problems.append(f"{name} on {backend}: {r['error_type']}: {r['error']}")
+        if name in PYBULLET_DATA_BROKEN:
+            for r in (mj, pb):
+                assert r["error_type"] == "DescriptionError" and re.search(PYBULLET_DATA_BROKEN[name], r["error"])
+        elif name.endswith(".xml"):
+            # MJCF: MuJoCo refuses old-style models itself; PyBullet loads what a URDF can carry, or says why not
+            if not mj["loaded"]:
+                assert mj["error_type"] == pb["error_type"] == "DescriptionError", (name, mj, pb)
+                assert "MuJoCo cannot load the MJCF model" in mj["error"]
+            elif not pb["loaded"]:
+                assert pb["error_type"] == "BackendStartError" and "which a URDF cannot carry" in pb["error"], name
+        elif not (mj["loaded"] and pb["loaded"]):
+            problems.append(f"{name}: mujoco {mj.get('error')}; pybullet {pb.get('error')}")
+        if mj["loaded"] and pb["loaded"]:
+            a, b = mj["report"], pb["report"]
+            if a["joints"] != b["joints"] or a["pairs"] != b["pairs"] or any(
+                not _close(m, b["masses"].get(link, 0.0)) for link, m in a["masses"].items()
+            ):
+                problems.append(f"{name}: the simulators disagree")
+    assert not problems, "\n".join(problems)

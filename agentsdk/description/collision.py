@@ -370,7 +370,7 @@ def from_mjcf(description: RobotDescription) -> SelfCollision:
     if description.format != "mjcf":
         raise ValueError("from_mjcf needs an MJCF description")
     model = mujoco.MjModel.from_xml_path(str(description.source))
-    pairs = colliding_body_pairs(model)
+    pairs = colliding_body_pairs(model, world=False)
     shapes = {rec.name: tuple(enumerate(rec.collisions)) for rec in description.link_records}
     geometric = sorted(n for n, s in shapes.items() if s)
     candidates = [_pair(a, b) for a, b in itertools.combinations(geometric, 2)]

@@ -302,8 +302,11 @@ def load_mjcf(path: Path) -> RobotDescription:
     )
 
 
-def colliding_body_pairs(model: Any) -> set[tuple[str, str]]:
-    """Body-name pairs with at least one geom pair MuJoCo tests for contact (its filters applied)."""
+def colliding_body_pairs(model: Any, *, world: bool = True) -> set[tuple[str, str]]:
+    """Body-name pairs with at least one geom pair MuJoCo tests for contact (its filters applied).
+
+    ``world=False`` leaves out the world body (an MJCF scene's floor is not part of the robot).
+    """
     import mujoco
 
     m = model
@@ -315,7 +318,7 @@ def colliding_body_pairs(model: Any) -> set[tuple[str, str]]:
     geoms_of: dict[int, list[int]] = {}
     for g in range(m.ngeom):
         geoms_of.setdefault(int(m.geom_bodyid[g]), []).append(g)
-    bodies = sorted(geoms_of)
+    bodies = sorted(b for b in geoms_of if world or b != 0)
     for i, b1 in enumerate(bodies):
         for b2 in bodies[i + 1 :]:
             w1, w2 = int(m.body_weldid[b1]), int(m.body_weldid[b2])

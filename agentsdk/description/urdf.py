@@ -148,8 +148,23 @@ def _origin(where: Where, parent: Any, owner: str) -> tuple[Vec3, Vec3]:
 _UNDECLARED = re.compile(r"Namespace prefix (\S+) (?:for \S+ )?on \S+ is not defined")
 
 
+_DECLARATION = re.compile(rb"<\?xml\b[^>]*\?>")
+
+
+def _like_tinyxml(data: bytes) -> bytes:
+    """Read the bytes the way urdfdom does: up to the first NUL (a C string), any ``<?xml ...?>`` ignored.
+
+    tinyxml2 accepts ``<?xml version="0.0"?>`` and a declaration after blank
+    lines, which libxml2 refuses; the declaration is blanked out with spaces
+    (newlines kept) so that line numbers stay put. The text is read as UTF-8.
+    """
+    data = data.split(b"\0", 1)[0]
+    return _DECLARATION.sub(lambda m: bytes(b if b in b"\r\n" else 32 for b in m.group(0)), data)
+
+
 def _parse_xml(where: Where, data: bytes) -> Any:
     """Parse ``data``; attributes/elements in undeclared namespaces are tolerated like tinyxml2 does."""
+    data = _like_tinyxml(data)
     declared: set[str] = set()
     for _ in range(32):
         try:
@@ -178,6 +193,27 @@ def _declare_prefixes(data: bytes, prefixes: set[str]) -> bytes:
 
 
 def _geometry(
+    where: Where,
+    elem: Any,
+    kind: str,
+    owner: str,
+    resolver: Resolver,
+    repairs: list[Repair],
+    mesh_files: list[Path],
+    dropped: list[Any],
+) -> Geometry | None:
+    """Parse one <visual>/<collision>; a malformed one is dropped (urdfdom skips it too), with a repair."""
+    try:
+        return _parse_geometry(where, elem, kind, owner, resolver, repairs, mesh_files, dropped)
+    except DescriptionError as exc:
+        label = f"{owner} <{kind}>" + (f" '{elem.get('name')}'" if elem.get("name") else "")
+        problem = str(exc).split(f"{owner}: ", 1)[-1]
+        repairs.append(Repair(label, f"{problem}: dropped", where.line(elem)))
+        dropped.append(elem)
+        return None
+
+
+def _parse_geometry(
     where: Where,
     elem: Any,
     kind: str,

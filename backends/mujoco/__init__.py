@@ -183,7 +183,8 @@ class MujocoController(Controller):
         names[0] = "world"
         root = self.description.root_link
         masses = {names[b]: float(m.body_mass[b]) for b in range(1, m.nbody) if names[b] != root}
-        return {"joints": joints, "masses": masses, "pairs": sorted(colliding_body_pairs(m))}
+        pairs = colliding_body_pairs(m, world=self.description.format != "mjcf")
+        return {"joints": joints, "masses": masses, "pairs": sorted(pairs)}
 
     def _reset_state(self) -> None:
         m, d = self.model, self.data

@@ -132,6 +132,7 @@ def find_package(
 
 
 def search_path_text(package_path: Sequence[str | Path] | None, near: Path) -> str:
+    """The package search path in words, for error messages."""
     entries = package_search_path(package_path)
     described = ", ".join(f"{d} (from {origin})" for origin, d in entries)
     if not described:

@@ -120,7 +120,8 @@ def simulator_urdf(
             parts.extend(_geometry("visual", g, f"{name}/visual{k}") for k, g in enumerate(rec.visuals))
         parts.extend(_geometry("collision", g) for _, g in collisions.get(name, ()))
         parts.append("</link>")
-        out.append("".join(parts))
+        # one element per line: PyBullet's tinyxml2 rejects some valid files written on very long lines
+        out.append("\n".join(parts))
         joint = parent.get(name)
         if joint is None or joint.parent in skip_links:
             continue
@@ -150,6 +151,6 @@ def simulator_urdf(
                 body.append(f'<limit effort="{effort!r}" velocity="{velocity!r}"/>')
             body.append(f'<dynamics damping="{joint.damping!r}" friction="{joint.friction!r}"/>')
         kind = "prismatic" if jtype == "prismatic_unlimited" else jtype
-        out.append(f'<joint name={quoteattr(joint.name)} type="{kind}">{"".join(body)}</joint>')
+        out.append(f'<joint name={quoteattr(joint.name)} type="{kind}">\n' + "\n".join(body) + "\n</joint>")
     out.append("</robot>\n")
     return "\n".join(out)

@@ -15,8 +15,9 @@ MuJoCo backend will, and the description is read from the compiled model:
 * links are bodies; their frames sit on the joint axis (a joint ``pos``
   shifts the link frame, as URDF requires), a body with several joints
   becomes a chain of massless links named ``body/joint``; geometry is the
-  compiled geometry (meshes as MuJoCo processed them, written once to a cache
-  as OBJ files so another simulator sees the same vertices).
+  compiled geometry (collision meshes as MuJoCo processed them, written once
+  to a cache as OBJ files so another simulator sees the same vertices; visual
+  meshes are left out of the records).
 
 The MuJoCo backend loads the file itself (``description.source``); other
 backends use these records.
@@ -90,8 +91,11 @@ def _mesh_file(model: Any, mesh_id: int) -> Path:
     return out
 
 
-def _geometry(model: Any, g: int, shift: np.ndarray) -> Geometry | None:
-    """Geom ``g`` in its link's frame (the body frame moved by ``shift``); None for types URDF cannot hold."""
+def _geometry(model: Any, g: int, shift: np.ndarray, collision: bool) -> Geometry | None:
+    """Geom ``g`` in its link's frame (the body frame moved by ``shift``); None for types URDF cannot hold.
+
+    Visual meshes are left out (only collision meshes are written to the cache).
+    """
     import mujoco
 
     t = int(model.geom_type[g])
@@ -109,6 +113,8 @@ def _geometry(model: Any, g: int, shift: np.ndarray) -> Geometry | None:
     if t == mujoco.mjtGeom.mjGEOM_BOX:
         return Geometry("box", tuple(2 * float(s) for s in size), xyz, rpy, name=name, rgba=rgba)
     if t == mujoco.mjtGeom.mjGEOM_MESH:
+        if not collision:
+            return None
         path = _mesh_file(model, int(model.geom_dataid[g]))
         return Geometry("mesh", (1.0, 1.0, 1.0), xyz, rpy, filename=path, name=name, rgba=rgba)
     return None
@@ -253,10 +259,11 @@ def load_mjcf(path: Path) -> RobotDescription:
         visuals: list[Geometry] = []
         collisions: list[Geometry] = []
         for g in range(int(m.body_geomadr[b]), int(m.body_geomadr[b]) + int(m.body_geomnum[b])):
-            geom = _geometry(m, g, shift)
+            collides = bool(m.geom_contype[g] or m.geom_conaffinity[g])
+            geom = _geometry(m, g, shift, collides)
             if geom is None:
                 continue
-            (collisions if (m.geom_contype[g] or m.geom_conaffinity[g]) else visuals).append(geom)
+            (collisions if collides else visuals).append(geom)
         links.append(LinkRecord(name, inertial, tuple(visuals), tuple(collisions)))
         link_names.append(name)
     if unnamed:

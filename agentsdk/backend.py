@@ -195,10 +195,11 @@ class Backend(ABC):
         self.max_velocity = _readonly([j.max_velocity for j in joints])
         self.max_effort = _readonly([j.max_effort for j in joints])
         q0 = np.zeros(len(joints))
-        for name, q in config.initial_positions.items():
+        # the description's own start pose (an MJCF "home" keyframe), then robot.yaml initial_positions
+        for name, q in {**description.default_positions, **config.initial_positions}.items():
             if name in self.index:
                 q0[self.index[name]] = q
-        #: where the joints start (robot.yaml ``initial_positions``, else 0)
+        #: where the joints start (the description's default pose and robot.yaml ``initial_positions``, else 0)
         self.initial_positions = _readonly(q0)
 
     def _validate_options(self, options: dict[str, Any]) -> Any:

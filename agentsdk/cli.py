@@ -4,7 +4,9 @@
                                 (``--record run.mcap``, ``--plot out.png``, ``--view``)
 ``agentsdk replay RUN.mcap``    replay a recording's commands and report the divergence
 ``agentsdk robots``             list the shipped robots
-``agentsdk describe ROBOT``     print the joint tree with types and limits (like check_urdf)
+``agentsdk describe ROBOT``     print the joint tree with types and limits (like check_urdf; URDF, xacro, MJCF)
+``agentsdk check ROBOT``        check_urdf plus a doctor: repairs, masses, start pose, self-collision,
+                                and a load on each installed simulator (each in its own process)
 ``agentsdk graph BEHAVIOR``     print the Mermaid diagram of the behavior's state machines
 ``agentsdk emulate-can ...``    run the MIT motor emulator on a CAN bus
 ``agentsdk bench ...``          run the benchmarks, each figure beside its raw baseline
@@ -490,6 +492,23 @@ def _cmd_describe(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_check(args: argparse.Namespace) -> int:
+    from .check import check_robot
+
+    report = check_robot(args.robot, backends=args.backend, strict=True if args.strict else None, timeout=args.timeout)
+    for line in report.lines:
+        print(line)
+    if report.problems:
+        if report.lines:
+            print()
+        for problem in report.problems:
+            print(f"error: {problem}", file=sys.stderr)
+        return EXIT_BEHAVIOR_FAILED
+    print()
+    print("ok")
+    return 0
+
+
 def _cmd_graph(args: argparse.Namespace) -> int:
     from .statemachine import find_machines
 
@@ -563,8 +582,14 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--debug", action="store_true", help="show tracebacks")
 
     sub.add_parser("robots", help="list the shipped robots")
-    d = sub.add_parser("describe", help="print a robot's joint tree and limits")
+    d = sub.add_parser("describe", help="print a robot's joint tree and limits (URDF, xacro, MJCF, robot.yaml)")
     d.add_argument("robot")
+    c = sub.add_parser("check", help="check a robot description and load it on each installed simulator")
+    c.add_argument("robot", help="robot name, or a .urdf, .xacro, MJCF .xml or robot.yaml")
+    c.add_argument("--backend", action="append", metavar="NAME",
+                   help="simulator(s) to load on (default: every installed one of mujoco, pybullet)")
+    c.add_argument("--strict", action="store_true", help="treat every repair as an error")
+    c.add_argument("--timeout", type=float, default=300.0, help="seconds allowed per simulator load")
     g = sub.add_parser("graph", help="print the Mermaid diagram of a behavior's state machines")
     g.add_argument("behavior")
     sub.add_parser("emulate-can", help="run the MIT motor emulator (see `agentsdk emulate-can --help`)",
@@ -593,6 +618,7 @@ def main(argv: list[str] | None = None) -> int:
         "replay": _cmd_replay,
         "robots": _cmd_robots,
         "describe": _cmd_describe,
+        "check": _cmd_check,
         "graph": _cmd_graph,
     }
     try:

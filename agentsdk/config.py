@@ -13,6 +13,9 @@ Example::
       joint1: {max_velocity: 1.5}
     initial_positions: {joint2: 0.2}
     safety: {command_timeout: 0.2}      # see agentsdk.safety.SafetyConfig
+    strict: false                       # true: refuse descriptions that need repairs
+    self_collision: auto                # auto | true | false, the same on every simulator
+    srdf: arm3.srdf                     # <disable_collisions> pairs (default: an SRDF beside the URDF)
     backends:                           # backend-specific sections, free-form per backend
       mujoco: {timestep: 0.001}
       pybullet: {timestep: 0.001}
@@ -21,7 +24,7 @@ Example::
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator
@@ -70,6 +73,14 @@ class RobotConfig(_Strict):
     initial_positions: dict[str, float] = Field(default_factory=dict)
     safety: dict[str, Any] = Field(default_factory=dict)
     backends: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    #: refuse a description that needs repairs (DescriptionError) instead of repairing it with a warning
+    strict: bool = False
+    #: self-collision on every simulator: ``auto`` (on, except pairs that are adjacent, rigidly attached,
+    #: touching at the start pose or disabled in the SRDF), ``true`` (on, except adjacent, rigidly
+    #: attached and SRDF pairs), ``false`` (links of the robot never collide with each other)
+    self_collision: Literal["auto"] | bool = "auto"
+    #: SRDF whose ``<disable_collisions>`` are honoured (relative to this file); default: one beside the URDF
+    srdf: str | None = None
     #: directory the relative ``description`` path is resolved against
     base_dir: Path = Field(default=Path("."), exclude=True)
 
@@ -82,7 +93,13 @@ class RobotConfig(_Strict):
 
     @property
     def description_path(self) -> Path:
+        """The ``description`` file as an absolute path."""
         return (self.base_dir / self.description).resolve()
+
+    @property
+    def srdf_path(self) -> Path | None:
+        """The robot.yaml ``srdf`` as an absolute path (None when not given)."""
+        return (self.base_dir / self.srdf).resolve() if self.srdf else None
 
     @property
     def control_period(self) -> float:

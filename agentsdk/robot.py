@@ -283,11 +283,12 @@ async def _open_robot(
     realtime: bool | None,
     safety: SafetyConfig | Mapping[str, Any] | None,
     options: dict[str, Any],
+    strict: bool | None = None,
 ) -> Robot:
     from .motion import MotionManager
 
     cls = load_backend(backend)
-    config, description = resolve_robot(robot)
+    config, description = resolve_robot(robot, strict=strict)
     joints = apply_overrides(description, config)
     safety_cfg = SafetyConfig.from_sources(config.safety, safety)
     bounds = PositionBounds(joints, safety_cfg.position_margin)
@@ -335,17 +336,21 @@ def connect(
     *,
     realtime: bool | None = None,
     safety: SafetyConfig | Mapping[str, Any] | None = None,
+    strict: bool | None = None,
     **options: Any,
 ) -> _Connection:
     """Connect to ``robot`` on ``backend``.
 
-    ``robot`` is a name from ``robots/`` or a path to a ``.urdf``, ``.xacro`` or
-    ``robot.yaml``. ``realtime=None`` picks the backend's default (lockstep for
-    simulators). ``safety`` overrides fields of the robot.yaml ``safety`` section;
+    ``robot`` is a name from ``robots/`` or a path to a ``.urdf``, ``.xacro``,
+    MJCF ``.xml`` or ``robot.yaml``. ``realtime=None`` picks the backend's default
+    (lockstep for simulators). ``strict=True`` (or robot.yaml ``strict: true``)
+    refuses a description that needs repairs (``DescriptionError`` listing them)
+    instead of repairing it with a warning. ``safety`` overrides fields of the
+    robot.yaml ``safety`` section;
     other keyword options go to the backend (they override robot.yaml
     ``backends.<name>``). Use as ``async with connect(...) as robot`` or
     ``robot = await connect(...)`` (then ``await robot.close()``).
     """
-    return _Connection((backend, robot, realtime, safety, dict(options)))
+    return _Connection((backend, robot, realtime, safety, dict(options), strict))
 
 

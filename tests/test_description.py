@@ -379,8 +379,8 @@ def test_continuous_joint_has_infinite_limits_and_fixed_and_mimic_are_skipped(tm
 def test_no_actuated_joints(tmp_path: Path) -> None:
     joints = '<joint name="j" type="fixed"><parent link="base"/><child link="a"/></joint>' + FIXED_B
     path = _write(tmp_path / "r.urdf", _urdf(joints))
-    with pytest.raises(DescriptionError, match=r"r\.urdf.*no actuated joints"):
-        load_description(path)
+    desc = load_description(path)  # legal URDF (a sensor rig, a rigid object): no commanded joints
+    assert desc.joints == () and len(desc.all_joints) == 2
 
 
 def test_link_with_two_parents_is_not_a_tree(tmp_path: Path) -> None:
@@ -413,10 +413,19 @@ def test_joint_referencing_unknown_link(tmp_path: Path) -> None:
         load_description(path)
 
 
-def test_unsupported_joint_type(tmp_path: Path) -> None:
+def test_floating_and_planar_joints_are_held_fixed_as_a_repair(tmp_path: Path) -> None:
     joint = '<joint name="free" type="floating"><parent link="base"/><child link="a"/></joint>'
     path = _write(tmp_path / "r.urdf", _urdf(joint + FIXED_B))
-    with pytest.raises(DescriptionError, match=r"joint 'free': joint type 'floating' is not supported"):
+    with pytest.raises(DescriptionError, match=r"joint 'free' \(line \d+\): floating joint held fixed"):
+        load_description(path, strict=True)
+    desc = load_description(path)
+    assert desc.joint_record("free").type == "fixed"
+
+
+def test_unknown_joint_type(tmp_path: Path) -> None:
+    joint = '<joint name="j" type="hinge"><parent link="base"/><child link="a"/></joint>'
+    path = _write(tmp_path / "r.urdf", _urdf(joint + FIXED_B))
+    with pytest.raises(DescriptionError, match=r"r\.urdf, line \d+: joint 'j': unknown joint type 'hinge'"):
         load_description(path)
 
 
@@ -486,7 +495,7 @@ def test_missing_package_names_uri_and_search_path(tmp_path: Path, monkeypatch: 
     monkeypatch.setenv("AGENTSDK_PACKAGE_PATH", str(tmp_path / "nothing_here"))
     urdf = _copy_mesh_arm(tmp_path)
     with pytest.raises(DescriptionError) as info:
-        load_description(urdf)
+        load_description(urdf, strict=True)
     message = str(info.value)
     assert str(urdf) in message
     assert f"package://{PKG_NAME}/meshes/link.stl" in message
@@ -499,7 +508,7 @@ def test_missing_file_inside_a_found_package(tmp_path: Path, monkeypatch: pytest
     monkeypatch.setenv("AGENTSDK_PACKAGE_PATH", str(MESH_PKG))
     urdf = _write(tmp_path / "r.urdf", MESH_ARM.read_text().replace("meshes/ee.obj", "meshes/gone.obj"))
     with pytest.raises(DescriptionError, match=r"package://agentsdk_test_meshes/meshes/gone\.obj.*file not found"):
-        load_description(urdf)
+        load_description(urdf, strict=True)
 
 
 def test_relative_and_file_uri_mesh_paths(tmp_path: Path) -> None:
@@ -515,11 +524,23 @@ def test_relative_and_file_uri_mesh_paths(tmp_path: Path) -> None:
     _assert_meshes_resolved(desc, tmp_path)
 
 
-def test_missing_relative_mesh(tmp_path: Path) -> None:
+def test_missing_relative_mesh_is_dropped_with_one_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """urdfdom does not open meshes: a missing one is dropped (visibly), strict mode refuses it."""
     text = MESH_ARM.read_text().replace(f"package://{PKG_NAME}/meshes/link.stl", "meshes/missing.stl")
     urdf = _write(tmp_path / "r.urdf", text)
-    with pytest.raises(DescriptionError, match=r"r\.urdf, line \d+: link 'link_a': cannot resolve mesh"):
-        load_description(urdf)
+    pattern = (
+        r"r\.urdf: strict mode refuses.*\n  - link 'link_a' <visual> \(line \d+\)"
+        r": cannot resolve mesh 'meshes/missing\.stl': file not found"
+    )
+    with pytest.raises(DescriptionError, match=pattern):
+        load_description(urdf, strict=True)
+    with caplog.at_level("WARNING", logger="agentsdk.description"):
+        desc = load_description(urdf, package_path=[MESH_PKG])
+    warnings = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(warnings) == 1, "every repair in one warning"
+    assert warnings[0].getMessage().count("cannot resolve mesh 'meshes/missing.stl'") == 4
+    assert desc.link("link_a").collisions == () and desc.link("link_a").visuals == ()
+    assert "missing.stl" not in desc.urdf_xml
 
 
 def test_resolved_mesh_urdf_loads_in_mujoco_and_pybullet_from_a_temp_dir() -> None:

@@ -14,17 +14,18 @@ and raises :class:`SimulationDiverged` instead, like dm_control's
 
 from __future__ import annotations
 
-import hashlib
-import tempfile
-from pathlib import Path
-from typing import Literal
+from math import inf
+from typing import Any, Literal
 
 import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
-from agentsdk.errors import BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.description.collision import SelfCollision, for_robot
+from agentsdk.description.mjcf import colliding_body_pairs
+from agentsdk.description.mjspec import build_spec
+from agentsdk.errors import AgentSDKError, BackendStartError, ConfigurationError, SimulationDiverged
 from agentsdk.types import MODES
 
 __all__ = ["MujocoController", "MujocoOptions"]
@@ -34,7 +35,6 @@ _WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADQPOS,
     mujoco.mjtWarning.mjWARN_BADQVEL,
 )
-_NATIVE_MESH = {".stl", ".obj", ".msh"}
 
 
 class MujocoOptions(BaseModel):
@@ -51,6 +51,8 @@ class MujocoOptions(BaseModel):
     armature: float = Field(default=0.0, ge=0.0)
     #: keep a free-floating base instead of fixing the root link to the world
     floating_base: bool = False
+    #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
+    self_collision: Literal["auto"] | bool | None = None
 
 
 class MujocoController(Backend):
@@ -62,6 +64,8 @@ class MujocoController(Backend):
 
     model: mujoco.MjModel
     data: mujoco.MjData
+    #: the self-collision model in use (None for an MJCF model, which keeps its own contact settings)
+    collision: SelfCollision | None = None
 
     async def _open(self) -> None:
         opts: MujocoOptions = self.options
@@ -71,29 +75,24 @@ class MujocoController(Backend):
                 f"control period {self.period:g} s is not a whole multiple of the MuJoCo timestep {opts.timestep:g} s"
             )
         self._nsub = nsub
+        desc = self.description
+        label = f"robot {desc.name!r} ({desc.source})"
         try:
-            spec = mujoco.MjSpec.from_string(self.description.urdf_xml)
+            spec = self._mjcf_spec() if desc.format == "mjcf" else self._urdf_spec()
+        except AgentSDKError:
+            raise
         except Exception as exc:
-            raise BackendStartError(f"MuJoCo could not import the URDF of {self.description.name!r}: {exc}") from exc
-        self._fix_meshes(spec)
+            raise BackendStartError(f"MuJoCo could not build {label}: {_one_line(exc)}") from exc
         spec.option.timestep = opts.timestep
         spec.option.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{opts.integrator.upper()}")
         spec.option.gravity = list(opts.gravity)
-        if opts.floating_base:
-            root = spec.worldbody.first_body()
-            if root is not None:
-                root.add_freejoint()
-        else:
-            # MuJoCo fuses links fixed to the world into the world body, and its
-            # parent/child contact filter does not apply to the world: restore the
-            # URDF convention that adjacent links do not collide.
-            for body in spec.worldbody.bodies:
-                spec.add_exclude(bodyname1="world", bodyname2=body.name)
         for j in self.joints:
             sj = spec.joint(j.name)
             if sj is None:
-                raise BackendStartError(f"joint {j.name!r} missing from the MuJoCo model")
-            sj.damping = sj.damping + opts.joint_damping
+                raise BackendStartError(f"joint {j.name!r} is missing from the MuJoCo model of {label}")
+            damping = np.array(sj.damping, dtype=float)
+            damping[0] += opts.joint_damping
+            sj.damping = damping.tolist()
             sj.armature = sj.armature + opts.armature
             act = spec.add_actuator()
             act.name = f"{j.name}_servo"
@@ -102,17 +101,26 @@ class MujocoController(Backend):
             act.gaintype = mujoco.mjtGain.mjGAIN_FIXED
             act.biastype = mujoco.mjtBias.mjBIAS_AFFINE
             act.gainprm[0] = 1.0
-            act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
-            act.forcerange = [-j.max_effort, j.max_effort]
+            if np.isfinite(j.max_effort):
+                act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+                act.forcerange = [-j.max_effort, j.max_effort]
+            else:
+                act.forcelimited = mujoco.mjtLimited.mjLIMITED_FALSE
         try:
             self.model = spec.compile()
         except Exception as exc:
-            raise BackendStartError(f"MuJoCo could not compile {self.description.name!r}: {exc}") from exc
+            raise BackendStartError(f"MuJoCo could not compile {label}: {_one_line(exc)}") from exc
         self.data = mujoco.MjData(self.model)
         m = self.model
         jids = [m.joint(j.name).id for j in self.joints]
-        self._qadr = np.array([m.jnt_qposadr[i] for i in jids])
-        self._dadr = np.array([m.jnt_dofadr[i] for i in jids])
+        self._qadr = np.array([m.jnt_qposadr[i] for i in jids], dtype=np.intp)
+        self._dadr = np.array([m.jnt_dofadr[i] for i in jids], dtype=np.intp)
+        self._mimic = [
+            (int(m.jnt_qposadr[m.joint(mm.joint).id]), int(m.jnt_qposadr[m.joint(mm.leader).id]),
+             mm.multiplier, mm.offset)
+            for mm in (desc.mimics if desc.format == "urdf" else ())
+        ]
+        self._home_key = int(mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "home")) if desc.format == "mjcf" else -1
         self._ctrl = np.zeros(m.nu)
         self._q = np.zeros(len(self.joints))
         self._v = np.zeros(len(self.joints))
@@ -120,22 +128,75 @@ class MujocoController(Backend):
         self._warn = np.zeros(len(_WARNINGS), dtype=np.int64)
         self._reset_state()
 
-    def _fix_meshes(self, spec: mujoco.MjSpec) -> None:
-        """MuJoCo's URDF importer keeps only mesh base names: point them back at real files."""
-        files = {p.name: p for p in self.description.mesh_files}
-        for mesh in spec.meshes:
-            name = Path(mesh.file).name
-            path = files.get(name)
-            if path is None:
-                continue
-            if path.suffix.lower() not in _NATIVE_MESH:
-                path = _convert_mesh(path)
-            mesh.file = str(path)
+    def _urdf_spec(self) -> mujoco.MjSpec:
+        """The URDF description built body by body, with the robot's one self-collision model."""
+        opts: MujocoOptions = self.options
+        desc = self.description
+        collision = for_robot(desc, self.config, opts.self_collision)
+        self.collision = collision
+        spec = build_spec(desc, collision.shapes, shell=collision.shell).spec
+        if collision.mode == "false":
+            # robot geoms never touch each other (contype 2 & conaffinity 1 = 0) but still touch a world with 1/1
+            for geom in spec.geoms:
+                geom.contype, geom.conaffinity = 2, 1
+        else:
+            for a, b in sorted(collision.excluded):
+                spec.add_exclude(bodyname1=a, bodyname2=b)
+        if opts.floating_base:
+            tops = list(spec.worldbody.bodies)
+            if len(tops) != 1:
+                raise BackendStartError(
+                    f"floating_base: robot {desc.name!r} has {len(tops)} bodies attached to the world, expected one"
+                )
+            tops[0].add_freejoint()
+        return spec
+
+    def _mjcf_spec(self) -> mujoco.MjSpec:
+        """The MJCF model as written (includes, assets, defaults, contacts), its actuators replaced by servos."""
+        spec = mujoco.MjSpec.from_file(str(self.description.source))
+        for sensor in list(spec.sensors):
+            if sensor.objtype == mujoco.mjtObj.mjOBJ_ACTUATOR:
+                spec.delete(sensor)
+        for act in list(spec.actuators):
+            spec.delete(act)
+        for key in spec.keys:
+            key.ctrl = []
+            key.act = []
+        return spec
+
+    def simulator_report(self) -> dict[str, Any]:
+        """What the compiled MuJoCo model holds: commanded joints, link masses, colliding link pairs.
+
+        ``joints``: ``[name, lower, upper, effort]`` per commanded joint in
+        command order (range ``±inf`` when unlimited, effort ``inf`` when the
+        servo is not force-limited); ``masses``: body mass per link;
+        ``pairs``: sorted link pairs whose geoms can collide (contype/
+        conaffinity, excludes, weld and parent filters as MuJoCo applies them).
+        The root link (fixed to the world) is left out of ``masses``.
+        """
+        m = self.model
+        joints = []
+        for k, j in enumerate(self.joints):
+            jid = m.joint(j.name).id
+            lo, hi = (float(m.jnt_range[jid, 0]), float(m.jnt_range[jid, 1])) if m.jnt_limited[jid] else (-inf, inf)
+            effort = float(m.actuator_forcerange[k, 1]) if m.actuator_forcelimited[k] else inf
+            joints.append([j.name, lo, hi, effort])
+        names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}" for b in range(m.nbody)]
+        names[0] = "world"
+        root = self.description.root_link
+        masses = {names[b]: float(m.body_mass[b]) for b in range(1, m.nbody) if names[b] != root}
+        pairs = colliding_body_pairs(m, world=self.description.format != "mjcf")
+        return {"joints": joints, "masses": masses, "pairs": sorted(pairs)}
 
     def _reset_state(self) -> None:
         m, d = self.model, self.data
-        mujoco.mj_resetData(m, d)
+        if self._home_key >= 0:
+            mujoco.mj_resetDataKeyframe(m, d, self._home_key)
+        else:
+            mujoco.mj_resetData(m, d)
         d.qpos[self._qadr] = self.initial_positions
+        for follower, leader, multiplier, offset in self._mimic:
+            d.qpos[follower] = multiplier * d.qpos[leader] + offset
         mujoco.mj_forward(m, d)
         self._warn[:] = [d.warning[w].number for w in _WARNINGS]
 
@@ -194,14 +255,5 @@ class MujocoController(Backend):
         self._reset_state()
 
 
-def _convert_mesh(path: Path) -> Path:
-    """Convert a mesh MuJoCo cannot read (e.g. COLLADA .dae) to STL in a cache dir."""
-    import trimesh
-
-    digest = hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:12]
-    out = Path(tempfile.gettempdir()) / "agentsdk-meshes" / f"{path.stem}-{digest}.stl"
-    if not out.exists():
-        out.parent.mkdir(parents=True, exist_ok=True)
-        mesh = trimesh.load(path, force="mesh")
-        mesh.export(out)
-    return out
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split()) or type(exc).__name__

@@ -41,16 +41,19 @@ import math
 import os
 import sys
 import tempfile
-import xml.etree.ElementTree as ET
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pybullet as p
 from pydantic import BaseModel, ConfigDict, Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
-from agentsdk.errors import BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.description import RobotDescription
+from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf
+from agentsdk.description.mjcf import mjcf_unsupported_by_pybullet
+from agentsdk.description.simurdf import collapsible_links, simulator_urdf
+from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
 from agentsdk.types import MODES
 
 __all__ = ["PybulletController", "PybulletOptions"]
@@ -63,6 +66,10 @@ MAX_SPEED = 1e4
 _SPEED_CAP = 10.0 * MAX_SPEED
 
 _MOVABLE = {p.JOINT_REVOLUTE: "revolute", p.JOINT_PRISMATIC: "prismatic"}
+#: PyBullet's state queries (getBasePositionAndOrientation, getJointStates) fail beyond this many links
+_MAX_LINKS = 127
+#: force limit of the gear constraints that make mimic joints follow their leader (N or N·m)
+_GEAR_FORCE = 1e5
 
 
 class PybulletOptions(BaseModel):
@@ -79,8 +86,8 @@ class PybulletOptions(BaseModel):
     solver_iterations: int = Field(default=50, ge=1)
     #: keep a free-floating base instead of fixing the root link to the world
     floating_base: bool = False
-    #: collide links of the robot with each other (parent/child pairs excluded); PyBullet's default is off
-    self_collision: bool = False
+    #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
+    self_collision: Literal["auto"] | bool | None = None
     #: open the PyBullet GUI (needs a display; one GUI per process)
     gui: bool = False
 
@@ -91,6 +98,8 @@ class PybulletController(Backend):
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )
     options_model = PybulletOptions
+    #: the self-collision model in use (None for an MJCF model)
+    collision: SelfCollision | None = None
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -134,9 +143,11 @@ class PybulletController(Backend):
         try:
             self._cid = p.connect(p.GUI if opts.gui else p.DIRECT)
         except p.error as exc:  # e.g. a second GUI in the same process
-            raise BackendStartError(f"PyBullet could not open a physics client: {exc}") from exc
+            raise BackendStartError(
+                f"PyBullet could not open a physics client for robot {self.description.name!r}: {exc}"
+            ) from exc
         if self._cid < 0:
-            raise BackendStartError("PyBullet could not open a physics client")
+            raise BackendStartError(f"PyBullet could not open a physics client for robot {self.description.name!r}")
         cid = self._cid
         if opts.gui:
             p.configureDebugVisualizer(p.COV_ENABLE_GUI, 0, physicsClientId=cid)
@@ -152,18 +163,56 @@ class PybulletController(Backend):
         self._reset_state()
 
     def _load_body(self) -> None:
+        desc = self.description
+        label = f"robot {desc.name!r} ({desc.source})"
+        try:
+            self._load_urdf(label)
+            self._setup_dofs(label)
+        except AgentSDKError:
+            raise
+        except Exception as exc:  # p.error and anything PyBullet's bindings raise
+            raise BackendStartError(f"PyBullet could not load {label}: {' '.join(str(exc).split())}") from exc
+
+    def _load_urdf(self, label: str) -> None:
+        """Load the URDF written from the description: tree order, repaired inertials, one collision model.
+
+        An MJCF model goes the same way, from the records MuJoCo compiled
+        (:mod:`agentsdk.description.mjcf`), when a URDF can carry it.
+        """
         opts: PybulletOptions = self.options
         cid = self._cid
-        # PyBullet's URDF parser (tinyxml2) rejects some valid files written on one very long line
-        # (XML_ERROR_PARSING_ATTRIBUTE on the humanoid's 12 kB line): put every element on its own line
-        urdf_xml = self.description.urdf_xml.replace("><", ">\n<")
+        desc = self.description
+        if desc.format == "mjcf":
+            unsupported = mjcf_unsupported_by_pybullet(desc)
+            if unsupported:
+                raise BackendStartError(
+                    f"PyBullet cannot load {label}: the MJCF model uses {'; '.join(unsupported)}, which a URDF "
+                    "cannot carry (PyBullet's own loadMJCF reads even less: no <include>, default classes or "
+                    "meshdir). Use the mujoco backend for this model"
+                )
+            collision = from_mjcf(desc)
+        else:
+            collision = for_robot(desc, self.config, opts.self_collision)
+        self.collision = collision
+        skip: frozenset[str] = frozenset()
         base_pose: tuple[list[float], list[float]] | None = None
         if opts.floating_base:
-            urdf_xml, base_pose = _strip_world_link(urdf_xml)
+            skip, base_pose = _world_link(desc)
+        # PyBullet's state queries fail beyond MAX_LINKS links: leave out links that carry nothing
+        extra = len(desc.links) - 1 - len(skip) - _MAX_LINKS
+        collapse = collapsible_links(desc, collision.shapes, extra) if extra > 0 else frozenset()
+        if extra > len(collapse):
+            raise BackendStartError(
+                f"PyBullet cannot load {label}: it has {len(desc.links) - 1 - len(skip)} links besides the base, "
+                f"PyBullet handles at most {_MAX_LINKS}, and only {len(collapse)} of them carry nothing "
+                "(no mass, no collision shape) and can be left out"
+            )
+        urdf_xml = simulator_urdf(desc, collision.shapes, visuals=opts.gui, skip_links=skip, collapse=collapse)
+        # links are written parent before child, so PyBullet keeps the file's order without crashing
         flags = p.URDF_USE_INERTIA_FROM_FILE | p.URDF_MAINTAIN_LINK_ORDER
-        if opts.self_collision:
-            flags |= p.URDF_USE_SELF_COLLISION | p.URDF_USE_SELF_COLLISION_EXCLUDE_PARENT
-        fd, tmp = tempfile.mkstemp(suffix=".urdf", prefix=f"agentsdk-{self.description.name}-")
+        if collision.mode != "false":
+            flags |= p.URDF_USE_SELF_COLLISION  # every pair; the excluded ones are filtered below
+        fd, tmp = tempfile.mkstemp(suffix=".urdf", prefix=f"agentsdk-{_safe(desc.name)}-")
         try:
             with os.fdopen(fd, "w", encoding="utf-8") as f:
                 f.write(urdf_xml)
@@ -171,12 +220,36 @@ class PybulletController(Backend):
             if base_pose is not None:
                 kw = {"basePosition": base_pose[0], "baseOrientation": base_pose[1]}
             self._body = p.loadURDF(tmp, useFixedBase=not opts.floating_base, flags=flags, physicsClientId=cid, **kw)
-        except p.error as exc:
-            raise BackendStartError(f"PyBullet could not load the URDF of {self.description.name!r}: {exc}") from exc
         finally:
             Path(tmp).unlink(missing_ok=True)
         body = self._body
+        self._links = {p.getBodyInfo(body, physicsClientId=cid)[0].decode("utf-8"): -1}
+        for i in range(p.getNumJoints(body, physicsClientId=cid)):
+            self._links[p.getJointInfo(body, i, physicsClientId=cid)[12].decode("utf-8")] = i
+        self._filtered: set[tuple[str, str]] = set()
+        if collision.mode != "false":
+            for a, b in sorted(collision.excluded):
+                if a in self._links and b in self._links:
+                    p.setCollisionFilterPair(body, body, self._links[a], self._links[b], 0, physicsClientId=cid)
+                    self._filtered.add((a, b))
+        # mimic joints: a gear constraint q_follower - multiplier * q_leader = offset
+        joint_link = {j.name: self._links.get(j.child) for j in desc.all_joints}
+        for m in desc.mimics:
+            follower, leader = joint_link.get(m.joint), joint_link.get(m.leader)
+            if follower is None or leader is None or follower < 0 or leader < 0:
+                raise BackendStartError(f"mimic joint {m.joint!r} of {label} has no PyBullet joint")
+            c = p.createConstraint(
+                body, follower, body, leader, p.JOINT_GEAR, [0, 0, 1], [0, 0, 0], [0, 0, 0], physicsClientId=cid
+            )
+            p.changeConstraint(
+                c, gearRatio=-m.multiplier, relativePositionTarget=m.offset, erp=0.5, maxForce=_GEAR_FORCE,
+                physicsClientId=cid,
+            )
+        self._mimic_pairs = [(m.joint, m.leader, m.multiplier, m.offset) for m in desc.mimics]
 
+    def _setup_dofs(self, label: str) -> None:
+        opts: PybulletOptions = self.options
+        cid, body = self._cid, self._body
         # every movable joint of the multibody (actuated or not), in dof order
         infos = [p.getJointInfo(body, i, physicsClientId=cid) for i in range(p.getNumJoints(body, physicsClientId=cid))]
         by_name: dict[str, tuple[Any, ...]] = {}
@@ -188,7 +261,7 @@ class PybulletController(Backend):
                 continue
             if info[2] not in _MOVABLE:
                 raise BackendStartError(
-                    f"joint {name!r} of {self.description.name!r} has a type PyBullet loads as "
+                    f"joint {name!r} of {label} has a type PyBullet loads as "
                     f"{info[2]} (spherical/planar); only revolute, continuous and prismatic joints are supported"
                 )
             dofs.append(info)
@@ -200,18 +273,18 @@ class PybulletController(Backend):
         for j in self.joints:
             info = by_name.get(j.name)
             if info is None or info[2] == p.JOINT_FIXED:
-                raise BackendStartError(
-                    f"joint {j.name!r} is missing from the PyBullet model of {self.description.name!r}"
-                )
+                raise BackendStartError(f"joint {j.name!r} is missing from the PyBullet model of {label}")
             sel.append(row[int(info[0])])
         self._sel = np.array(sel, dtype=np.intp)
-        passive = [info[1].decode("utf-8") for k, info in enumerate(dofs) if k not in set(sel)]
+        self._dof_row = {info[1].decode("utf-8"): k for k, info in enumerate(dofs)}
+        followers = {m[0] for m in self._mimic_pairs}
+        passive = [
+            info[1].decode("utf-8")
+            for k, info in enumerate(dofs)
+            if k not in set(sel) and info[1].decode("utf-8") not in followers
+        ]
         if passive:
-            log.warning(
-                "%s: movable joints %s are not actuated (mimic joints?); they stay passive in PyBullet",
-                self.description.name,
-                ", ".join(passive),
-            )
+            log.warning("%s: movable joints %s are not commanded; they stay passive", label, ", ".join(passive))
 
         # passive dynamics: our own damping (URDF + option), Coulomb friction through the motors
         self._damping = np.array([float(info[6]) for info in dofs]) + opts.joint_damping
@@ -221,9 +294,11 @@ class PybulletController(Backend):
         for j in self._dofs:
             p.changeDynamics(body, j, jointDamping=0.0, maxJointVelocity=_SPEED_CAP, physicsClientId=cid)
         # turn the default velocity motors off (they hold the joints otherwise); keep URDF friction
-        p.setJointMotorControlArray(
-            body, self._dofs, p.VELOCITY_CONTROL, targetVelocities=[0.0] * nd, forces=friction, physicsClientId=cid
-        )
+        if nd:
+            p.setJointMotorControlArray(
+                body, self._dofs, p.VELOCITY_CONTROL, targetVelocities=[0.0] * nd, forces=friction,
+                physicsClientId=cid,
+            )
         self._implicit = not opts.floating_base
         self._base_pose = p.getBasePositionAndOrientation(body, physicsClientId=cid)
 
@@ -235,10 +310,48 @@ class PybulletController(Backend):
         self._zeros = [0.0] * nd
         self._diag = np.diag_indices(nd)
 
+    def simulator_report(self) -> dict[str, Any]:
+        """What the loaded PyBullet body holds: commanded joints, link masses, colliding link pairs.
+
+        Same layout as the MuJoCo backend's: ``joints`` ``[name, lower, upper,
+        effort]`` in command order (PyBullet's ``lower > upper`` means
+        unlimited, reported as ``±inf``; an effort of 1e30 or more as ``inf``);
+        ``masses`` from ``getDynamicsInfo`` (the root link, fixed to the world,
+        is left out: PyBullet reports 0 for a fixed base); ``pairs`` the link
+        pairs with collision shapes that self-collision does not filter out.
+        """
+        cid, body = self._cid, self._body
+        joints = []
+        index = {p.getJointInfo(body, i, physicsClientId=cid)[1].decode("utf-8"): i for i in self._links.values()
+                 if i >= 0}
+        for j in self.joints:
+            info = p.getJointInfo(body, index[j.name], physicsClientId=cid)
+            lo, hi = float(info[8]), float(info[9])
+            if lo > hi:
+                lo, hi = -math.inf, math.inf
+            effort = float(info[10])
+            joints.append([j.name, lo, hi, math.inf if effort >= 1e29 else effort])
+        masses = {
+            name: float(p.getDynamicsInfo(body, i, physicsClientId=cid)[0]) for name, i in self._links.items() if i >= 0
+        }
+        geometric = sorted(
+            name for name, i in self._links.items() if p.getCollisionShapeData(body, i, physicsClientId=cid)
+        )
+        pairs: list[tuple[str, str]] = []
+        if self.collision is not None and self.collision.mode != "false":
+            for k, a in enumerate(geometric):
+                for b in geometric[k + 1 :]:
+                    pair = (a, b) if a <= b else (b, a)
+                    if pair not in self._filtered:
+                        pairs.append(pair)
+        return {"joints": joints, "masses": masses, "pairs": sorted(pairs)}
+
     def _reset_state(self) -> None:
         cid, body = self._cid, self._body
         q0 = np.zeros(len(self._dofs))
         q0[self._sel] = self.initial_positions
+        for follower, leader, multiplier, offset in self._mimic_pairs:
+            q0[self._dof_row[follower]] = multiplier * q0[self._dof_row[leader]] + offset
         for k, j in enumerate(self._dofs):
             p.resetJointState(body, j, float(q0[k]), 0.0, physicsClientId=cid)
         if self.options.floating_base:
@@ -308,7 +421,7 @@ class PybulletController(Backend):
             self._sense()
 
     def _sense(self) -> None:
-        states = p.getJointStates(self._body, self._dofs, physicsClientId=self._cid)
+        states = p.getJointStates(self._body, self._dofs, physicsClientId=self._cid) if self._dofs else ()
         q, v = self._q_all, self._v_all
         for k, s in enumerate(states):
             q[k] = s[0]
@@ -344,32 +457,22 @@ def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def _strip_world_link(urdf_xml: str) -> tuple[str, tuple[list[float], list[float]] | None]:
-    """For a floating base: drop a massless root link fixed to the next one (the ROS ``world`` link).
+def _world_link(desc: RobotDescription) -> tuple[frozenset[str], tuple[list[float], list[float]] | None]:
+    """For a floating base: a massless root link fixed to the next one (the ROS ``world`` link) is left out.
 
     PyBullet treats a massless base as static, so ``world -(fixed)-> base_link``
     would stay bolted down; the child becomes the floating root, placed at the
     fixed joint's origin.
     """
-    root = ET.fromstring(urdf_xml)
-    links = {link.get("name"): link for link in root.findall("link")}
-    joints = root.findall("joint")
-    children = {j.find("child").get("link") for j in joints if j.find("child") is not None}  # type: ignore[union-attr]
-    roots = [name for name in links if name not in children]
-    if len(roots) != 1:
-        return urdf_xml, None
-    top = links[roots[0]]
-    if top.find("inertial") is not None:
-        return urdf_xml, None
-    out = [j for j in joints if j.find("parent") is not None and j.find("parent").get("link") == roots[0]]  # type: ignore[union-attr]
-    if len(out) != 1 or out[0].get("type") != "fixed":
-        return urdf_xml, None
-    origin = out[0].find("origin")
-    xyz = [float(x) for x in (origin.get("xyz", "0 0 0") if origin is not None else "0 0 0").split()]
-    rpy = [float(x) for x in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()]
-    root.remove(top)
-    root.remove(out[0])
-    return ET.tostring(root, encoding="unicode"), (xyz, list(_quat_from_rpy(rpy)))
+    root = desc.link(desc.root_link)
+    out = desc.child_joints(desc.root_link)
+    if root.mass > 0 or len(out) != 1 or out[0].type != "fixed":
+        return frozenset(), None
+    return frozenset({desc.root_link}), (list(out[0].xyz), list(_quat_from_rpy(list(out[0].rpy))))
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)[:40]
 
 
 def _quat_from_rpy(rpy: list[float]) -> tuple[float, float, float, float]:

@@ -1,0 +1,163 @@
+"""``agentsdk check ROBOT``: check_urdf plus a doctor, the first stop with a new robot.
+
+:func:`check_robot` loads the description (URDF, xacro, MJCF or robot.yaml)
+and reports the joint tree, every repair and default, the link masses, the
+start pose, the self-collision pairs left out and why, then loads the robot on
+each installed simulator, each in its own process (:mod:`agentsdk.probe`), so
+a simulator that crashes cannot take the check down with it. It returns the
+report lines and the problems (one line each); the CLI prints them and exits 1
+when there is a problem.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .errors import AgentSDKError
+
+__all__ = ["CheckReport", "check_robot"]
+
+SIMULATORS = ("mujoco", "pybullet")
+
+
+@dataclass
+class CheckReport:
+    """What ``agentsdk check`` found: ``lines`` to show, ``problems`` (one line each; any makes it fail)."""
+
+    lines: list[str] = field(default_factory=list)
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True when nothing failed."""
+        return not self.problems
+
+
+def _wrap(items: Sequence[str], indent: str = "    ", width: int = 110) -> list[str]:
+    out: list[str] = []
+    line = indent
+    for item in items:
+        piece = item if line == indent else ", " + item
+        if len(line) + len(piece) > width and line != indent:
+            out.append(line + ",")
+            line = indent + item
+        else:
+            line += piece
+    if line != indent:
+        out.append(line)
+    return out
+
+
+def _installed(names: Sequence[str]) -> list[str]:
+    from .registry import available_backends
+
+    known = set(available_backends())
+    return [n for n in names if n in known]
+
+
+def check_robot(
+    robot: str | Path,
+    *,
+    backends: Sequence[str] | None = None,
+    strict: bool | None = None,
+    timeout: float = 300.0,
+) -> CheckReport:
+    """Check ``robot`` (see the module docstring); ``backends`` defaults to the installed simulators."""
+    from .description import apply_overrides, resolve_robot
+    from .description.collision import for_robot, from_mjcf
+
+    report = CheckReport()
+    out = report.lines
+    try:
+        config, desc = resolve_robot(robot, strict=strict)
+        joints = apply_overrides(desc, config)
+    except AgentSDKError as exc:
+        report.problems.append(" ".join(str(exc).split()) if "\n" not in str(exc) else str(exc).splitlines()[0])
+        report.problems.extend(line.strip() for line in str(exc).splitlines()[1:] if line.strip())
+        return report
+
+    try:
+        collision = from_mjcf(desc) if desc.format == "mjcf" else for_robot(desc, config)
+    except AgentSDKError as exc:
+        report.problems.append(f"self-collision model: {' '.join(str(exc).split())}")
+        collision = None
+    repairs = [*desc.repairs, *(collision.repairs if collision is not None else ())]
+
+    kind = {"urdf": "URDF", "mjcf": "MJCF"}[desc.format]
+    out.append(f"robot '{desc.name}' ({kind}): {desc.source}")
+    out.append("")
+    out.append("joint tree:")
+    out.extend("  " + line for line in desc.tree_lines())
+    out.append("")
+    if repairs:
+        out.append(f"repairs ({len(repairs)}, so that every simulator can load it; strict: true refuses them):")
+        out.extend(f"  - {r}" for r in repairs)
+    else:
+        out.append("repairs: none")
+    if desc.defaults:
+        out.append("defaults (values the description leaves out):")
+        out.extend(f"  - {r}" for r in desc.defaults)
+    out.append("")
+
+    moving = [rec for rec in desc.link_records if rec.mass > 0]
+    out.append(f"masses: {desc.total_mass():.4g} kg in {len(moving)} of {len(desc.link_records)} links (kg):")
+    out.extend(_wrap([f"{rec.name} {rec.mass:.4g}" for rec in moving]))
+    out.append("")
+
+    start = {**desc.default_positions, **config.initial_positions}
+    source = "robot.yaml initial_positions" if config.initial_positions else (
+        "the model's home keyframe" if desc.default_positions else "all joints at 0"
+    )
+    out.append(f"start pose ({source}):")
+    entries = []
+    for j in joints:
+        q = start.get(j.name, 0.0)
+        flag = "" if j.within(q) else f" (outside its limits [{j.lower:g}, {j.upper:g}])"
+        entries.append(f"{j.name}={q:g}{flag}")
+    out.extend(_wrap(entries) or ["    (no commanded joints)"])
+    outside = [j.name for j in joints if not j.within(start.get(j.name, 0.0))]
+    if outside:
+        out.append(f"  note: {', '.join(outside)} start outside their limits; set initial_positions in robot.yaml")
+    out.append("")
+
+    if collision is not None:
+        mode = "the model's own contact settings" if desc.format == "mjcf" else collision.mode
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(collision.reasons().items())) or "none"
+        out.append(
+            f"self-collision ({mode}): {len(collision.pairs)} link pairs collide; "
+            f"{len(collision.excluded)} left out ({reasons})"
+        )
+        if collision.srdf is not None:
+            out.append(f"  SRDF: {collision.srdf}")
+        by_reason: dict[str, list[str]] = {}
+        for (a, b), reason in sorted(collision.excluded.items()):
+            by_reason.setdefault(reason, []).append(f"{a}–{b}")
+        for reason, pairs in sorted(by_reason.items()):
+            out.append(f"  left out, {reason} ({len(pairs)}):")
+            out.extend(_wrap(pairs, indent="    "))
+        out.append("")
+
+    from .probe import ProbePool
+
+    chosen = list(backends) if backends else _installed(SIMULATORS)
+    out.append("simulators (each in its own process):")
+    if not chosen:
+        out.append("  none installed")
+    jobs = [{"robot": str(robot), "backend": b, "duration": 0.05, "options": {}} for b in chosen]
+    if strict is not None:
+        for job in jobs:
+            job["options"] = {"strict": strict}
+    with ProbePool(workers=min(2, max(1, len(jobs))), timeout=timeout) as pool:
+        results = pool.run(jobs)
+    for backend, r in zip(chosen, results, strict=True):
+        if r.get("loaded"):
+            note = "loads and runs" if r.get("ok") else f"loads, then {r.get('run_error')}"
+            n, seconds = len(r["joints"]), r.get("seconds", math.nan)
+            out.append(f"  {backend:9s} ✓ {note} ({n} joint{'s' if n != 1 else ''}, {seconds:.2f} s)")
+        else:
+            out.append(f"  {backend:9s} ✗ {r.get('error_type')}")
+            report.problems.append(f"{backend}: {' '.join(str(r.get('error')).split())}")
+    return report

@@ -1,0 +1,76 @@
+"""``load_description``: one entry point for URDF, xacro and MJCF files, strict or with visible repairs."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from ..errors import DescriptionError
+from .model import RobotDescription
+from .urdf import load_urdf
+
+__all__ = ["MJCF_SUFFIXES", "is_mjcf", "load_description", "repair_report"]
+
+log = logging.getLogger("agentsdk.description")
+
+#: file suffixes read as MuJoCo MJCF models
+MJCF_SUFFIXES = (".xml", ".mjcf")
+
+
+def is_mjcf(path: Path) -> bool:
+    """True when ``path`` names an MJCF model (by suffix, or an ``.xml`` whose root is ``<mujoco>``)."""
+    return path.suffix.lower() in MJCF_SUFFIXES
+
+
+def repair_report(description: RobotDescription, strict: bool = False) -> str:
+    """The repairs as one message: a headline, then one indented line per repair."""
+    n = len(description.repairs)
+    what = f"{n} repair{'s' if n != 1 else ''}"
+    if strict:
+        head = f"{description.source}: strict mode refuses the {what} the simulators need:"
+    else:
+        head = (
+            f"robot '{description.name}' ({description.source}): {what} so that every simulator can load it "
+            "(strict: true refuses them):"
+        )
+    return "\n".join([head, *(f"  - {r}" for r in description.repairs)])
+
+
+def load_description(
+    path: str | Path,
+    xacro_args: Mapping[str, str] | None = None,
+    package_path: Sequence[Path] | None = None,
+    *,
+    strict: bool = False,
+    warn: bool = True,
+) -> RobotDescription:
+    """Load a ``.urdf``, ``.xacro`` or MJCF ``.xml`` file into a :class:`RobotDescription`.
+
+    ``xacro_args`` are ``<xacro:arg>`` values (an arg the file does not use is
+    an error). ``package_path`` lists extra directories searched first for
+    ``package://`` URIs and ``$(find pkg)``. Parsing follows ROS's urdfdom;
+    what the simulators cannot take is repaired (see
+    :mod:`agentsdk.description.urdf`) and, with ``warn``, logged as one warning
+    listing every repair. ``strict=True`` raises a ``DescriptionError`` listing
+    the repairs instead. Broken files raise ``DescriptionError`` naming the
+    file, line and element.
+    """
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise DescriptionError(f"robot description not found: {path}" + (" (a directory)" if path.is_dir() else ""))
+    path = path.resolve()
+    if is_mjcf(path):
+        if xacro_args:
+            raise DescriptionError(f"{path}: xacro_args {dict(xacro_args)} given, but the file is an MJCF model")
+        from .mjcf import load_mjcf
+
+        description = load_mjcf(path)
+    else:
+        description = load_urdf(path, xacro_args, package_path)
+    if description.repairs:
+        if strict:
+            raise DescriptionError(repair_report(description, strict=True))
+        if warn:
+            log.warning("%s", repair_report(description))
+    return description

@@ -1,0 +1,374 @@
+"""MJCF models (MuJoCo Menagerie style) read through MuJoCo itself.
+
+MuJoCo parses and compiles the file - ``<include>``, ``meshdir``/``assetdir``,
+assets, ``<default>`` classes, ``fromto``, ``autolimits`` - exactly as the
+MuJoCo backend will, and the description is read from the compiled model:
+
+* commanded joints: the named hinge and slide joints that do not follow
+  another joint through a joint ``<equality>`` (those are mimic joints), in
+  model order; position limits from ``range`` (unlimited hinge: continuous);
+* effort limits from the joint's ``actuatorfrcrange``, else from the
+  actuators driving the joint (``forcerange`` times ``gear``, or a motor's
+  ``ctrlrange`` times its gain and gear), else unlimited; MJCF has no velocity
+  limits, so the SDK default is used (listed in ``defaults``);
+* start positions from the keyframe named ``home``;
+* links are bodies; their frames sit on the joint axis (a joint ``pos``
+  shifts the link frame, as URDF requires), a body with several joints
+  becomes a chain of massless links named ``body/joint``; geometry is the
+  compiled geometry (collision meshes as MuJoCo processed them, written once
+  to a cache as OBJ files so another simulator sees the same vertices; visual
+  meshes are left out of the records).
+
+The MuJoCo backend loads the file itself (``description.source``); other
+backends use these records.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from pathlib import Path
+from typing import Any, Literal, cast
+
+import numpy as np
+
+from ..errors import DescriptionError
+from ..types import JointInfo
+from .meshes import _cache_dir
+from .model import (
+    DEFAULT_VELOCITY,
+    Geometry,
+    Inertial,
+    JointRecord,
+    LinkRecord,
+    Repair,
+    RobotDescription,
+    rpy_from_rotation,
+)
+
+__all__ = ["colliding_body_pairs", "load_mjcf", "mjcf_unsupported_by_pybullet"]
+
+Vec3 = tuple[float, float, float]
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _compile(path: Path) -> tuple[Any, Any]:
+    import mujoco
+
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+        model = spec.compile()
+    except Exception as exc:
+        raise DescriptionError(f"{path}: MuJoCo cannot load the MJCF model: {_one_line(str(exc))}") from exc
+    return spec, model
+
+
+def _quat_matrix(quat: Any) -> np.ndarray:
+    import mujoco
+
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(quat, dtype=float))
+    return mat.reshape(3, 3)
+
+
+def _mesh_file(model: Any, mesh_id: int) -> Path:
+    """The compiled mesh (vertices in the geom's frame) as an OBJ file in the cache."""
+    va, vn = int(model.mesh_vertadr[mesh_id]), int(model.mesh_vertnum[mesh_id])
+    fa, fn = int(model.mesh_faceadr[mesh_id]), int(model.mesh_facenum[mesh_id])
+    verts = np.asarray(model.mesh_vert[va : va + vn], dtype=float)
+    faces = np.asarray(model.mesh_face[fa : fa + fn], dtype=np.int64)
+    digest = hashlib.sha1(verts.tobytes() + faces.tobytes()).hexdigest()[:16]
+    out = _cache_dir() / f"mjcf-mesh-{digest}.obj"
+    if not out.exists():
+        lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in verts.tolist()]
+        lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces.tolist()]
+        tmp = out.with_suffix(".tmp")
+        tmp.write_text("\n".join(lines) + "\n")
+        tmp.replace(out)
+    return out
+
+
+def _geometry(model: Any, g: int, shift: np.ndarray, collision: bool) -> Geometry | None:
+    """Geom ``g`` in its link's frame (the body frame moved by ``shift``); None for types URDF cannot hold.
+
+    Visual meshes are left out (only collision meshes are written to the cache).
+    """
+    import mujoco
+
+    t = int(model.geom_type[g])
+    size = model.geom_size[g]
+    xyz = cast(Vec3, tuple(float(v) for v in np.asarray(model.geom_pos[g]) - shift))
+    rpy = rpy_from_rotation(_quat_matrix(model.geom_quat[g]))
+    rgba = cast(tuple[float, float, float, float], tuple(float(v) for v in model.geom_rgba[g]))
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or None
+    if t == mujoco.mjtGeom.mjGEOM_SPHERE:
+        return Geometry("sphere", (float(size[0]),), xyz, rpy, name=name, rgba=rgba)
+    if t == mujoco.mjtGeom.mjGEOM_CAPSULE:
+        return Geometry("capsule", (float(size[0]), 2 * float(size[1])), xyz, rpy, name=name, rgba=rgba)
+    if t == mujoco.mjtGeom.mjGEOM_CYLINDER:
+        return Geometry("cylinder", (float(size[0]), 2 * float(size[1])), xyz, rpy, name=name, rgba=rgba)
+    if t == mujoco.mjtGeom.mjGEOM_BOX:
+        return Geometry("box", tuple(2 * float(s) for s in size), xyz, rpy, name=name, rgba=rgba)
+    if t == mujoco.mjtGeom.mjGEOM_MESH:
+        if not collision:
+            return None
+        path = _mesh_file(model, int(model.geom_dataid[g]))
+        return Geometry("mesh", (1.0, 1.0, 1.0), xyz, rpy, filename=path, name=name, rgba=rgba)
+    return None
+
+
+def _effort(model: Any, jid: int) -> float:
+    """The joint's effort limit (see the module docstring); inf when the model gives none."""
+    import mujoco
+
+    if model.jnt_actfrclimited[jid]:
+        return float(np.max(np.abs(model.jnt_actfrcrange[jid])))
+    best = 0.0
+    for a in range(model.nu):
+        if model.actuator_trntype[a] != mujoco.mjtTrn.mjTRN_JOINT or model.actuator_trnid[a, 0] != jid:
+            continue
+        gear = abs(float(model.actuator_gear[a, 0]))
+        if model.actuator_forcelimited[a]:
+            best = max(best, gear * float(np.max(np.abs(model.actuator_forcerange[a]))))
+        elif (
+            model.actuator_ctrllimited[a]
+            and model.actuator_gaintype[a] == mujoco.mjtGain.mjGAIN_FIXED
+            and model.actuator_biastype[a] == mujoco.mjtBias.mjBIAS_NONE
+        ):
+            ctrl = float(np.max(np.abs(model.actuator_ctrlrange[a])))
+            best = max(best, gear * abs(float(model.actuator_gainprm[a, 0])) * ctrl)
+    return best if best > 0 else math.inf
+
+
+def load_mjcf(path: Path) -> RobotDescription:
+    """Read an MJCF model into a :class:`RobotDescription` (see the module docstring)."""
+    import mujoco
+
+    spec, m = _compile(path)
+    obj = mujoco.mjtObj
+
+    def body_name(b: int) -> str:
+        return "world" if b == 0 else (mujoco.mj_id2name(m, obj.mjOBJ_BODY, b) or f"body{b}")
+
+    # joint equalities: follower -> (leader, multiplier, offset)
+    follows: dict[int, tuple[int, float, float]] = {}
+    for e in range(m.neq):
+        if m.eq_type[e] == mujoco.mjtEq.mjEQ_JOINT and m.eq_active0[e] and m.eq_obj2id[e] >= 0:
+            coef = m.eq_data[e]
+            if np.allclose(coef[2:5], 0.0):
+                follows[int(m.eq_obj1id[e])] = (int(m.eq_obj2id[e]), float(coef[1]), float(coef[0]))
+
+    defaults: list[Repair] = []
+    records: list[JointRecord] = []
+    links: list[LinkRecord] = [LinkRecord("world")]
+    link_names = ["world"]
+    joints: list[JointInfo] = []
+    shift_of: dict[int, np.ndarray] = {0: np.zeros(3)}
+    last_link: dict[int, str] = {0: "world"}
+    unnamed: list[str] = []
+    no_velocity: list[str] = []
+    for b in range(1, m.nbody):
+        name = body_name(b)
+        parent = int(m.body_parentid[b])
+        rot = _quat_matrix(m.body_quat[b])
+        origin = np.asarray(m.body_pos[b], dtype=float) - shift_of[parent]
+        jids = list(range(int(m.body_jntadr[b]), int(m.body_jntadr[b]) + int(m.body_jntnum[b])))
+        prev_link, prev_shift = last_link[parent], np.zeros(3)
+        if not jids:
+            xyz0 = cast(Vec3, tuple(float(v) for v in origin))
+            records.append(JointRecord(f"{name}/fixed", "fixed", prev_link, name, xyz0, rpy_from_rotation(rot)))
+        for k, jid in enumerate(jids):
+            jname = mujoco.mj_id2name(m, obj.mjOBJ_JOINT, jid) or ""
+            jtype = int(m.jnt_type[jid])
+            p = np.asarray(m.jnt_pos[jid], dtype=float)
+            child = name if k == len(jids) - 1 else f"{name}/{jname or jid}"
+            if k == 0:
+                xyz, rpy = origin + rot @ p, rpy_from_rotation(rot)
+            else:
+                xyz, rpy = p - prev_shift, (0.0, 0.0, 0.0)
+            axis = cast(Vec3, tuple(float(v) for v in m.jnt_axis[jid]))
+            if jtype == mujoco.mjtJoint.mjJNT_FREE:
+                rec = JointRecord(jname or f"{name}/free", "floating", prev_link, child, tuple(xyz), rpy)
+            elif jtype == mujoco.mjtJoint.mjJNT_BALL:
+                rec = JointRecord(jname or f"{name}/ball", "ball", prev_link, child, tuple(xyz), rpy)
+            else:
+                kind = "prismatic" if jtype == mujoco.mjtJoint.mjJNT_SLIDE else "revolute"
+                limited = bool(m.jnt_limited[jid])
+                lower, upper = (-math.inf, math.inf)
+                if limited:
+                    lower, upper = float(m.jnt_range[jid, 0]), float(m.jnt_range[jid, 1])
+                if kind == "revolute" and not limited:
+                    kind = "continuous"
+                dof = int(m.jnt_dofadr[jid])
+                mimic = follows.get(jid)
+                velocity = DEFAULT_VELOCITY[kind]
+                effort = _effort(m, jid)
+                rec = JointRecord(
+                    name=jname or f"{name}/joint{jid}",
+                    type=kind,
+                    parent=prev_link,
+                    child=child,
+                    xyz=cast(Vec3, tuple(float(v) for v in xyz)),
+                    rpy=rpy,
+                    axis=axis,
+                    lower=lower,
+                    upper=upper,
+                    velocity=velocity,
+                    effort=effort,
+                    damping=float(m.dof_damping[dof]),
+                    friction=float(m.dof_frictionloss[dof]),
+                    mimic=mujoco.mj_id2name(m, obj.mjOBJ_JOINT, mimic[0]) if mimic else None,
+                    mimic_multiplier=mimic[1] if mimic else 1.0,
+                    mimic_offset=mimic[2] if mimic else 0.0,
+                )
+                if not jname:
+                    unnamed.append(rec.name)
+                elif mimic is None:
+                    no_velocity.append(jname)
+                    joints.append(
+                        JointInfo(
+                            name=jname,
+                            type=cast(Literal["revolute", "continuous", "prismatic"], kind),
+                            lower=lower,
+                            upper=upper,
+                            max_velocity=velocity,
+                            max_effort=effort,
+                            parent=prev_link,
+                            child=child,
+                            axis=axis,
+                        )
+                    )
+            records.append(rec)
+            if child != name:
+                links.append(LinkRecord(child))
+                link_names.append(child)
+            prev_link, prev_shift = child, p
+        shift = prev_shift if jids else np.zeros(3)
+        shift_of[b] = shift
+        last_link[b] = name
+        ipos = np.asarray(m.body_ipos[b], dtype=float) - shift
+        inertial = Inertial(
+            float(m.body_mass[b]),
+            cast(Vec3, tuple(float(v) for v in ipos)),
+            rpy_from_rotation(_quat_matrix(m.body_iquat[b])),
+            (float(m.body_inertia[b, 0]), 0.0, 0.0, float(m.body_inertia[b, 1]), 0.0, float(m.body_inertia[b, 2])),
+        )
+        visuals: list[Geometry] = []
+        collisions: list[Geometry] = []
+        for g in range(int(m.body_geomadr[b]), int(m.body_geomadr[b]) + int(m.body_geomnum[b])):
+            collides = bool(m.geom_contype[g] or m.geom_conaffinity[g])
+            geom = _geometry(m, g, shift, collides)
+            if geom is None:
+                continue
+            (collisions if collides else visuals).append(geom)
+        links.append(LinkRecord(name, inertial, tuple(visuals), tuple(collisions)))
+        link_names.append(name)
+    if unnamed:
+        defaults.append(Repair("joints", f"unnamed joints {', '.join(unnamed)} cannot be commanded: they stay passive"))
+    if no_velocity:
+        defaults.append(
+            Repair(
+                "velocity limits",
+                f"MJCF has none: {DEFAULT_VELOCITY['revolute']:g} rad/s (prismatic "
+                f"{DEFAULT_VELOCITY['prismatic']:g} m/s) for {len(no_velocity)} joints",
+            )
+        )
+    home: dict[str, float] = {}
+    key = mujoco.mj_name2id(m, obj.mjOBJ_KEY, "home")
+    if key >= 0:
+        names = {j.name for j in joints}
+        for jid in range(m.njnt):
+            jname = mujoco.mj_id2name(m, obj.mjOBJ_JOINT, jid)
+            if jname in names:
+                home[jname] = float(m.key_qpos[key, m.jnt_qposadr[jid]])
+    meshes: list[Path] = []
+    for mesh in spec.meshes:
+        if mesh.file:
+            f = Path(mesh.file)
+            if not f.is_absolute():
+                f = path.parent / (spec.meshdir or "") / f
+            meshes.append(f.resolve())
+    return RobotDescription(
+        name=spec.modelname or path.stem,
+        source=path,
+        urdf_xml="",
+        joints=tuple(joints),
+        all_joints=tuple(records),
+        links=tuple(link_names),
+        root_link="world",
+        mesh_files=tuple(dict.fromkeys(meshes)),
+        format="mjcf",
+        link_records=tuple(links),
+        repairs=(),
+        defaults=tuple(defaults),
+        srdf=None,
+        default_positions=home,
+    )
+
+
+def colliding_body_pairs(model: Any, *, world: bool = True) -> set[tuple[str, str]]:
+    """Body-name pairs with at least one geom pair MuJoCo tests for contact (its filters applied).
+
+    ``world=False`` leaves out the world body (an MJCF scene's floor is not part of the robot).
+    """
+    import mujoco
+
+    m = model
+    names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}" for b in range(m.nbody)]
+    names[0] = "world"
+    excluded = {int(x) for x in m.exclude_signature}
+    filterparent = not (m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
+    out: set[tuple[str, str]] = set()
+    geoms_of: dict[int, list[int]] = {}
+    for g in range(m.ngeom):
+        geoms_of.setdefault(int(m.geom_bodyid[g]), []).append(g)
+    bodies = sorted(b for b in geoms_of if world or b != 0)
+    for i, b1 in enumerate(bodies):
+        for b2 in bodies[i + 1 :]:
+            w1, w2 = int(m.body_weldid[b1]), int(m.body_weldid[b2])
+            if w1 == w2 or ((b1 << 16) + b2) in excluded:
+                continue
+            if filterparent and w1 != 0 and w2 != 0 and (
+                int(m.body_weldid[m.body_parentid[w1]]) == w2 or int(m.body_weldid[m.body_parentid[w2]]) == w1
+            ):
+                continue
+            if any(
+                (m.geom_contype[g1] & m.geom_conaffinity[g2]) or (m.geom_contype[g2] & m.geom_conaffinity[g1])
+                for g1 in geoms_of[b1]
+                for g2 in geoms_of[b2]
+            ):
+                a, b = names[b1], names[b2]
+                out.add((a, b) if a <= b else (b, a))
+    return out
+
+
+def mjcf_unsupported_by_pybullet(description: RobotDescription) -> list[str]:
+    """What of an MJCF model a URDF for PyBullet cannot carry (empty: it can be loaded as a URDF)."""
+    import mujoco
+
+    _, m = _compile(description.source)
+    out: list[str] = []
+    kinds = {j.type for j in description.all_joints}
+    if "floating" in kinds:
+        out.append("free joints (floating bodies)")
+    if "ball" in kinds:
+        out.append("ball joints")
+    if m.ntendon:
+        out.append(f"tendons ({m.ntendon})")
+    other_eq = [e for e in range(m.neq) if not (m.eq_type[e] == mujoco.mjtEq.mjEQ_JOINT and m.eq_obj2id[e] >= 0)]
+    if other_eq:
+        out.append(f"equality constraints other than joint coupling ({len(other_eq)})")
+    names = {mujoco.mjtGeom(t).name.removeprefix("mjGEOM_").lower() for t in m.geom_type}
+    odd = sorted(
+        names
+        - {"sphere", "capsule", "cylinder", "box", "mesh"}
+        - ({"plane"} if all(m.geom_bodyid[g] == 0 for g in range(m.ngeom) if m.geom_type[g] == 0) else set())
+    )
+    if odd:
+        out.append(f"geom types {', '.join(odd)}")
+    if m.nflex:
+        out.append("flexes")
+    return out

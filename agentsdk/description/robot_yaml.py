@@ -1,0 +1,202 @@
+"""robot.yaml on top of a description: joint-limit overrides, config checks, robot names and paths."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from pathlib import Path
+
+from ..config import JointLimitsOverride, RobotConfig, load_robot_config
+from ..errors import ConfigurationError
+from ..types import JointInfo
+from .loader import load_description
+from .model import RobotDescription
+
+__all__ = ["apply_overrides", "check_config", "list_robots", "resolve_robot"]
+
+
+def _robot_label(config: RobotConfig, description: RobotDescription) -> str:
+    return f"robot '{config.name or description.name}'"
+
+
+def apply_overrides(description: RobotDescription, config: RobotConfig) -> tuple[JointInfo, ...]:
+    """The description's joints with robot.yaml ``joint_limits`` applied.
+
+    ``joint_limits["default"]`` applies to every joint: its acceleration/jerk
+    values replace the built-in defaults, and its position/velocity/effort
+    values can only tighten each joint's URDF limits. A per-joint entry
+    replaces values for that joint; it may tighten but never widen a URDF
+    limit (that would exceed what the hardware description allows).
+    Raises ``ConfigurationError`` for an unknown joint name or an inconsistent
+    override.
+    """
+    limits = config.joint_limits
+    names = description.joint_names
+    label = _robot_label(config, description)
+    unknown = [k for k in limits if k != "default" and k not in names]
+    if unknown:
+        raise ConfigurationError(
+            f"{label}: joint_limits names unknown joint(s) {', '.join(repr(u) for u in unknown)}; "
+            f"known joints: {', '.join(names)} (or 'default')"
+        )
+    default = limits.get("default", JointLimitsOverride())
+    out: list[JointInfo] = []
+    for j in description.joints:
+        lower, upper, vel, eff = j.lower, j.upper, j.max_velocity, j.max_effort
+        acc = default.max_acceleration if default.max_acceleration is not None else j.max_acceleration
+        jerk = default.max_jerk if default.max_jerk is not None else j.max_jerk
+        if default.min_position is not None:
+            lower = max(lower, default.min_position)
+        if default.max_position is not None:
+            upper = min(upper, default.max_position)
+        if default.max_velocity is not None:
+            vel = min(vel, default.max_velocity)
+        if default.max_effort is not None:
+            eff = min(eff, default.max_effort)
+
+        own = limits.get(j.name)
+        if own is not None:
+            where = f"{label}: joint_limits.{j.name}"
+            if own.min_position is not None:
+                if own.min_position < j.lower:
+                    raise ConfigurationError(
+                        f"{where}.min_position={own.min_position:g} is below the URDF lower limit {j.lower:g}"
+                    )
+                lower = own.min_position
+            if own.max_position is not None:
+                if own.max_position > j.upper:
+                    raise ConfigurationError(
+                        f"{where}.max_position={own.max_position:g} is above the URDF upper limit {j.upper:g}"
+                    )
+                upper = own.max_position
+            if own.max_velocity is not None:
+                if own.max_velocity > j.max_velocity:
+                    raise ConfigurationError(
+                        f"{where}.max_velocity={own.max_velocity:g} is above the URDF velocity limit {j.max_velocity:g}"
+                    )
+                vel = own.max_velocity
+            if own.max_effort is not None:
+                if own.max_effort > j.max_effort:
+                    raise ConfigurationError(
+                        f"{where}.max_effort={own.max_effort:g} is above the URDF effort limit {j.max_effort:g}"
+                    )
+                eff = own.max_effort
+            if own.max_acceleration is not None:
+                acc = own.max_acceleration
+            if own.max_jerk is not None:
+                jerk = own.max_jerk
+        if lower > upper:
+            raise ConfigurationError(
+                f"{label}: joint_limits leave joint '{j.name}' an empty range "
+                f"(min_position {lower:g} > max_position {upper:g})"
+            )
+        out.append(
+            replace(
+                j,
+                lower=float(lower),
+                upper=float(upper),
+                max_velocity=float(vel),
+                max_effort=float(eff),
+                max_acceleration=float(acc),
+                max_jerk=float(jerk),
+            )
+        )
+    return tuple(out)
+
+
+def check_config(config: RobotConfig, description: RobotDescription) -> tuple[JointInfo, ...]:
+    """Check that robot.yaml joint names exist and initial positions are within limits.
+
+    Returns the joints with overrides applied (see :func:`apply_overrides`).
+    """
+    joints = apply_overrides(description, config)
+    names = description.joint_names
+    label = _robot_label(config, description)
+    for section, keys in (("gains", config.gains), ("initial_positions", config.initial_positions)):
+        unknown = [k for k in keys if k not in names and not (section == "gains" and k == "default")]
+        if unknown:
+            raise ConfigurationError(
+                f"{label}: {section} names unknown joint(s) {', '.join(repr(u) for u in unknown)}; "
+                f"known joints: {', '.join(names)}"
+            )
+    for j in joints:
+        q = config.initial_positions.get(j.name)
+        if q is not None and not j.within(q):
+            raise ConfigurationError(
+                f"{label}: initial_positions.{j.name}={q:g} is outside the joint limits [{j.lower:g}, {j.upper:g}]"
+            )
+    return joints
+
+
+def _default_robots_dir() -> Path:
+    import agentsdk.robots as robots
+
+    return Path(robots.__file__).resolve().parent
+
+
+def list_robots(robots_dir: Path | None = None) -> list[str]:
+    """Names of the robots shipped in ``robots_dir`` (default: the ``robots`` package): dirs with a robot.yaml."""
+    directory = Path(robots_dir) if robots_dir is not None else _default_robots_dir()
+    if not directory.is_dir():
+        return []
+    return sorted(d.name for d in directory.iterdir() if (d / "robot.yaml").is_file())
+
+
+_DESCRIPTION_SUFFIXES = (".urdf", ".xacro", ".xml", ".mjcf")
+_CONFIG_SUFFIXES = (".yaml", ".yml")
+
+
+def resolve_robot(
+    spec: str | Path, robots_dir: Path | None = None, *, strict: bool | None = None
+) -> tuple[RobotConfig, RobotDescription]:
+    """Turn a robot name or path into a validated ``(RobotConfig, RobotDescription)``.
+
+    ``spec`` is a robot name from ``robots_dir`` (default: the shipped
+    ``robots/`` directory), or a path to a ``.urdf``, ``.xacro``, MJCF
+    ``.xml``, ``robot.yaml`` or a directory holding a ``robot.yaml``. A bare
+    description gets a default ``RobotConfig``. ``strict`` (default: robot.yaml
+    ``strict``) turns the loader's repairs into a ``DescriptionError``; without
+    it they are logged as one warning. Raises ``ConfigurationError`` (or its
+    subclass ``DescriptionError``) naming what is wrong.
+    """
+    directory = Path(robots_dir) if robots_dir is not None else _default_robots_dir()
+    text = os.fspath(spec)
+    bare_name = (
+        isinstance(spec, str)
+        and "/" not in text
+        and os.sep not in text
+        and not text.lower().endswith(_DESCRIPTION_SUFFIXES + _CONFIG_SUFFIXES)
+    )
+    path = Path(text).expanduser()
+    if bare_name:
+        candidate = directory / text / "robot.yaml"
+        if text and candidate.is_file():
+            path = candidate
+        elif not path.exists():
+            known = list_robots(directory)
+            raise ConfigurationError(
+                f"unknown robot '{text}'; available robots: {', '.join(known) if known else '(none)'} "
+                f"(in {directory}), or pass a path to a .urdf, .xacro, MJCF .xml or robot.yaml"
+            )
+    if path.is_dir():
+        if not (path / "robot.yaml").is_file():
+            raise ConfigurationError(f"{path} is a directory without a robot.yaml")
+        path = path / "robot.yaml"
+    if not path.exists():
+        raise ConfigurationError(f"robot description not found: {path}")
+
+    lower = path.name.lower()
+    if lower.endswith(_CONFIG_SUFFIXES):
+        config = load_robot_config(path)
+        if strict is not None and strict != config.strict:
+            config = config.model_copy(update={"strict": strict})
+        description = load_description(config.description_path, config.xacro_args, strict=config.strict)
+    elif lower.endswith(_DESCRIPTION_SUFFIXES):
+        description = load_description(path, strict=bool(strict))
+        config = RobotConfig(
+            name=description.name, description=path.name, base_dir=path.resolve().parent, strict=bool(strict)
+        )
+    else:
+        raise ConfigurationError(f"{path}: expected a .urdf, .xacro, MJCF .xml or robot.yaml file")
+    check_config(config, description)
+    return config, description

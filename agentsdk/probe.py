@@ -1,0 +1,292 @@
+"""Load robots on simulators in child processes, so that a simulator crash cannot take the caller down.
+
+A simulator is native code: a bad input can abort the process (PyBullet did,
+on real URDFs, before the description learned to write them in order). Tools
+that try many robots - ``agentsdk check``, the corpus tests - load each one in
+a worker process:
+
+* :func:`probe` connects one robot to one backend (lockstep), runs a few
+  control ticks and returns a JSON-able report: joint names, the simulator's
+  own view of limits, link masses and self-collision pairs
+  (``simulator_report()`` of the MuJoCo and PyBullet backends), the repairs, or
+  the error (type and message);
+* :class:`ProbePool` keeps long-lived worker processes (``python -m
+  agentsdk.probe``) that probe many robots each, in parallel; a worker that
+  dies (signal, abort) or hangs is replaced, and its job reports
+  ``"died": true`` with the exit status and the tail of its stderr.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import os
+import selectors
+import subprocess
+import sys
+import tempfile
+import time
+from collections import deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import IO, Any
+
+__all__ = ["ProbePool", "probe", "probe_in_subprocess"]
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, float):
+        if value != value:
+            return "nan"
+        if value in (float("inf"), float("-inf")):
+            return "inf" if value > 0 else "-inf"
+        return value
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+async def _probe_async(robot: str, backend: str, duration: float, options: Mapping[str, Any]) -> dict[str, Any]:
+    import agentsdk
+    from agentsdk.errors import AgentSDKError
+
+    async with agentsdk.connect(backend, robot=robot, **options) as bot:
+        ctl = bot.controller
+        desc = ctl.description
+        out: dict[str, Any] = {
+            "loaded": True,
+            "name": desc.name,
+            "format": desc.format,
+            "joints": list(bot.joint_names),
+            "limits": [[j.lower, j.upper, j.max_velocity, j.max_effort] for j in bot.joints],
+            "repairs": [str(r) for r in desc.repairs],
+        }
+        report = getattr(ctl, "simulator_report", None)
+        if callable(report):
+            out["report"] = report()
+        collision = getattr(ctl, "collision", None)
+        if collision is not None:
+            out["collision_repairs"] = [str(r) for r in collision.repairs]
+        run_error: str | None = None
+        try:
+            start = await bot.read()
+            out["start"] = start.position.tolist()
+            await bot.clock.sleep(duration)
+            state = await bot.read()
+            out["position"] = state.position.tolist()
+        except AgentSDKError as exc:
+            run_error = f"{type(exc).__name__}: {exc}"
+        out["ok"] = run_error is None
+        out["run_error"] = run_error
+        out["state"] = bot.safety.state.name
+        return out
+
+
+def probe(
+    robot: str, backend: str, *, duration: float = 0.02, options: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """Connect ``robot`` on ``backend`` in this process, run ``duration`` s (lockstep) and report (JSON-able).
+
+    ``loaded``: the connection opened; ``ok``: it also ran ``duration`` without
+    a fault (``run_error`` says which); on failure ``error_type``/``error``.
+    """
+    from .errors import AgentSDKError
+
+    t0 = time.perf_counter()
+    try:
+        out = asyncio.run(_probe_async(robot, backend, duration, dict(options or {})))
+    except AgentSDKError as exc:
+        out = {"ok": False, "loaded": False, "error_type": type(exc).__name__, "error": str(exc)}
+    except Exception as exc:  # a non-SDK exception is a bug the caller must see, with its type
+        out = {"ok": False, "loaded": False, "error_type": type(exc).__name__, "error": str(exc), "unexpected": True}
+    out["seconds"] = time.perf_counter() - t0
+    return _jsonable(out)
+
+
+def _worker_main() -> int:
+    """Worker loop: one JSON job per stdin line, one JSON result per line on the original stdout."""
+    proto = os.fdopen(os.dup(1), "w", buffering=1)
+    os.dup2(2, 1)  # native code printing to stdout must not corrupt the protocol
+    sys.stdout = sys.stderr
+    logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
+    for line in sys.stdin:
+        if not line.strip():
+            continue
+        job = json.loads(line)
+        result = probe(job["robot"], job["backend"], duration=job.get("duration", 0.02), options=job.get("options"))
+        proto.write(json.dumps(result) + "\n")
+    return 0
+
+
+@dataclass
+class _Worker:
+    proc: subprocess.Popen[str]
+    stderr: IO[str]
+    job: int | None = None
+    started: float = 0.0
+    buffer: str = field(default="")
+
+
+class ProbePool:
+    """Long-lived probe workers; ``run(jobs)`` returns one result per job, in order.
+
+    ``timeout`` (s) bounds one job: a worker that exceeds it is killed and
+    replaced. Use as a context manager (or call ``close()``).
+    """
+
+    def __init__(self, workers: int = 2, timeout: float = 120.0, env: Mapping[str, str] | None = None) -> None:
+        self.size = max(1, workers)
+        self.timeout = timeout
+        self.env = {**os.environ, **(env or {})}
+        self._workers: list[_Worker] = []
+        self.restarts = 0
+
+    def _spawn(self) -> _Worker:
+        err = tempfile.TemporaryFile("w+", encoding="utf-8", errors="replace")
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "agentsdk.probe"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=err,
+            text=True,
+            env=self.env,
+            bufsize=1,
+        )
+        return _Worker(proc, err)
+
+    def __enter__(self) -> ProbePool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop every worker."""
+        for w in self._workers:
+            self._stop(w)
+        self._workers.clear()
+
+    @staticmethod
+    def _stop(w: _Worker) -> None:
+        if w.proc.poll() is None:
+            try:
+                assert w.proc.stdin is not None
+                w.proc.stdin.close()
+                w.proc.wait(timeout=5)
+            except (OSError, subprocess.TimeoutExpired):
+                w.proc.kill()
+                w.proc.wait()
+        for stream in (w.proc.stdout,):
+            if stream is not None:
+                stream.close()
+        w.stderr.close()
+
+    @staticmethod
+    def _stderr_tail(w: _Worker, lines: int = 6) -> str:
+        w.stderr.flush()
+        w.stderr.seek(0)
+        text = w.stderr.read()
+        tail = [ln for ln in text.splitlines() if ln.strip()][-lines:]
+        return " | ".join(tail)
+
+    def run(self, jobs: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
+        """Run ``jobs`` (dicts with ``robot``, ``backend``, optional ``duration``/``options``)."""
+        jobs = list(jobs)
+        results: list[dict[str, Any] | None] = [None] * len(jobs)
+        pending = deque(range(len(jobs)))
+        while len(self._workers) < min(self.size, max(1, len(jobs))):
+            self._workers.append(self._spawn())
+        sel = selectors.DefaultSelector()
+        try:
+            while pending or any(w.job is not None for w in self._workers):
+                for i, w in enumerate(self._workers):
+                    if w.job is None and pending:
+                        if w.proc.poll() is not None:
+                            self._stop(w)
+                            w = self._workers[i] = self._spawn()
+                            self.restarts += 1
+                        w.job = pending.popleft()
+                        w.started = time.monotonic()
+                        w.buffer = ""
+                        assert w.proc.stdin is not None
+                        try:
+                            w.proc.stdin.write(json.dumps(dict(jobs[w.job])) + "\n")
+                            w.proc.stdin.flush()
+                        except OSError:
+                            pass  # a dead worker: found below
+                busy = [w for w in self._workers if w.job is not None]
+                for w in busy:
+                    assert w.proc.stdout is not None
+                    try:
+                        sel.register(w.proc.stdout, selectors.EVENT_READ, w)
+                    except KeyError:
+                        pass
+                events = sel.select(timeout=0.5)
+                for key, _ in events:
+                    w = key.data
+                    line = w.proc.stdout.readline() if w.proc.stdout is not None else ""
+                    sel.unregister(key.fileobj)
+                    if line:
+                        assert w.job is not None
+                        results[w.job] = json.loads(line)
+                        w.job = None
+                    else:  # EOF: the worker died
+                        self._died(w, results, jobs)
+                for w in self._workers:
+                    if w.job is None:
+                        continue
+                    if w.proc.poll() is not None and not any(k.data is w for k, _ in events):
+                        try:
+                            sel.unregister(w.proc.stdout)  # type: ignore[arg-type]
+                        except (KeyError, ValueError):
+                            pass
+                        self._died(w, results, jobs)
+                    elif time.monotonic() - w.started > self.timeout:
+                        try:
+                            sel.unregister(w.proc.stdout)  # type: ignore[arg-type]
+                        except (KeyError, ValueError):
+                            pass
+                        w.proc.kill()
+                        w.proc.wait()
+                        self._died(w, results, jobs, timed_out=True)
+                for i, w in enumerate(self._workers):
+                    if w.job is None and w.proc.poll() is not None:
+                        self._stop(w)
+                        self._workers[i] = self._spawn()
+                        self.restarts += 1
+                for key in list(sel.get_map().values()):
+                    sel.unregister(key.fileobj)
+        finally:
+            sel.close()
+        return [r if r is not None else {"ok": False, "error": "no result"} for r in results]
+
+    def _died(
+        self, w: _Worker, results: list[dict[str, Any] | None], jobs: list[Mapping[str, Any]], timed_out: bool = False
+    ) -> None:
+        assert w.job is not None
+        rc = w.proc.wait()
+        what = f"timed out after {self.timeout:g} s" if timed_out else f"process died (exit status {rc})"
+        results[w.job] = {
+            "ok": False,
+            "loaded": False,
+            "died": True,
+            "error_type": "WorkerDied",
+            "error": f"{what}: {self._stderr_tail(w)}",
+            "returncode": rc,
+        }
+        w.job = None
+
+
+def probe_in_subprocess(
+    robot: str, backend: str, *, timeout: float = 120.0, duration: float = 0.02
+) -> dict[str, Any]:
+    """:func:`probe` in a fresh child process (see :class:`ProbePool`)."""
+    with ProbePool(1, timeout=timeout) as pool:
+        return pool.run([{"robot": str(robot), "backend": backend, "duration": duration}])[0]
+
+
+if __name__ == "__main__":
+    sys.exit(_worker_main())

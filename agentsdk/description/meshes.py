@@ -34,7 +34,8 @@ def _is_binary_stl(path: Path) -> bool:
     return size == 84 + 50 * count
 
 
-def _cache_dir() -> Path:
+def mesh_cache_dir() -> Path:
+    """Where converted meshes are cached (``$AGENTSDK_CACHE_DIR`` or a per-user temp directory)."""
     root = os.environ.get("AGENTSDK_CACHE_DIR")
     user = os.getuid() if hasattr(os, "getuid") else 0
     base = Path(root) if root else Path(tempfile.gettempdir()) / f"agentsdk-meshes-{user}"
@@ -56,7 +57,7 @@ def simulator_mesh(path: Path) -> Path:
         raise MeshError(f"cannot read {path}: {exc}") from exc
     key = f"{path.resolve()}:{stat.st_size}:{stat.st_mtime_ns}"
     digest = hashlib.sha1(key.encode()).hexdigest()[:16]
-    out = _cache_dir() / f"{path.stem}-{digest}.stl"
+    out = mesh_cache_dir() / f"{path.stem}-{digest}.stl"
     if out.exists():
         return out
     with _LOCK:

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import DescriptionError
 from ..types import JointInfo
-from .meshes import _cache_dir
+from .meshes import mesh_cache_dir
 from .model import (
     DEFAULT_VELOCITY,
     Geometry,
@@ -81,7 +81,7 @@ def _mesh_file(model: Any, mesh_id: int) -> Path:
     verts = np.asarray(model.mesh_vert[va : va + vn], dtype=float)
     faces = np.asarray(model.mesh_face[fa : fa + fn], dtype=np.int64)
     digest = hashlib.sha1(verts.tobytes() + faces.tobytes()).hexdigest()[:16]
-    out = _cache_dir() / f"mjcf-mesh-{digest}.obj"
+    out = mesh_cache_dir() / f"mjcf-mesh-{digest}.obj"
     if not out.exists():
         lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in verts.tolist()]
         lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces.tolist()]

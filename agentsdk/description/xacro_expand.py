@@ -6,7 +6,9 @@ import contextlib
 import io
 import logging
 import re
+import sys
 import threading
+import types
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import cast
@@ -46,17 +48,46 @@ class _PackageNotFound(Exception):
 
 @contextlib.contextmanager
 def _xacro_find(find: Callable[[str], str]) -> Iterator[None]:
-    """Make xacro's ``$(find pkg)`` use our package search (instead of ament_index)."""
-    import xacro.substitution_args as sa
+    """Answer xacro's ``$(find pkg)`` with our package search, through xacro's documented route.
 
-    saved_fn, saved_dict = sa._eval_find, sa._eval_dict.get("find")
-    sa._eval_find = find
-    sa._eval_dict["find"] = find
+    In ROS 2, xacro resolves ``$(find pkg)`` with
+    ``ament_index_python.packages.get_package_share_directory`` (imported when the
+    substitution is evaluated). Outside a ROS install that module does not exist, so for
+    the duration of one expansion (under ``_XACRO_LOCK``) an ``ament_index_python``
+    module answered by :func:`find` is registered in ``sys.modules``; the ROS one, if any,
+    is put back afterwards (and ``find`` falls back to it for packages we cannot find).
+    No attribute of xacro itself is touched.
+    """
+    names = ("ament_index_python", "ament_index_python.packages")
+    saved = {name: sys.modules.get(name) for name in names}
+    real = saved["ament_index_python.packages"]
+
+    def get_package_share_directory(package_name: str, print_warning: bool = True) -> str:
+        try:
+            return find(package_name)
+        except _PackageNotFound:
+            if real is not None and hasattr(real, "get_package_share_directory"):
+                try:
+                    return str(real.get_package_share_directory(package_name))
+                except Exception:
+                    pass
+            raise
+
+    root = types.ModuleType("ament_index_python")
+    packages = types.ModuleType("ament_index_python.packages")
+    packages.get_package_share_directory = get_package_share_directory  # type: ignore[attr-defined]
+    packages.PackageNotFoundError = _PackageNotFound  # type: ignore[attr-defined]
+    root.packages = packages  # type: ignore[attr-defined]
+    sys.modules["ament_index_python"] = root
+    sys.modules["ament_index_python.packages"] = packages
     try:
         yield
     finally:
-        sa._eval_find = saved_fn
-        sa._eval_dict["find"] = saved_dict
+        for name, module in saved.items():
+            if module is None:
+                sys.modules.pop(name, None)
+            else:
+                sys.modules[name] = module
 
 
 def _xacro_error_text(exc: BaseException) -> str:

@@ -58,10 +58,13 @@ from .errors import (
     SafetyFault,
     SimulationDiverged,
     UnknownJointError,
+    UnknownLinkError,
+    UnreachablePoseError,
     UnsupportedModeError,
 )
 from .feedback import FeedbackAgent, LoopStats, run_feedback
 from .motion import Feedback, Motion, MotionResult, ResultCode, Tolerances
+from .pose import Pose
 from .registry import available_backends, load_backend, register_backend, unregister_backend
 from .robot import Robot, connect
 from .safety import SafetyConfig, SafetyEvent, SafetyState
@@ -96,6 +99,7 @@ __all__ = [
     "LoopStats",
     "Motion",
     "MotionResult",
+    "Pose",
     "RealtimeClock",
     "ResultCode",
     "Robot",
@@ -113,6 +117,8 @@ __all__ = [
     "Trajectory",
     "TrajectoryPoint",
     "UnknownJointError",
+    "UnknownLinkError",
+    "UnreachablePoseError",
     "UnsupportedModeError",
     "__version__",
     "available_backends",

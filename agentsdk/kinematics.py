@@ -33,10 +33,12 @@ Conventions (as ROS / KDL / MoveIt):
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import threading
-from collections.abc import Callable, Iterator, Mapping, Sequence
+import time
+from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -58,7 +60,7 @@ from .types import FloatArray, JointInfo, JointState
 if TYPE_CHECKING:
     from .description import RobotDescription
 
-__all__ = ["IKResult", "Kinematics", "LinkPoses", "Positions"]
+__all__ = ["IKResult", "Kinematics", "LinkPoses", "Positions", "run_async", "run_sync"]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +76,38 @@ _EQ_JOINT = int(mujoco.mjtEq.mjEQ_JOINT)
 #: IK defaults: convergence tolerances (10x tighter than what users usually ask for)
 IK_POSITION_TOLERANCE = 1e-4
 IK_ORIENTATION_TOLERANCE = 1e-3
+
+
+#: wall time a coroutine computes IK before yielding to the event loop (s)
+_SLICE = 0.002
+
+
+def run_sync(gen: Generator[None, None, Any]) -> Any:
+    """Run a cooperative computation (a generator that yields between steps) to completion."""
+    while True:
+        try:
+            next(gen)
+        except StopIteration as stop:
+            return stop.value
+
+
+async def run_async(gen: Generator[None, None, Any], slice_s: float = _SLICE) -> Any:
+    """Run a cooperative computation, yielding to the event loop every ``slice_s`` seconds of wall time.
+
+    In lockstep, simulated time stays frozen meanwhile (this task stays ready), so the result and
+    the robot's motion do not depend on the machine's speed; in realtime the control loop and the
+    watchdogs keep running.
+    """
+    t0 = time.perf_counter()
+    while True:
+        try:
+            next(gen)
+        except StopIteration as stop:
+            return stop.value
+        now = time.perf_counter()
+        if now - t0 >= slice_s:
+            await asyncio.sleep(0)
+            t0 = time.perf_counter()
 
 
 def _wxyz_to_xyzw(q: FloatArray) -> FloatArray:
@@ -643,6 +677,47 @@ class Kinematics:
         never a silent best effort. Each step is mink's QP (DAQP) with the joint limits
         as constraints and mimic joints tied to their leaders.
         """
+        gen = self._ik_gen(None, link, pose, seed, position_only, position_tolerance, orientation_tolerance,
+                           max_iterations, restarts, random_seed)
+        with self._lock:
+            return run_sync(gen)
+
+    async def ik_async(
+        self,
+        link: str,
+        pose: Pose | npt.ArrayLike,
+        seed: Positions | None = None,
+        *,
+        position_only: bool = False,
+        position_tolerance: float = IK_POSITION_TOLERANCE,
+        orientation_tolerance: float = IK_ORIENTATION_TOLERANCE,
+        max_iterations: int = 200,
+        restarts: int = 20,
+        random_seed: int = 0,
+    ) -> IKResult:
+        """:meth:`ik` for coroutines: yields to the event loop every couple of milliseconds.
+
+        An unreachable target can take a few hundred milliseconds of restarts; this keeps
+        the control loop, the watchdogs and other tasks running meanwhile (in lockstep,
+        simulated time does not advance while it computes).
+        """
+        gen = self._ik_gen(_IKSolver(self), link, pose, seed, position_only, position_tolerance,
+                           orientation_tolerance, max_iterations, restarts, random_seed)
+        return await run_async(gen)
+
+    def _ik_gen(
+        self,
+        solver: _IKSolver | None,
+        link: str,
+        pose: Pose | npt.ArrayLike,
+        seed: Positions | None,
+        position_only: bool,
+        position_tolerance: float,
+        orientation_tolerance: float,
+        max_iterations: int,
+        restarts: int,
+        random_seed: int,
+    ) -> Generator[None, None, IKResult]:
         bid = self._body_id(link)
         if bid == 0 or link == self.root_link:
             raise InvalidValueError(f"ik: {link!r} is the root frame; it does not move")
@@ -656,23 +731,23 @@ class Kinematics:
         rng = np.random.default_rng(random_seed)
         best: tuple[float, FloatArray, float, float] | None = None
         total = 0
-        with self._lock:
+        if solver is None:
             solver = self._solver()
-            for attempt in range(int(restarts) + 1):
-                start = q0 if attempt == 0 else self._random_configuration(rng)
-                q, perr, rerr, iters = solver.solve(
-                    bid, link, target, start, position_only, position_tolerance, orientation_tolerance,
-                    int(max_iterations),
-                )
-                total += iters
-                score = perr / position_tolerance + (0.0 if position_only else rerr / orientation_tolerance)
-                if best is None or score < best[0]:
-                    best = (score, q, perr, rerr)
-                if perr <= position_tolerance and (position_only or rerr <= orientation_tolerance):
-                    q = self._tidy(q, q0)
-                    return IKResult(dict(zip(self.joint_names, q.tolist(), strict=True)), ok=True,
-                                    position_error=perr, orientation_error=0.0 if position_only else rerr,
-                                    iterations=total, attempts=attempt + 1)
+        for attempt in range(int(restarts) + 1):
+            start = q0 if attempt == 0 else self._random_configuration(rng)
+            q, perr, rerr, iters = yield from solver.solve(
+                bid, link, target, start, position_only, position_tolerance, orientation_tolerance,
+                int(max_iterations),
+            )
+            total += iters
+            score = perr / position_tolerance + (0.0 if position_only else rerr / orientation_tolerance)
+            if best is None or score < best[0]:
+                best = (score, q, perr, rerr)
+            if perr <= position_tolerance and (position_only or rerr <= orientation_tolerance):
+                q = self._tidy(q, q0)
+                return IKResult(dict(zip(self.joint_names, q.tolist(), strict=True)), ok=True,
+                                position_error=perr, orientation_error=0.0 if position_only else rerr,
+                                iterations=total, attempts=attempt + 1)
         assert best is not None
         _, q, perr, rerr = best
         what = "position" if position_only else "pose"
@@ -686,6 +761,20 @@ class Kinematics:
                           orientation_error=0.0 if position_only else rerr, iterations=total,
                           attempts=int(restarts) + 1, message=msg)
         raise UnreachablePoseError(msg, result)
+
+    def chain(self, link: str) -> tuple[str, ...]:
+        """The actuated joints that move ``link`` (its ancestors' joints; mimic joints count as their leader)."""
+        bid = self._body_id(link)
+        m = self.model
+        dofs: set[int] = set()
+        b = bid
+        while b > 0:
+            for jid in range(int(m.body_jntadr[b]), int(m.body_jntadr[b]) + int(m.body_jntnum[b])):
+                dofs.add(int(m.jnt_dofadr[jid]))
+            b = int(m.body_parentid[b])
+        moving = {k for k, d in enumerate(self._dadr.tolist()) if d in dofs}
+        moving |= {c.leader for c in self._couplings if c.dadr in dofs}
+        return tuple(self.joint_names[k] for k in sorted(moving))
 
     def _solver(self) -> _IKSolver:
         if self._ik is None:
@@ -781,8 +870,8 @@ class _IKSolver:
         ptol: float,
         rtol: float,
         max_iterations: int,
-    ) -> tuple[FloatArray, float, float, int]:
-        """Iterate from ``start``; return ``(q, position error, orientation error, iterations)``."""
+    ) -> Generator[None, None, tuple[FloatArray, float, float, int]]:
+        """Iterate from ``start`` (yielding after each step); return ``(q, pos. error, orient. error, iterations)``."""
         mink = self._mink
         kin = self.kin
         conf = self.conf
@@ -810,6 +899,11 @@ class _IKSolver:
                 return q_now, perr, rerr, iters - 1
             if stall >= 15:  # a local minimum (or the target is out of reach)
                 break
+            yield
+            if position_only:
+                # mink's frame error is the SE(3) log, whose translation part mixes in the rotation
+                # error: aim at the current orientation so the error is the position error alone
+                task.set_target(mink.SE3(np.concatenate((data.xquat[bid], target.position))))
             vel = mink.solve_ik(conf, [task], 1.0, "daqp", damping=1e-8, limits=self.limits,
                                 constraints=self.constraints)
             conf.integrate_inplace(vel, 1.0)

@@ -26,7 +26,11 @@ from .safety import SafetyConfig, SafetyLayer
 from .types import JointCommand, JointInfo, JointState
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from .kinematics import Kinematics
     from .motion import Motion, MotionResult, Tolerances
+    from .pose import Pose
     from .trajectory import Trajectory
 
 __all__ = ["Robot", "connect"]
@@ -47,6 +51,7 @@ class Robot:
         from .motion import MotionManager
 
         self._motions = MotionManager(controller, safety)
+        self._kinematics: Kinematics | None = None
 
     # ------------------------------------------------------------ metadata
     @property
@@ -87,6 +92,24 @@ class Robot:
     @property
     def closed(self) -> bool:
         return self._ctl.closed
+
+    # ---------------------------------------------------------- kinematics
+    @property
+    def kinematics(self) -> Kinematics:
+        """FK, Jacobians, TF snapshots and IK of this robot (host-side, the same on every backend).
+
+        ``positions=None`` means the latest measured state; see :mod:`agentsdk.kinematics`.
+        """
+        if self._kinematics is None:
+            from .kinematics import Kinematics
+
+            self._kinematics = Kinematics(self._ctl.description, self._ctl.joints, state=self._ctl.snapshot)
+        return self._kinematics
+
+    @property
+    def link_names(self) -> tuple[str, ...]:
+        """Every link (frame) of the robot, the root link first, fixed-joint links included."""
+        return self.kinematics.link_names
 
     # -------------------------------------------------------------- direct
     async def read(self) -> JointState:
@@ -145,6 +168,37 @@ class Robot:
         self.safety.check_motion_allowed()
         motion = self._motions.move_to(positions, duration, tolerances)
         return await motion
+
+    async def move_to_pose(
+        self,
+        link: str,
+        pose: Pose | npt.ArrayLike,
+        linear: bool = False,
+        duration: float | None = None,
+        tolerances: Tolerances | None = None,
+        *,
+        position_only: bool = False,
+        path_tolerance: float = 1e-3,
+        velocity_scale: float = 1.0,
+        acceleration_scale: float = 1.0,
+    ) -> MotionResult:
+        """Move ``link`` to ``pose`` (root frame) and return the motion's result.
+
+        ``linear=False``: IK from the current desired positions, then :meth:`move_to`.
+        ``linear=True``: the link's origin follows the straight line (orientation: slerp),
+        densely sampled and IK'd into a joint trajectory timed from the joint limits and run
+        by :meth:`follow` (cancel, preemption, ``tolerances`` and safety as for any trajectory);
+        samples may deviate from the line by at most ``path_tolerance`` (m); ``velocity_scale`` and
+        ``acceleration_scale`` (in (0, 1], like MoveIt's scaling factors) slow the line down.
+        ``pose`` may be a position (3,) (implies ``position_only``). An unreachable target
+        returns ``MotionResult(INVALID_GOAL)`` whose message names the IK residual; nothing
+        moves. See :mod:`agentsdk.cartesian`.
+        """
+        from .cartesian import move_to_pose
+
+        return await move_to_pose(self, link, pose, linear, duration, tolerances, position_only=position_only,
+                                  path_tolerance=path_tolerance, velocity_scale=velocity_scale,
+                                  acceleration_scale=acceleration_scale)
 
     # -------------------------------------------------------------- safety
     async def estop(self, category: int = 1) -> None:

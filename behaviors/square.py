@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agentsdk import Pose, Robot, Tolerances
+from agentsdk import Pose, Robot, Tolerances, UnreachablePoseError
 from agentsdk.kinematics import Kinematics
 
 ROBOT = "arm3"
@@ -113,7 +113,12 @@ async def main(robot: Robot) -> SquareReport:
         if full:
             corners.append(Pose(point, center.orientation))
         else:  # the nearest reachable point, staying on the ready configuration's branch
-            sol = kin.ik(link, point, seed=q_ready, position_tolerance=SNAP, restarts=0)
+            try:
+                sol = kin.ik(link, point, seed=q_ready, restarts=0)
+            except UnreachablePoseError as exc:  # IK's best attempt is the nearest point it found
+                if exc.result is None or exc.result.position_error > SNAP:
+                    raise
+                sol = exc.result
             corners.append(Pose(kin.fk(link, sol).position, center.orientation))
     log.info("drawing a %.3g m square with %r (%s) around %s", SIDE, link,
              "full pose" if full else "position only", np.round(center.position, 4).tolist())

@@ -117,6 +117,9 @@ class _MujocoRenderer:
         self.width, self.height = width, height
         model.vis.global_.offwidth = max(int(model.vis.global_.offwidth), width)
         model.vis.global_.offheight = max(int(model.vis.global_.offheight), height)
+        # URDF models carry no lights: a brighter headlight than MuJoCo's default
+        model.vis.headlight.ambient[:] = np.maximum(model.vis.headlight.ambient, 0.35)
+        model.vis.headlight.diffuse[:] = np.maximum(model.vis.headlight.diffuse, 0.65)
         self._ctx = gl(width, height)
         self._ctx.make_current()
         self._scene = mujoco.MjvScene(model, maxgeom=10000)
@@ -156,7 +159,7 @@ class _MujocoRenderer:
         size = self._floor_size
         mujoco.mjv_initGeom(scn.geoms[scn.ngeom], int(mujoco.mjtGeom.mjGEOM_PLANE), np.array([size, size, 0.05]),
                             np.array([*self._cam.lookat[:2], self._floor_z]), np.eye(3).reshape(-1),
-                            np.array([0.55, 0.58, 0.62, 1.0], dtype=np.float32))
+                            np.array([0.75, 0.77, 0.8, 1.0], dtype=np.float32))
         scn.ngeom += 1
 
     def render(self, qpos: np.ndarray) -> np.ndarray:

@@ -451,17 +451,25 @@ class Kinematics:
         return out
 
     def _link_tree(self) -> tuple[dict[str, int], dict[str, str], str]:
+        """``({link: body id} in tree order, {link: parent link}, root link)``.
+
+        From the description's links and joints when every link is a body of the model (URDF;
+        MJCF descriptions whose bodies carry at most one joint), else from the model's bodies
+        (MJCF: every body, unnamed ones as ``body<id>``, under ``world``).
+        """
         m = self.model
         names = list(getattr(self.description, "links", ()) or ())
         links: dict[str, int] = {}
         parents: dict[str, str] = {}
-        if names and _is_mjcf(self.description) is None:
+        found = True
+        for name in names:
+            bid = 0 if name == "world" else mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
+            if bid < 0:
+                found = False
+                break
+            links[name] = bid
+        if names and found:
             root = self.description.root_link
-            for name in names:
-                bid = 0 if name == "world" else mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
-                if bid < 0:
-                    raise DescriptionError(f"link {name!r} of {self.name!r} is missing from the kinematic model")
-                links[name] = bid
             children: dict[str, list[str]] = {}
             for rec in getattr(self.description, "all_joints", ()):
                 children.setdefault(rec.parent, []).append(rec.child)
@@ -476,16 +484,17 @@ class Kinematics:
                         parents[child] = parent
                         queue.append(child)
             return ordered, parents, root
-        links["world"] = 0
+        if names and _is_mjcf(self.description) is None:
+            missing = next(n for n in names if n not in links)
+            raise DescriptionError(f"link {missing!r} of {self.name!r} is missing from the kinematic model")
+
+        def body_name(b: int) -> str:
+            return "world" if b == 0 else (m.body(b).name or f"body{b}")
+
+        links = {"world": 0}
         for bid in range(1, m.nbody):
-            name = m.body(bid).name
-            if not name:
-                continue
-            links[name] = bid
-            pid = int(m.body_parentid[bid])
-            while pid > 0 and not m.body(pid).name:
-                pid = int(m.body_parentid[pid])
-            parents[name] = m.body(pid).name if pid > 0 else "world"
+            links[body_name(bid)] = bid
+            parents[body_name(bid)] = body_name(int(m.body_parentid[bid]))
         return links, parents, "world"
 
     @property

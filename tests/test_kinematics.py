@@ -289,7 +289,6 @@ def test_gravity_matches_mujoco_bias_at_rest(name: str) -> None:
 # --------------------------------------------------------------------------- IK
 
 
-@pytest.mark.slow
 @pytest.mark.parametrize("name,link", [("ur5", "tool0"), ("panda", "panda_hand_tcp")])
 def test_ik_reaches_100_random_reachable_poses(name: str, link: str) -> None:
     kin = Kinematics(describe(name))

@@ -271,3 +271,14 @@ async def test_square_on_a_corpus_arm(robot_name: str, backend: str, corpus_yaml
     corners = np.array(report.corners)
     sides = np.linalg.norm(np.roll(corners, -1, axis=0) - corners, axis=1)
     assert np.allclose(sides, square.SIDE, atol=1e-4)
+
+
+async def test_cartesian_motion_is_deterministic_in_lockstep() -> None:
+    """IK and line planning yield to the event loop on wall-clock slices; lockstep time stands still meanwhile."""
+    finals = []
+    for _ in range(2):
+        async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+            report = await square.main(robot)
+            state = await robot.read()
+            finals.append((report, state.stamp, state.position.tobytes()))
+    assert finals[0] == finals[1]

@@ -87,3 +87,16 @@ def test_video_bad_arguments(behavior: Path, tmp_path: Path, capsys: pytest.Capt
                      "--video-size", "big"]) != 0
     assert "WIDTHxHEIGHT" in capsys.readouterr().err
     assert not (tmp_path / "x.mp4").exists()
+
+
+async def test_video_recorder_api_with_progress_bar(tmp_path: Path) -> None:
+    from agentsdk.video import VideoRecorder
+
+    async with agentsdk.connect("mock", robot="humanoid", safety={"stall_timeout": 5.0}) as robot:
+        rec = VideoRecorder.attach(robot, tmp_path / "h.gif", fps=10, size=(96, 72))
+        await robot.move_to({robot.joint_names[0]: 0.5, robot.joint_names[3]: -0.5}, duration=1.0)
+    assert 9 <= len(rec.frames) <= 13
+    assert rec.finish(progress=True) == tmp_path / "h.gif"
+    frames = read_frames(tmp_path / "h.gif", 96, 72)
+    assert len(frames) == len(rec.frames)
+    assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.5

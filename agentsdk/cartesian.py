@@ -198,8 +198,16 @@ def _time_path(
     return Trajectory(names, points)
 
 
-def _chain_joints(kin: Kinematics, link: str, q: FloatArray) -> dict[str, float]:
-    return {j: float(q[kin.joint_names.index(j)]) for j in kin.chain(link)}
+async def _joint_move(
+    robot: Robot, kin: Kinematics, link: str, q: FloatArray, duration: float | None, tolerances: Tolerances | None
+) -> MotionResult:
+    """``move_to`` of the joints that move ``link`` (a link no joint moves is already where IK says)."""
+    from .motion import MotionResult, ResultCode
+
+    goal = {j: float(q[kin.joint_names.index(j)]) for j in kin.chain(link)}
+    if not goal:
+        return MotionResult(ResultCode.SUCCESSFUL, {}, f"no joint moves link {link!r}", robot.clock.now())
+    return await robot.move_to(goal, duration=duration, tolerances=tolerances)
 
 
 async def move_to_pose(
@@ -236,7 +244,7 @@ async def move_to_pose(
         if not linear:
             sol = await kin.ik_async(link, target, seed=start, position_only=position_only)
             goal = np.array([sol[j] for j in kin.joint_names])
-            return await robot.move_to(_chain_joints(kin, link, goal), duration=duration, tolerances=tolerances)
+            return await _joint_move(robot, kin, link, goal, duration, tolerances)
         joints = ctl.joints
         traj = await run_async(
             plan_linear(kin, link, target, start, joints, position_only=position_only, duration=duration,
@@ -246,7 +254,7 @@ async def move_to_pose(
     except UnreachablePoseError as exc:
         return MotionResult(ResultCode.INVALID_GOAL, {}, str(exc), robot.clock.now())
     if traj is None:  # already there
-        return await robot.move_to(_chain_joints(kin, link, start), duration=duration, tolerances=tolerances)
+        return await _joint_move(robot, kin, link, start, duration, tolerances)
     return await robot.follow(traj, tolerances)
 
 

@@ -100,3 +100,22 @@ async def test_video_recorder_api_with_progress_bar(tmp_path: Path) -> None:
     frames = read_frames(tmp_path / "h.gif", 96, 72)
     assert len(frames) == len(rec.frames)
     assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.5
+
+
+async def test_can_robot_has_kinematics_and_video(tmp_path: Path) -> None:
+    """The CAN backend (emulated MIT motors on python-can's virtual bus) is drawn from FK like the mock."""
+    from agentsdk.backends.can.testing import EmulatedCanConformance
+    from agentsdk.video import VideoRecorder
+
+    async with EmulatedCanConformance().open_robot() as robot:
+        kin = robot.kinematics
+        link = kin.link_names[-1]
+        rec = VideoRecorder.attach(robot, tmp_path / "leg.mp4", fps=10, size=(96, 72))
+        await robot.move_to({robot.joint_names[0]: 0.6}, duration=1.0)
+        state = await robot.read()
+        assert kin.fk(link).isclose(kin.fk(link, state), 1e-12, 1e-12)
+    assert len(rec.frames) >= 8
+    rec.finish()
+    frames = read_frames(tmp_path / "leg.mp4", 96, 72)
+    assert len(frames) == len(rec.frames)
+    assert np.abs(frames[0].astype(int) - frames[-1]).mean() > 0.2

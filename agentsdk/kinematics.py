@@ -364,6 +364,13 @@ class Kinematics:
         self._ik: _IKSolver | None = None
 
     @classmethod
+    def for_robot(cls, robot: Any) -> Kinematics:
+        """The kinematics of a connected :class:`~agentsdk.Robot`, defaulting to its latest measured state."""
+        loop = getattr(robot, "_loop", None)  # the control loop owns the state buffers (else the controller)
+        source = loop if loop is not None and hasattr(loop, "snapshot") else robot.controller
+        return cls(robot.controller.description, robot.joints, state=source.snapshot)
+
+    @classmethod
     def from_mjcf(
         cls,
         path: str | Path,

@@ -103,7 +103,7 @@ class Robot:
         if self._kinematics is None:
             from .kinematics import Kinematics
 
-            self._kinematics = Kinematics(self._ctl.description, self._ctl.joints, state=self._ctl.snapshot)
+            self._kinematics = Kinematics.for_robot(self)
         return self._kinematics
 
     @property

@@ -193,17 +193,13 @@ def _visual_mujoco_model(description: Any) -> Any:
     mjcf = _is_mjcf(description)
     if mjcf is not None:
         return mujoco.MjModel.from_xml_path(str(mjcf))
-    from agentsdk.backends.mujoco import _NATIVE_MESH, _convert_mesh
-
     spec = mujoco.MjSpec.from_string(description.urdf_xml)
     files = {p.name: p for p in description.mesh_files}
     for mesh in spec.meshes:
         path = files.get(Path(mesh.file).name)
         if path is None:
             continue
-        if path.suffix.lower() not in _NATIVE_MESH:
-            path = _convert_mesh(path)
-        mesh.file = str(path)
+        mesh.file = str(_mujoco_mesh(path))
     spec.compiler.balanceinertia = True
     spec.compiler.boundmass = 1e-9
     spec.compiler.boundinertia = 1e-12
@@ -214,6 +210,24 @@ def _visual_mujoco_model(description: Any) -> Any:
 
         _repair_inertias(spec)
         return spec.compile()
+
+
+def _mujoco_mesh(path: Path) -> Path:
+    """``path`` itself when MuJoCo reads it (STL, OBJ, MSH), else an STL copy (COLLADA...) in a cache dir."""
+    if path.suffix.lower() in (".stl", ".obj", ".msh"):
+        return path
+    import hashlib
+
+    import trimesh
+
+    digest = hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:12]
+    out = Path(tempfile.gettempdir()) / "agentsdk-video-meshes" / f"{path.stem}-{digest}.stl"
+    if not out.exists():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_suffix(f".{os.getpid()}.stl")
+        trimesh.load(path, force="mesh").export(tmp)
+        tmp.replace(out)  # atomic: concurrent runs never read a half-written file
+    return out
 
 
 class _PybulletRenderer:
@@ -305,13 +319,20 @@ class VideoRecorder:
         self.frames: list[np.ndarray] = []
         self._next = 0.0
         self._attached = False
+        self._handle: Any = None
 
     @classmethod
     def attach(cls, robot: Robot, path: str | os.PathLike[str], **kw: Any) -> VideoRecorder:
         """Start capturing now (a frame every 1/fps s of robot time, from the next control tick)."""
         rec = cls(robot, path, **kw)
         rec._next = robot.clock.now()
-        rec._ctl.tick_hooks.append(rec._on_tick)
+        add_hook = getattr(robot, "add_tick_hook", None)
+        if add_hook is not None:  # the control loop's named phases: observe, after the state is read
+            from .loop import Phase  # type: ignore[import-not-found,unused-ignore]
+
+            rec._handle = add_hook(Phase.OBSERVE, lambda t, state, setpoint: rec._on_tick(t, state))
+        else:
+            rec._ctl.tick_hooks.append(rec._on_tick)
         rec._attached = True
         return rec
 
@@ -329,8 +350,12 @@ class VideoRecorder:
     def detach(self) -> None:
         """Stop capturing."""
         if self._attached:
-            with contextlib.suppress(ValueError):
-                self._ctl.tick_hooks.remove(self._on_tick)
+            if self._handle is not None:
+                with contextlib.suppress(Exception):  # the loop may be closed already
+                    self._handle.remove()
+            else:
+                with contextlib.suppress(ValueError):
+                    self._ctl.tick_hooks.remove(self._on_tick)
             self._attached = False
 
     def _renderer(self) -> tuple[Any, Callable[[np.ndarray], np.ndarray] | None]:

@@ -639,6 +639,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``agentsdk`` command line with ``argv`` (default ``sys.argv[1:]``) and return its exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     passthrough = {"emulate-can": lambda rest: _cmd_emulate_can(argparse.Namespace(), rest),

@@ -290,7 +290,7 @@ async def _open_robot(
     cls = load_backend(backend)
     config, description = resolve_robot(robot, strict=strict)
     joints = apply_overrides(description, config)
-    safety_cfg = SafetyConfig.from_sources(config.safety, safety)
+    safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
     bounds = PositionBounds(joints, safety_cfg.position_margin)
     backend_obj = cls(config, description, joints, realtime=realtime, **options)
     loop = ControlLoop(backend_obj)

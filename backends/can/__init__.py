@@ -46,7 +46,7 @@ from typing import Any
 
 import can
 import numpy as np
-from pydantic import Field, PositiveFloat, PositiveInt
+from pydantic import Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
 from agentsdk.errors import BackendFault, BackendStartError, ConfigurationError
@@ -66,11 +66,27 @@ class CanOptions(CanBusConfig):
     #: fraction of the control period to wait for replies each cycle
     reply_deadline: float = Field(default=0.8, gt=0.0, le=1.0)
     #: consecutive cycles without a reply before a motor is declared lost (-> FAULT)
-    max_missed_replies: PositiveInt = 5
-    #: seconds to wait for each motor's reply to the enable frame at open
-    open_timeout: PositiveFloat = 0.2
+    max_missed_replies: int = Field(default=5, ge=1, le=1000)
+    #: seconds to wait for each motor's reply to the enable frame at open (and to special frames)
+    open_timeout: float = Field(default=0.2, gt=0.0, le=10.0)
     #: extra keyword arguments for ``can.Bus`` (e.g. ``receive_own_messages``)
     bus_kwargs: dict[str, Any] = Field(default_factory=dict)
+
+
+def _robots_with_can() -> list[str]:
+    """The shipped robots whose robot.yaml has a ``backends.can`` section."""
+    from agentsdk.config import load_robot_config
+    from agentsdk.description import list_robots
+    from agentsdk.robots import ROBOTS_DIR
+
+    out = []
+    for name in list_robots(ROBOTS_DIR):
+        try:
+            if "can" in load_robot_config(ROBOTS_DIR / name / "robot.yaml").backends:
+                out.append(name)
+        except ConfigurationError:
+            continue
+    return out
 
 
 @dataclass
@@ -103,9 +119,14 @@ class CanController(Backend):
         missing = [j.name for j in self.joints if j.name not in opts.motors]
         unknown = [n for n in opts.motors if n not in self.index]
         if missing or unknown:
-            raise ConfigurationError(
-                f"backends.can.motors must map every joint: missing {missing}, unknown {unknown}"
-            )
+            from agentsdk.config import did_you_mean
+
+            label = self.config.label
+            lines = [f"{label}: backends.can.motors: no motor for joint {n!r}" for n in missing]
+            lines += [
+                f"{label}: backends.can.motors.{n}: unknown joint{did_you_mean(n, self.names)}" for n in unknown
+            ]
+            raise ConfigurationError("\n".join(lines))
         self._motors = [opts.motors[j.name] for j in self.joints]
         self._ranges = [m.motor_ranges for m in self._motors]
         self._profile = opts.vendor_profile
@@ -145,6 +166,17 @@ class CanController(Backend):
         self._unexpected_ids: dict[int, int] = {}
         #: the emergency bus handle has no file descriptor (virtual): drain its rx queue each cycle
         self._drain_estop = False
+
+    def _validate_options(self, options: dict[str, Any], given: frozenset[str] = frozenset()) -> Any:
+        if "motors" not in options:
+            # the usual mistake: a robot without a CAN section (e.g. `--backend can` with arm3)
+            with_can = _robots_with_can()
+            raise ConfigurationError(
+                f"{self.config.label}: robot {self.description.name!r} has no backends.can section: the CAN backend "
+                f"needs backends.can.motors, a motor (id, model) for each joint ({', '.join(self.names)})"
+                + (f"; shipped robots with one: {', '.join(with_can)}" if with_can else "")
+            )
+        return super()._validate_options(options, given)
 
     # ------------------------------------------------------------ open/close
     def _make_bus(self) -> can.BusABC:

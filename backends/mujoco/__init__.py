@@ -29,6 +29,7 @@ from agentsdk.description.collision import SelfCollision, for_robot
 from agentsdk.description.mjcf import colliding_body_pairs
 from agentsdk.description.mjspec import build_spec
 from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
+from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 __all__ = ["MujocoController", "MujocoOptions"]
@@ -103,6 +104,10 @@ class MujocoController(Backend):
         self._nsub = substeps(self.period, self.options.timestep, "MuJoCo", self.config.label)
 
     async def _open(self) -> None:
+        # building and compiling a model takes up to seconds: off the event loop
+        await run_blocking(self._build, name="agentsdk-mujoco-build")
+
+    def _build(self) -> None:
         opts: MujocoOptions = self.options
         _route_warnings()
         desc = self.description

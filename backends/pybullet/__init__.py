@@ -55,6 +55,7 @@ from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf
 from agentsdk.description.mjcf import mjcf_unsupported_by_pybullet
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 __all__ = ["PybulletController", "PybulletOptions"]
@@ -139,6 +140,13 @@ class PybulletController(Backend):
 
     # ------------------------------------------------------------ open/close
     async def _open(self) -> None:
+        if self.options.gui:
+            self._build()  # the GUI client starts its own window thread: opened from the loop's thread
+        else:
+            # loading the robot takes up to seconds: off the event loop
+            await run_blocking(self._build, name="agentsdk-pybullet-build")
+
+    def _build(self) -> None:
         opts: PybulletOptions = self.options
         try:
             self._cid = p.connect(p.GUI if opts.gui else p.DIRECT)

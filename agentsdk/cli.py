@@ -664,8 +664,14 @@ def main(argv: list[str] | None = None) -> int:
     except AgentSDKError as exc:
         if debug:
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        _print_error(exc)
         return EXIT_USER_ERROR
+
+
+def _print_error(exc: BaseException) -> None:
+    """``error: ...`` on stderr, one line per problem (indented continuation lines stay as they are)."""
+    for line in str(exc).splitlines() or [type(exc).__name__]:
+        print(line if line[:1].isspace() else f"error: {line}", file=sys.stderr)
 
 
 if __name__ == "__main__":

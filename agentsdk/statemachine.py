@@ -348,6 +348,40 @@ class _Unhandled(Exception):
         self.fatal = fatal
 
 
+def _leaves(eg: BaseExceptionGroup) -> list[BaseException]:
+    out: list[BaseException] = []
+    for exc in eg.exceptions:
+        out.extend(_leaves(exc) if isinstance(exc, BaseExceptionGroup) else [exc])
+    return out
+
+
+def _merge_region_failures(eg: BaseExceptionGroup, path: str) -> BaseException:
+    """What a parallel state raises when its regions failed: every failure, none dropped.
+
+    One failure is raised as it is. Several (regions failing in the same step) become
+    one :class:`_Unhandled` carrying an ``ExceptionGroup`` of every region's exception,
+    e-stopped/fatal if any of them was. A leaf that is not an ``Exception``
+    (``KeyboardInterrupt``, ``SystemExit``) wins: the group is re-raised as it came.
+    """
+    leaves = [e for e in _leaves(eg) if not isinstance(e, asyncio.CancelledError)]
+    if not leaves:
+        return asyncio.CancelledError()
+    if any(not isinstance(e, Exception) for e in leaves):
+        return eg
+    if len(leaves) == 1:
+        return leaves[0]
+    causes = [e.exc if isinstance(e, _Unhandled) else e for e in leaves]
+    where = [e.path for e in leaves if isinstance(e, _Unhandled)]
+    group = ExceptionGroup(f"{len(causes)} parallel regions of {path} failed: {', '.join(where) or path}", causes)
+    unhandled = [e for e in leaves if isinstance(e, _Unhandled)]
+    return _Unhandled(
+        group,
+        path,
+        estopped=any(u.estopped for u in unhandled),
+        fatal=any(u.fatal for u in unhandled),
+    )
+
+
 @dataclass(slots=True)
 class _Step:
     target: str | None
@@ -762,10 +796,7 @@ class StateMachine:
                 for child in children:
                     tg.create_task(child._sm_loop(), name=child.machine_path)
         except BaseExceptionGroup as eg:
-            leaf: BaseException = eg
-            while isinstance(leaf, BaseExceptionGroup):
-                leaf = leaf.exceptions[0]
-            raise leaf from None
+            raise _merge_region_failures(eg, f"{self._sm_path}/{state.name}") from None
         return state.completion_event()
 
     async def _sm_timer(self, delay: float, token: object) -> None:

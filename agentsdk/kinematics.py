@@ -737,6 +737,11 @@ class Kinematics:
         moving |= {c.leader for c in self._couplings if c.dadr in dofs}
         return tuple(self.joint_names[k] for k in sorted(moving))
 
+    def prepare_ik(self) -> None:
+        """Build the IK solver now (imports mink); ``ik`` otherwise builds it on first use."""
+        with self._lock:
+            self._solver()
+
     def _solver(self) -> IKSolver:
         if self._ik is None:
             self._ik = IKSolver(self)

@@ -57,6 +57,7 @@ class Robot:
         self.safety = safety
         self._motions = motions
         self._kinematics: Kinematics | None = None
+        self._kinematics_error: Exception | None = None
 
     # ------------------------------------------------------------ metadata
     @property
@@ -192,10 +193,30 @@ class Robot:
         ``positions=None`` means the latest measured state; see :mod:`agentsdk.kinematics`.
         """
         if self._kinematics is None:
-            from .kinematics import Kinematics
-
-            self._kinematics = Kinematics.for_robot(self)
+            if self._kinematics_error is not None:
+                raise self._kinematics_error
+            self._kinematics = self._build_kinematics()
         return self._kinematics
+
+    def _build_kinematics(self) -> Kinematics:
+        from .kinematics import Kinematics
+
+        kin = Kinematics.for_robot(self)
+        kin.prepare_ik()
+        return kin
+
+    async def _prepare_kinematics(self) -> None:
+        """Compile the kinematic model and import the IK solver off the event loop.
+
+        Both take from milliseconds to a second (a large mesh robot, the first ``import
+        mink``); done lazily on first use they would stall the loop, which the stall
+        watchdog rightly treats as an e-stop. A description the kinematics cannot model
+        fails later, at ``robot.kinematics``, not at connect.
+        """
+        try:
+            self._kinematics = await run_blocking(self._build_kinematics, name="agentsdk-kinematics")
+        except Exception as exc:  # reported at first use of robot.kinematics
+            self._kinematics_error = exc
 
     @property
     def link_names(self) -> tuple[str, ...]:
@@ -388,7 +409,13 @@ async def _open_robot(
         raise BackendStartError(f"backend {backend!r} failed to start: {exc}") from exc
     layer.start()
     log.debug("connected %s on %s (%d joints)", backend_obj.description.name, backend, len(backend_obj.joints))
-    return Robot(loop, layer, motions)
+    robot_obj = Robot(loop, layer, motions)
+    try:
+        await robot_obj._prepare_kinematics()
+    except BaseException:
+        await robot_obj.close()
+        raise
+    return robot_obj
 
 
 class _Connection:

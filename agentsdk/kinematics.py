@@ -210,7 +210,7 @@ class _Coupling:
     offset: float
 
 
-def _is_mjcf(description: Any) -> Path | None:
+def mjcf_source(description: Any) -> Path | None:
     """The MJCF file behind a description, or None for a URDF description."""
     for attr in ("mjcf_path", "mjcf_file"):
         path = getattr(description, attr, None)
@@ -232,7 +232,7 @@ def _compile(description: Any) -> tuple[mujoco.MjModel, list[str]]:
     links kept, the description's repaired inertials, mimic joints as equality
     constraints), so link frames and g(q) are the simulators' own. No collision geometry.
     """
-    mjcf = _is_mjcf(description)
+    mjcf = mjcf_source(description)
     try:
         if mjcf is not None:
             spec = mujoco.MjSpec.from_file(str(mjcf))
@@ -435,7 +435,7 @@ class Kinematics:
                         parents[child] = parent
                         queue.append(child)
             return ordered, parents, root
-        if names and _is_mjcf(self.description) is None:
+        if names and mjcf_source(self.description) is None:
             missing = next(n for n in names if n not in links)
             raise DescriptionError(f"link {missing!r} of {self.name!r} is missing from the kinematic model")
 
@@ -532,7 +532,7 @@ class Kinematics:
 
     # ------------------------------------------------------------ forward kinematics
     def _pose(self, d: mujoco.MjData, bid: int) -> Pose:
-        return Pose._trusted(d.xpos[bid].copy(), _wxyz_to_xyzw(d.xquat[bid]))
+        return Pose.from_trusted_arrays(d.xpos[bid].copy(), _wxyz_to_xyzw(d.xquat[bid]))
 
     def fk(self, link: str, positions: Positions | None = None, reference: str | None = None) -> Pose:
         """Pose of ``link`` in the root frame (or in ``reference``'s frame) at ``positions``."""

@@ -262,5 +262,6 @@ def _desired_positions(robot: Robot) -> FloatArray:
     """Where the robot is being driven now (a motion continues from its desired state, not the measured one)."""
     q, _, _ = robot.desired_state()
     kin = robot.kinematics
-    return np.clip(np.asarray(q, dtype=float), kin.lower, kin.upper)
+    clipped: FloatArray = np.clip(np.asarray(q, dtype=float), kin.lower, kin.upper)
+    return clipped
 

@@ -605,7 +605,7 @@ class Kinematics:
                 bias = d.qfrc_bias.copy()
             finally:
                 m.opt.gravity[:] = saved
-        tau = bias[self._dadr].copy()
+        tau: FloatArray = bias[self._dadr].copy()
         for c in self._couplings:
             tau[c.leader] += c.multiplier * bias[c.dadr]
         return tau
@@ -641,7 +641,8 @@ class Kinematics:
         gen = self._ik_gen(None, link, pose, seed, position_only, position_tolerance, orientation_tolerance,
                            max_iterations, restarts, random_seed)
         with self._lock:
-            return run_sync(gen)
+            result: IKResult = run_sync(gen)
+            return result
 
     async def ik_async(
         self,
@@ -664,7 +665,8 @@ class Kinematics:
         """
         gen = self._ik_gen(IKSolver(self), link, pose, seed, position_only, position_tolerance,
                            orientation_tolerance, max_iterations, restarts, random_seed)
-        return await run_async(gen)
+        result: IKResult = await run_async(gen)
+        return result
 
     def _ik_gen(
         self,

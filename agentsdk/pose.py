@@ -89,7 +89,8 @@ def matrix_to_quat(r: FloatArray) -> FloatArray:
         q = np.array([(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s])
     if q[3] < 0.0:
         q = -q
-    return q / np.linalg.norm(q)
+    unit: FloatArray = q / np.linalg.norm(q)
+    return unit
 
 
 def rotation_vector(q: FloatArray) -> FloatArray:
@@ -108,7 +109,8 @@ def quat_from_rotation_vector(v: FloatArray) -> FloatArray:
     angle = float(np.linalg.norm(v))
     if angle < 1e-12:
         q = np.array([0.5 * v[0], 0.5 * v[1], 0.5 * v[2], 1.0])
-        return q / np.linalg.norm(q)
+        unit: FloatArray = q / np.linalg.norm(q)
+        return unit
     s = math.sin(0.5 * angle) / angle
     return np.array([v[0] * s, v[1] * s, v[2] * s, math.cos(0.5 * angle)])
 
@@ -142,6 +144,7 @@ class Pose:
 
     position: FloatArray
     orientation: FloatArray
+    _matrix: FloatArray | None
 
     def __init__(
         self,

@@ -223,7 +223,7 @@ def _mujoco_mesh(path: Path) -> Path:
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = out.with_suffix(f".{os.getpid()}.stl")
-        trimesh.load(path, force="mesh").export(tmp)
+        trimesh.load(path, force="mesh").export(tmp)  # type: ignore[no-untyped-call]
         tmp.replace(out)  # atomic: concurrent runs never read a half-written file
     return out
 

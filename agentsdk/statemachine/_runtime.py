@@ -122,7 +122,7 @@ def merge_region_failures(eg: BaseExceptionGroup, path: str) -> BaseException:
         return eg
     if len(leaves) == 1:
         return leaves[0]
-    causes = [e.exc if isinstance(e, Unhandled) else e for e in leaves]
+    causes: list[Exception] = [e.exc if isinstance(e, Unhandled) else e for e in leaves if isinstance(e, Exception)]  # type: ignore[misc]
     where = [e.path for e in leaves if isinstance(e, Unhandled)]
     group = ExceptionGroup(f"{len(causes)} parallel regions of {path} failed: {', '.join(where) or path}", causes)
     unhandled = [e for e in leaves if isinstance(e, Unhandled)]

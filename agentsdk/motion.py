@@ -508,6 +508,17 @@ class MotionManager:
                 ex.goal = np.asarray(traj.positions[-1], dtype=float).copy()
         lo, hi = self.bounds.lo[idx], self.bounds.hi[idx]
         vmax, amax = self._vmax[idx], self._amax[idx]
+        if traj.velocities is not None and traj.points[0].time_from_start == 0.0:
+            # a first point at time 0 is output at once (JTC): its velocity must continue the current one
+            step = np.abs(traj.velocities[0] - v0)
+            bad = ~(step <= amax * self.loop.period * (1.0 + _STEP_RTOL) + 1e-9)
+            if bad.any():
+                k = int(np.argmax(bad))
+                raise LimitViolation(
+                    f"point 0: joint {traj.joint_names[k]!r} velocity {traj.velocities[0, k]:.6g} at time_from_start "
+                    f"0 is a step from its current velocity {v0[k]:.6g}, beyond max_acceleration {amax[k]:.6g}; "
+                    "give point 0 a time_from_start > 0 (the motion then starts from the current state)"
+                )
         sampler = TrajectorySampler(traj, start_time=t0, start_positions=q0, start_velocities=v0,
                                     start_accelerations=a0)
         hint = ("; slow the trajectory down (later time_from_start), or pass stretch_to_limits=True to "

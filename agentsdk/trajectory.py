@@ -56,6 +56,7 @@ from .types import FloatArray, JointInfo
 
 __all__ = [
     "MAX_TIME_FROM_START",
+    "MIN_SEGMENT_DURATION",
     "Interpolation",
     "MotionPeaks",
     "StartState",
@@ -83,6 +84,8 @@ _END_VEL_EPS = float(np.finfo(np.float32).eps)
 #: longest ``time_from_start`` accepted (s, ~11.6 days): beyond it the polynomial coefficients lose
 #: their precision (and at ~1e60 s overflow to NaN setpoints)
 MAX_TIME_FROM_START = 1e6
+#: shortest time between two points (and from the start to a first point at a time > 0), s
+MIN_SEGMENT_DURATION = 1e-9
 #: ruckig (Community) refuses profiles longer than this (its ErrorTrajectoryDuration, -101)
 _RUCKIG_MAX_DURATION = 7.6e3
 _MIN_GAP = 1e-6  # s, breakpoints closer than this are merged
@@ -201,6 +204,11 @@ class Trajectory:
                 raise InvalidValueError(
                     f"point {k}: time_from_start {t} s is not after point {k - 1}'s {prev_t} s "
                     "(times must strictly increase)"
+                )
+            if t - max(prev_t, 0.0) < MIN_SEGMENT_DURATION and (k > 0 or t > 0.0):
+                raise InvalidValueError(
+                    f"point {k}: time_from_start {t:g} s is less than {MIN_SEGMENT_DURATION:g} s after "
+                    f"{'the start' if k == 0 else f'point {k - 1}'}: a segment too short to interpolate"
                 )
             prev_t = t
             if (p.velocities is not None) != has_vel:
@@ -389,16 +397,21 @@ def _vector(values: Values | None, names: Sequence[str], what: str, default: flo
 def _quintic(
     q0: FloatArray, v0: FloatArray, a0: FloatArray, q1: FloatArray, v1: FloatArray, a1: FloatArray, T: FloatArray
 ) -> FloatArray:
-    """Coefficients (segments, 6, joints) of quintic Hermite polynomials in local time."""
+    """Coefficients (segments, 6, joints) of quintic Hermite polynomials in local time.
+
+    Durations too short or too long to represent give non-finite coefficients (no warning), which
+    :func:`check_motion_limits` refuses.
+    """
     T = T[:, None]
     h = q1 - q0
     c = np.empty((len(T), 6, q0.shape[1]))
     c[:, 0] = q0
     c[:, 1] = v0
     c[:, 2] = 0.5 * a0
-    c[:, 3] = (20.0 * h - (8.0 * v1 + 12.0 * v0) * T - (3.0 * a0 - a1) * T**2) / (2.0 * T**3)
-    c[:, 4] = (-30.0 * h + (14.0 * v1 + 16.0 * v0) * T + (3.0 * a0 - 2.0 * a1) * T**2) / (2.0 * T**4)
-    c[:, 5] = (12.0 * h - 6.0 * (v1 + v0) * T + (a1 - a0) * T**2) / (2.0 * T**5)
+    with np.errstate(all="ignore"):
+        c[:, 3] = (20.0 * h - (8.0 * v1 + 12.0 * v0) * T - (3.0 * a0 - a1) * T**2) / (2.0 * T**3)
+        c[:, 4] = (-30.0 * h + (14.0 * v1 + 16.0 * v0) * T + (3.0 * a0 - 2.0 * a1) * T**2) / (2.0 * T**4)
+        c[:, 5] = (12.0 * h - 6.0 * (v1 + v0) * T + (a1 - a0) * T**2) / (2.0 * T**5)
     return c
 
 
@@ -408,15 +421,17 @@ def _cubic(q0: FloatArray, v0: FloatArray, q1: FloatArray, v1: FloatArray, T: Fl
     c = np.zeros((len(T), 6, q0.shape[1]))
     c[:, 0] = q0
     c[:, 1] = v0
-    c[:, 2] = (3.0 * h - (2.0 * v0 + v1) * T) / T**2
-    c[:, 3] = (-2.0 * h + (v0 + v1) * T) / T**3
+    with np.errstate(all="ignore"):
+        c[:, 2] = (3.0 * h - (2.0 * v0 + v1) * T) / T**2
+        c[:, 3] = (-2.0 * h + (v0 + v1) * T) / T**3
     return c
 
 
 def _linear(q0: FloatArray, q1: FloatArray, T: FloatArray) -> FloatArray:
     c = np.zeros((len(T), 6, q0.shape[1]))
     c[:, 0] = q0
-    c[:, 1] = (q1 - q0) / T[:, None]
+    with np.errstate(all="ignore"):
+        c[:, 1] = (q1 - q0) / T[:, None]
     return c
 
 

@@ -76,6 +76,8 @@ _STEP_RTOL = 1e-5
 #: fraction of max_acceleration the speed-scaling ramp may add to a trajectory's own acceleration
 _SCALE_ACC_MARGIN = 0.95
 _MAX_STRETCH_ITERATIONS = 12
+#: a planned position beyond the bounds by more than this is not float noise (rad or m)
+_BOUND_TOL = 2e-6
 
 
 class ResultCode(enum.IntEnum):
@@ -312,6 +314,8 @@ class _Exec:
     #: the trajectory ends moving (allow_nonzero_velocity_at_end): decelerate after the end
     end_moving: bool = False
     reported_clip: bool = False
+    #: (lower, upper, max step) of its joints, cached on the first tick
+    limits: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
 
 
 class MotionManager:
@@ -903,22 +907,23 @@ class MotionManager:
                             f"path tolerance violated on joint {name!r}: error {err[k]:.4f} > {ex.path_tol[k]:.4f}",
                             t, q, v, a, over)
                 return self._write_stop(ex, t, st, sp)
-            if not self._within_step(ex, q, v, a):
-                return self._write_stop(ex, t, st, sp)
             if elapsed >= ex.sampler.duration:
                 if ex.end_moving:  # ends moving (allow_nonzero_velocity_at_end): decelerate, then hold
                     self._begin_stop(ex, ResultCode.SUCCESSFUL, "ended moving; decelerated to rest", t, q, v, a,
                                      None)
                     return self._write_stop(ex, t, st, sp)
                 ex.phase = "settle"
+        qc = self._limited(ex, q, v, a)
+        if qc is None:  # a step the limiter would have clipped: aborted
+            return self._write_stop(ex, t, st, sp)
         if ex.phase == "settle":
             gerr = np.abs(ex.goal - actual)
             if ex.wrap is not None:
                 gerr = np.where(ex.wrap, np.abs(_wrap_angle(ex.goal - actual)), gerr)
             if (gerr <= ex.goal_tol).all():
-                self._write(ex, t, st, sp, q, v, a, err)
+                self._write(ex, t, st, sp, qc, v, a, err)
                 self._finish(ex, ResultCode.SUCCESSFUL, "")
-                self.loop.hold_at(idx, ex.goal)
+                self.loop.hold_at(idx, qc)
                 return False
             if elapsed >= ex.sampler.duration + ex.goal_time:
                 bad = ~(gerr <= ex.goal_tol)
@@ -931,12 +936,11 @@ class MotionManager:
                 ex.motion = None
                 return self._write_stop(ex, t, st, sp)
         elif stopping and elapsed >= ex.sampler.duration:
-            final = q.copy()
-            self._write(ex, t, st, sp, q, v, a, err)
+            self._write(ex, t, st, sp, qc, v, a, err)
             self._finish(ex, ex.stop_code, ex.stop_msg)
-            self.loop.hold_at(idx, self._clamp(ex, final))
+            self.loop.hold_at(idx, qc)
             return False
-        self._write(ex, t, st, sp, q, v, a, err)
+        self._write(ex, t, st, sp, qc, v, a, err)
         return True
 
     def _write_stop(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
@@ -946,70 +950,81 @@ class MotionManager:
         err = q - st.position[ex.idx]
         if ex.wrap is not None:
             err = np.where(ex.wrap, _wrap_angle(err), err)
+        qc = self._limited(ex, q, v, a)
+        self._write(ex, t, st, sp, qc, v, a, err)
         if ex.sampler.duration <= 0.0:
-            self._write(ex, t, st, sp, q, v, a, err)
             self._finish(ex, ex.stop_code, ex.stop_msg)
-            self.loop.hold_at(ex.idx, self._clamp(ex, q.copy()))
+            self.loop.hold_at(ex.idx, qc)
             return False
-        self._write(ex, t, st, sp, q, v, a, err)
         return True
 
-    def _within_step(self, ex: _Exec, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> bool:
-        """False (and the motion aborted) if writing ``q`` would make the limiter clip the plan."""
-        step = self._step
-        origin = self._step_origin
-        if step is None or origin is None:
-            return True
-        idx = ex.idx
-        lim = step[idx]
-        d = q - origin[idx]
-        over = np.abs(d) > lim * (1.0 + _STEP_RTOL) + 1e-12
-        if not over.any():
-            return True
-        k = int(np.argmax(over))
-        name = ex.motion.joint_names[k] if ex.motion is not None else self.loop.names[int(idx[k])]
-        detail = (f"the planned setpoint of joint {name!r} steps {abs(d[k]):.4g} in one control period, more than "
-                  f"max_position_step {lim[k]:.4g}: the motion is not continuous with the current reference "
-                  "(e.g. a first point at time_from_start 0 away from the current position); not clipped")
-        if self._report is not None:
-            self._report("step", detail, name)
-        # the joints that would step stop from their measured state; the others from this tick's sample
-        self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", ex.t_last, q, v, a, over)
-        return False
+    def _limited(self, ex: _Exec, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray | None:
+        """``q`` inside the position bounds and the limiter's step window, computed exactly as the limiter does.
 
-    def _clamp(self, ex: _Exec, q: np.ndarray) -> np.ndarray:
-        """``q`` inside the bounds and the limiter's step window, exactly as the limiter computes them.
-
-        For a validated motion this only removes float noise (a plan exactly at the limits), so
-        the limiter never has to clip it; more than noise (a stop ramp from a joint moving
-        towards its limit) is reported once, never silent.
+        For a validated motion this only removes float noise (a plan exactly at the limits), so the
+        limiter never clips what a motion writes. A planned step beyond it (e.g. a first point at
+        time 0 away from the robot) aborts the motion before anything is written (None is returned:
+        the caller writes the stop instead); a stop ramp limited by more than noise (stopping a
+        joint that moves towards its limit) is reported once. Never silent.
         """
-        idx = ex.idx
-        out = np.minimum(np.maximum(q, self.bounds.lo[idx]), self.bounds.hi[idx])
-        step = self._step
+        lo, hi, step, step_tol = ex.limits if ex.limits is not None else self._exec_limits(ex)
+        out = np.maximum(q, lo)
+        np.minimum(out, hi, out=out)
+        what = ""
+        if (out != q).any() and float(np.max(np.abs(out - q))) > _BOUND_TOL:
+            what = "bounds"
         origin = self._step_origin
-        if step is not None and origin is not None:
-            o = origin[idx]
-            st = step[idx]
-            np.maximum(out, o - st, out=out)
-            np.minimum(out, o + st, out=out)
+        if step is not None and step_tol is not None and origin is not None:
+            o = origin[ex.idx]
+            dev = np.abs(out - o)
+            if (dev > step).any():  # beyond the limiter's window: float noise is clamped, more aborts
+                if not what and (dev > step_tol).any():
+                    what = "step"
+                np.maximum(out, o - step, out=out)
+                np.minimum(out, o + step, out=out)
+        if not what:
+            return out
+        idx = ex.idx
+        k = int(np.argmax(np.abs(out - q)))
+        name = self.loop.names[int(idx[k])]
+        if ex.phase == "follow":
+            if what == "step":
+                assert step is not None and origin is not None
+                detail = (f"the planned setpoint of joint {name!r} steps {abs(q[k] - origin[idx[k]]):.4g} in one "
+                          f"control period, more than max_position_step {step[k]:.4g}: the motion does not continue "
+                          "from the current reference (e.g. a first point at time_from_start 0 away from the "
+                          "robot); aborted, not clipped")
+            else:
+                detail = (f"the planned setpoint of joint {name!r} ({q[k]:.6g}) leaves its bounds "
+                          f"[{lo[k]:.6g}, {hi[k]:.6g}]; aborted, not clipped")
+            if self._report is not None:
+                self._report(what, detail, name)
+            bad = np.abs(out - q) > 0.0
+            # the joints that would step stop from their measured state, the others from this sample
+            self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", ex.t_last, q, v, a, bad)
+            return None
         if not ex.reported_clip:
-            d = np.abs(out - q)
-            tol = 1e-6 if step is None else max(1e-9, 10.0 * _STEP_RTOL * float(np.max(step[idx])))
-            if d.max(initial=0.0) > tol:
-                ex.reported_clip = True
-                k = int(np.argmax(d))
-                name = self.loop.names[int(idx[k])]
-                if self._report is not None:
-                    self._report("clip", f"the {'stop ramp' if ex.phase == 'stopping' else 'motion'} of joint "
-                                 f"{name!r} was limited by {d[k]:.4g} (position bounds or max_position_step)", name)
+            ex.reported_clip = True
+            if self._report is not None:
+                self._report("clip", f"the {'stop ramp' if ex.phase == 'stopping' else 'motion'} of joint {name!r} "
+                             f"was limited by {abs(out[k] - q[k]):.4g} ({what}: position bounds or "
+                             "max_position_step)", name)
         return out
 
-    def _write(self, ex: _Exec, t: float, st: StateView, sp: Setpoint, q: np.ndarray, v: np.ndarray,
+    def _exec_limits(
+        self, ex: _Exec
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        idx = ex.idx
+        step = None if self._step is None else self._step[idx]
+        step_tol = None if step is None else step * (1.0 + _STEP_RTOL) + 1e-12
+        ex.limits = (self.bounds.lo[idx], self.bounds.hi[idx], step, step_tol)
+        return ex.limits
+
+    def _write(self, ex: _Exec, t: float, st: StateView, sp: Setpoint, qc: np.ndarray, v: np.ndarray,
                a: np.ndarray, err: np.ndarray) -> None:
+        """Write the (already limited) reference ``qc``/``v`` of ``ex``'s joints; publish its feedback."""
         idx = ex.idx
         loop = self.loop
-        qc = self._clamp(ex, q)
         ex.des_q, ex.des_v, ex.des_a = qc, v, a
         sp.mode[idx] = _POS
         sp.enabled[idx] = True
@@ -1026,7 +1041,7 @@ class MotionManager:
                 progress = m._feedback.progress if m._feedback is not None else 0.0
             else:
                 progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
-            m._feedback = Feedback(t, m.joint_names, q, v, st.position[idx].copy(), st.velocity[idx].copy(), err,
+            m._feedback = Feedback(t, m.joint_names, qc, v, st.position[idx].copy(), st.velocity[idx].copy(), err,
                                    progress)
 
     def _activate(self, ex: _Exec, t: float) -> bool:

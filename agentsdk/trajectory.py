@@ -704,8 +704,9 @@ class TrajectorySampler:
         """Exact extremes of the interpolated motion, per segment and joint (see :class:`MotionPeaks`).
 
         Every segment is a polynomial of degree <= 5 per joint; the extremes are its values at
-        the segment ends and at the roots of its derivative inside the segment (bracketed on a
-        16-cell grid, then bisected to machine precision). Velocity steps at the points of a
+        the segment ends and at the roots of its derivative inside the segment (sign changes on a
+        16-cell grid bisected to machine precision, plus the companion-matrix roots, which also
+        find two extrema inside one cell). Velocity steps at the points of a
         positions-only (linear) trajectory are not motion inside a segment and are not counted.
         """
         c = self._c
@@ -765,6 +766,43 @@ def _polyval(c: FloatArray, tau: FloatArray) -> FloatArray:
     return out
 
 
+def _polyval_per_joint(c: FloatArray, tau: FloatArray) -> FloatArray:
+    """Evaluate ascending coefficients ``c`` (S, d+1, N) at per-joint local times ``tau`` (S, R, N)."""
+    out = np.broadcast_to(c[:, -1][:, None, :], tau.shape).copy()
+    for k in range(c.shape[1] - 2, -1, -1):
+        out *= tau
+        out += c[:, k][:, None, :]
+    return out
+
+
+def _root_candidates(dc: FloatArray, T: FloatArray) -> FloatArray:
+    """Real parts of the roots of each polynomial ``dc`` (S, d+1, N), clipped into [0, T]: (S, d, N).
+
+    Eigenvalues of the companion matrices, all at once. A vanishing leading coefficient (a lower
+    degree) is replaced by a tiny one of the same scale: the root it adds lies far outside [0, T]
+    (clipped to an end, which is a candidate anyway) and the others move by rounding only.
+    """
+    S, d1, N = dc.shape
+    d = d1 - 1
+    if d < 1 or S == 0:
+        return np.zeros((S, 0, N))
+    p = np.moveaxis(dc, 2, 1).reshape(S * N, d1)  # (K, d+1) ascending
+    ok = np.isfinite(p).all(axis=1)
+    p = np.where(ok[:, None], p, 0.0)
+    scale = np.abs(p).max(axis=1)
+    lead = p[:, -1]
+    tiny = np.maximum(scale, 1.0) * 1e-13
+    lead = np.where(np.abs(lead) < tiny, np.where(lead < 0.0, -tiny, tiny), lead)
+    comp = np.zeros((len(p), d, d))
+    if d > 1:
+        comp[:, np.arange(1, d), np.arange(d - 1)] = 1.0
+    comp[:, :, -1] = -p[:, :d] / lead[:, None]
+    roots = np.linalg.eigvals(comp).real  # (K, d)
+    roots = np.where(np.isfinite(roots), roots, 0.0)
+    roots = roots.reshape(S, N, d).transpose(0, 2, 1)  # (S, d, N)
+    return np.clip(roots, 0.0, T[:, None, None])
+
+
 def _poly_range(c: FloatArray, dc: FloatArray, T: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(min, max, (t_min, t_max)) over [0, T] of each joint's polynomial ``c`` whose derivative is ``dc``."""
     grid = np.linspace(0.0, 1.0, _GRID + 1)[None, :] * T[:, None]  # (S, G+1)
@@ -792,10 +830,21 @@ def _poly_range(c: FloatArray, dc: FloatArray, T: FloatArray) -> tuple[FloatArra
         fr = cf[:, -1].copy()
         for k in range(cf.shape[1] - 2, -1, -1):
             fr = fr * root + cf[:, k]
+    # a cell can hold two roots (no sign change: an extremum pair the bisection cannot see): the
+    # derivative's roots from its companion matrix are candidates too. Any point of [0, T] is a
+    # true value of the polynomial, so spurious candidates (complex roots' real parts) are harmless.
+    cand = _root_candidates(dc, T)  # (S, R, N)
+    if cand.shape[1]:
+        fc = _polyval_per_joint(c, cand)
+        grid_n = np.broadcast_to(grid[:, :, None], f.shape)
+        f = np.concatenate([f, fc], axis=1)
+        tt = np.concatenate([grid_n, cand], axis=1)
+    else:
+        tt = np.broadcast_to(grid[:, :, None], f.shape)
     f_min = f.min(axis=1)
     f_max = f.max(axis=1)
-    t_min = np.take_along_axis(np.broadcast_to(grid[:, :, None], f.shape), f.argmin(axis=1)[:, None, :], 1)[:, 0]
-    t_max = np.take_along_axis(np.broadcast_to(grid[:, :, None], f.shape), f.argmax(axis=1)[:, None, :], 1)[:, 0]
+    t_min = np.take_along_axis(tt, f.argmin(axis=1)[:, None, :], 1)[:, 0]
+    t_max = np.take_along_axis(tt, f.argmax(axis=1)[:, None, :], 1)[:, 0]
     if len(s_idx):
         np.minimum.at(f_min, (s_idx, j_idx), fr)
         np.maximum.at(f_max, (s_idx, j_idx), fr)

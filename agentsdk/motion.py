@@ -99,7 +99,10 @@ class ResultCode(enum.IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class MotionResult:
-    """Outcome of a motion, like a FollowJointTrajectory result."""
+    """How a motion ended.
+
+    A FollowJointTrajectory-style result code, the final error per joint, a message and the robot time.
+    """
 
     code: ResultCode
     #: final position error per joint (desired goal - actual, wrapped for continuous joints), rad or m
@@ -110,7 +113,7 @@ class MotionResult:
 
     @property
     def ok(self) -> bool:
-        """True for SUCCESSFUL."""
+        """True when the motion ended SUCCESSFUL."""
         return self.code is ResultCode.SUCCESSFUL
 
 
@@ -236,7 +239,7 @@ class Motion:
             raise
 
     def done(self) -> bool:
-        """True once the motion has a result."""
+        """True once the motion has ended (its result is available)."""
         return self._future.done()
 
     def result(self) -> MotionResult:
@@ -359,7 +362,8 @@ class MotionManager:
         """Called by the safety layer: where its position-step limiter measures steps from (a live
         read-only array), the step per tick (None: off), ``rebase(idx, q)`` to tell it that the
         reference of joints ``idx`` was reset to their measured position ``q`` (an abort), and
-        ``report(kind, detail, joint)`` to record a safety event."""
+        ``report(kind, detail, joint)`` to record a safety event.
+        """
         self._step_origin = origin
         self._step = step
         self._rebase = rebase
@@ -503,7 +507,8 @@ class MotionManager:
     ) -> tuple[Trajectory, TrajectorySampler]:
         """Wrap continuous joints to the shortest angle from ``q0``, build the sampler from the start
         state and check the whole motion against the limits (stretching it if asked). Raises
-        :class:`LimitViolation` naming the segment and joint."""
+        :class:`LimitViolation` naming the segment and joint.
+        """
         idx = ex.idx
         if ex.wrap is not None:
             offsets = np.where(ex.wrap, _turns_to(q0, traj.positions[0]), 0.0)
@@ -709,7 +714,8 @@ class MotionManager:
     def _begin_stop(self, ex: _Exec, code: ResultCode | None, msg: str, t0: float, q: np.ndarray, v: np.ndarray,
                     a: np.ndarray, measured: np.ndarray | None) -> None:
         """Replace ``ex``'s reference by a stop ramp from (q, v, a) at ``t0``; ``measured`` marks the joints
-        whose reference was reset to their measured state (the limiter is told)."""
+        whose reference was reset to their measured state (the limiter is told).
+        """
         if ex.phase in ("stopping", "dead"):
             return
         if measured is not None and measured.any() and self._rebase is not None:

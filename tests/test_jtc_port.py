@@ -394,6 +394,53 @@ async def test_cancel_decelerate_to_hold_position(robot: agentsdk.Robot) -> None
     assert np.all(np.abs(held) < [0.8, 0.6, 0.8])
 
 
+def _stop_distance(v: float, a: float, j: float) -> float:
+    """Distance to rest from speed ``v`` at zero acceleration, deceleration limit ``a``, jerk limit ``j``
+    (JTC's ``v**2 / (2 a)`` plus the jerk-limited ramps: trapezoidal or triangular acceleration)."""
+    v = abs(v)
+    return v * v / (2 * a) + v * a / (2 * j) if v >= a * a / j else v * math.sqrt(v / j)
+
+
+async def test_decelerate_to_hold_position_per_joint_calculation(robot: agentsdk.Robot) -> None:
+    """JTC ``decelerate_to_hold_position_positive_velocity``, ``..._negative_velocity``,
+    ``..._per_joint_calculation`` and ``..._velocity_command_ramps_to_zero``: cancelled while joint1 moves
+    forward, joint2 backward and joint3 stands still, each joint stops on its own at its own distance in
+    the direction it moved -- exactly where its limits put it -- its velocity ramps monotonically to zero,
+    and the stationary joint holds where it was.
+
+    Differs on purpose: JTC holds at ``p0 + v0**2 / (2 max_deceleration_on_cancel)`` (only with
+    ``decelerate_on_cancel``); we always decelerate, at ``max_acceleration * stop_deceleration_scale``
+    and jerk-limited, so the distance adds the jerk ramps (computed here analytically)."""
+    names = robot.joint_names
+    infos = {j.name: j for j in robot.joints}
+    scale = robot.safety.config.stop_deceleration_scale
+    q0 = robot.setpoint.position.copy()
+    v0 = np.array([0.3, -0.2, 0.0])
+    # cruise at constant velocity between t=1 and t=2 (a cubic with equal end velocities on a line)
+    traj = Trajectory(names, [TrajectoryPoint(1.0, q0 + v0 * 0.5, v0),
+                              TrajectoryPoint(2.0, q0 + v0 * 1.5, v0),
+                              TrajectoryPoint(3.0, q0 + v0 * 2.0, [0.0, 0.0, 0.0])])
+    motion = robot.follow(traj)
+    await robot.clock.sleep(1.5)
+    log = Log(robot)
+    motion.cancel()
+    result = await motion
+    assert result.code is ResultCode.CANCELED
+    d = log.arrays()
+    cruising = np.flatnonzero(np.all(np.abs(d["v_des"] - v0) < 1e-12, axis=1))
+    start = int(cruising[-1])  # the stop's first sample: the cruise state, at zero acceleration
+    q_c = d["q_des"][start]
+    held = await assert_holds(robot)
+    for k, n in enumerate(names):
+        expect = q_c[k] + math.copysign(_stop_distance(v0[k], infos[n].max_acceleration * scale,
+                                                       infos[n].max_jerk), v0[k])
+        assert held[k] == pytest.approx(expect, abs=1e-6), n
+        speed = np.abs(d["v_des"][start:, k])
+        assert np.all(np.diff(speed) <= 1e-12), f"{n}: the velocity command did not ramp down monotonically"
+    assert held[2] == q0[2]
+    assert_velocity_continuous(robot, d["v_des"])
+
+
 async def test_preempted_goal_receives_a_result(robot: agentsdk.Robot) -> None:
     """JTC ``preempted_goal_receives_aborted_result``: goal A is ended when B arrives, B succeeds. JTC
     reports A as ABORTED/INVALID_GOAL; we report PREEMPTED (and B starts from A's desired state)."""
@@ -494,7 +541,9 @@ async def test_ignore_old_trajectory(robot: agentsdk.Robot) -> None:
 
 async def test_partial_old_trajectory_skips_what_has_elapsed(robot: agentsdk.Robot) -> None:
     """JTC ``test_ignore_partial_old_trajectory`` / ``trajectory_replacement_past.png``: a start in the past
-    discards the points whose time has passed and realizes the rest on their original schedule."""
+    discards the points whose time has passed and realizes the rest on their original schedule. (JTC's
+    test stamps the new goal so far back on the ROS clock that its *end* has passed: ignored; that case
+    is ``test_ignore_old_trajectory`` here.)"""
     log = Log(robot)
     now = robot.clock.now()
     traj = Trajectory(["joint1"], [TrajectoryPoint(0.5, [-0.3]), TrajectoryPoint(1.5, [0.6])])

@@ -202,8 +202,15 @@ async def _run_garbage(case: dict[str, Any]) -> None:
             if f == "speed":
                 robot.set_speed_scaling(x)
                 motion = robot.follow(Trajectory(["joint1"], [TrajectoryPoint(1.0, [0.3])]))
-            elif f == "duration":
-                motion = robot._motions.move_to({"joint1": 0.3}, x, None)
+            elif f == "duration":  # the public API; a motion that runs is cancelled with its task below
+                move = asyncio.create_task(robot.move_to({"joint1": 0.3}, duration=x))
+                async with asyncio.timeout(60):  # wall-clock guard only
+                    await robot.clock.sleep(1.5)
+                    if not move.done():
+                        move.cancel()
+                    await asyncio.wait([move])
+                if not move.cancelled():
+                    move.result()  # raises the refusal, checked below
             else:
                 t1 = x if f == "time" else 1.0
                 p = x if f == "position" else 0.3

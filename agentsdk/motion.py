@@ -31,6 +31,7 @@ import numpy as np
 
 from . import scope
 from .backend import ModeCode
+from .config import format_value
 from .errors import InvalidValueError, UnknownJointError
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .trajectory import Trajectory, TrajectorySampler, plan_point_to_point, plan_stop
@@ -155,7 +156,7 @@ class Motion:
     async def feedback(self, rate: float = 50.0) -> AsyncIterator[Feedback]:
         """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included)."""
         if not rate > 0:
-            raise InvalidValueError(f"feedback rate must be > 0, got {rate!r}")
+            raise InvalidValueError(f"feedback rate must be > 0 Hz, got {format_value(rate)}")
         clock = self._mgr.loop.clock
         period = 1.0 / rate
         next_t = clock.now()
@@ -283,7 +284,10 @@ class MotionManager:
         idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
         goal = np.array([float(positions[n]) for n in names])
         if not np.isfinite(goal).all():
-            raise InvalidValueError(f"move_to: non-finite target in {dict(positions)!r}")
+            j = int(np.flatnonzero(~np.isfinite(goal))[0])
+            raise InvalidValueError(
+                f"move_to: target of joint {names[j]!r} is {format_value(goal[j])}, not a finite number"
+            )
         self.bounds.check(goal, idx)
         q0, v0, a0 = self._desired(idx)
         joints = [ctl.joints[i] for i in idx.tolist()]

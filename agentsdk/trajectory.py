@@ -54,6 +54,9 @@ from ruckig import Trajectory as _RuckigTrajectory
 from .errors import CommandRejected, ConfigurationError, InvalidValueError, LimitViolation, UnknownJointError
 from .types import FloatArray, JointInfo
 
+#: the longest profile ruckig computes (its ``ErrorTrajectoryDuration``, result -101, beyond 7.6e3 s)
+MAX_PROFILE_DURATION = 7.6e3
+
 __all__ = [
     "Interpolation",
     "StartState",
@@ -682,6 +685,13 @@ class _Ruckig:
             res = self.otg.calculate(inp, self.traj)
         except RuntimeError as exc:  # ruckig raises for invalid input
             raise CommandRejected(f"trajectory generation failed: {exc}") from exc
+        except ValueError as exc:  # a result code the Python enum lacks (-101: longer than ruckig can time)
+            if "-101" in str(exc):
+                raise CommandRejected(
+                    f"trajectory generation failed: the move would last longer than {MAX_PROFILE_DURATION:g} s, "
+                    "the longest profile ruckig times"
+                ) from None
+            raise CommandRejected(f"trajectory generation failed: ruckig returned {exc}") from None
         if res != Result.Working:
             raise CommandRejected(f"trajectory generation failed: ruckig returned {res.name}")
         return self.traj
@@ -1021,6 +1031,11 @@ def plan_point_to_point(
     _check_start_velocity(v0, infos)
     if duration is not None and not (math.isfinite(duration) and duration > 0.0):
         raise InvalidValueError(f"duration must be a positive number of seconds, got {duration}")
+    if duration is not None and duration > MAX_PROFILE_DURATION:
+        raise InvalidValueError(
+            f"duration {duration:g} s is longer than {MAX_PROFILE_DURATION:g} s, the longest move ruckig times; "
+            "split the motion or use a trajectory"
+        )
     rk = _Ruckig(lim)
     zero = np.zeros(len(names))
     tr = rk.solve(q0, v0, a0, q1, zero, duration)

@@ -286,7 +286,7 @@ class MotionManager:
         if not np.isfinite(goal).all():
             j = int(np.flatnonzero(~np.isfinite(goal))[0])
             raise InvalidValueError(
-                f"move_to: target of joint {names[j]!r} is {format_value(goal[j])}, not a finite number"
+                f"move_to: non-finite target {format_value(goal[j])} for joint {names[j]!r}"
             )
         self.bounds.check(goal, idx)
         q0, v0, a0 = self._desired(idx)

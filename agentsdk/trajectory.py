@@ -48,7 +48,7 @@ from typing import Literal, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
-from ruckig import ControlInterface, InputParameter, Result, Ruckig, Synchronization
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError, Synchronization
 from ruckig import Trajectory as _RuckigTrajectory
 
 from .errors import CommandRejected, ConfigurationError, InvalidValueError, LimitViolation, UnknownJointError
@@ -683,7 +683,7 @@ class _Ruckig:
         inp.minimum_duration = min_duration
         try:
             res = self.otg.calculate(inp, self.traj)
-        except RuntimeError as exc:  # ruckig raises for invalid input
+        except (RuntimeError, RuckigError) as exc:  # ruckig raises for invalid input
             raise CommandRejected(f"trajectory generation failed: {exc}") from exc
         except ValueError as exc:  # a result code the Python enum lacks (-101: longer than ruckig can time)
             if "-101" in str(exc):

@@ -195,7 +195,7 @@ async def test_numpy_values_in_errors_are_plain_numbers() -> None:
     async with agentsdk.connect("mock", robot="arm3") as robot:
         with pytest.raises(agentsdk.InvalidValueError) as info:
             await robot.move_to({"joint1": np.float64(np.nan), "joint2": 0.0})
-        assert str(info.value) == "move_to: target of joint 'joint1' is nan, not a finite number"
+        assert str(info.value) == "move_to: non-finite target nan for joint 'joint1'"
         with pytest.raises(agentsdk.InvalidValueError) as info:
             await robot.command(agentsdk.JointCommand("position", {"joint2": np.float64(np.inf)}))
         assert "np." not in str(info.value) and "inf" in str(info.value)

@@ -71,7 +71,9 @@ def one_line_per_problem(message: str, n: int | None = None) -> list[str]:
         ({"joint_limits": {"joint1": {"min_position": NAN}}}, "joint_limits.joint1.min_position", "finite"),
         ({"joint_limits": {"joint1": {"max_position": -INF}}}, "joint_limits.joint1.max_position", "finite"),
         ({"joint_limits": {"default": {"max_acceleration": INF}}}, "joint_limits.default.max_acceleration", "finite"),
-        ({"joint_limits": {"joint2": {"max_jerk": 0.0}}}, "joint_limits.joint2.max_jerk", "> 0"),
+        ({"joint_limits": {"joint2": {"max_jerk": 0.0}}}, "joint_limits.joint2.max_jerk", ">= 0.001"),
+        ({"joint_limits": {"joint2": {"max_acceleration": 5e-324}}}, "joint_limits.joint2.max_acceleration",
+         ">= 0.001"),
         ({"initial_positions": {"joint1": INF}}, "initial_positions.joint1", "finite"),
     ],
 )

@@ -837,7 +837,8 @@ class SafetyLayer:
 
     def estop_threadsafe(self, category: int = 0) -> None:
         """Latch an e-stop from any thread. Category 0 acts at once in the calling thread;
-        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone)."""
+        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone).
+        """
         if category not in (0, 1, 2):
             raise InvalidValueError(f"stop category must be 0, 1 or 2 (IEC 60204-1), got {category!r}")
         aloop = self._aloop

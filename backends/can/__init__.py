@@ -119,6 +119,11 @@ class MotorStats:
 
 
 class CanController(Backend):
+    """Motors on a CAN bus speaking the MIT mini-cheetah protocol (python-can).
+
+    One request and one reply per motor per control tick.
+    """
+
     name = "can"
     capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True)
     options_model = CanOptions
@@ -357,7 +362,8 @@ class CanController(Backend):
     # ----------------------------------------------------------- receiving
     def _on_frame(self, msg: can.Message) -> None:
         """Notifier callback; python-can calls it on the event loop (add_reader, or
-        call_soon_threadsafe from its reader thread on buses without a file descriptor)."""
+        call_soon_threadsafe from its reader thread on buses without a file descriptor).
+        """
         if msg.is_error_frame or msg.is_remote_frame or msg.dlc < 6:
             return
         data = msg.data
@@ -401,7 +407,8 @@ class CanController(Backend):
     @staticmethod
     def _reply_time(msg: can.Message) -> float:
         """When the reply reached the bus (wall clock): its timestamp if that is plausibly
-        on our clock (socketcan, virtual), else now (interfaces with device timestamps)."""
+        on our clock (socketcan, virtual), else now (interfaces with device timestamps).
+        """
         now = time.time()
         ts = msg.timestamp
         return ts if now - 1.0 < ts <= now + 0.001 else now

@@ -53,6 +53,11 @@ class MockOptions(BaseModel):
 
 
 class MockController(Backend):
+    """A kinematic stand-in for fast tests.
+
+    Ideal or first-order tracking, effort integrated on a fixed inertia, fault injection.
+    """
+
     name = "mock"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True

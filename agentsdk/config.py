@@ -57,6 +57,10 @@ MIN_UPDATE_RATE = 1.0
 MAX_GAIN = 1e9
 
 
+#: smallest velocity (rad/s), acceleration (rad/s^2) and jerk (rad/s^3) limit accepted in robot.yaml
+MIN_MOTION_LIMIT = 1e-3
+
+
 class _Strict(BaseModel):
     # every number must be finite: a NaN or inf setting has no meaning (NaN compares false
     # with every bound, so it would silently disable the check it configures)
@@ -82,9 +86,11 @@ class JointLimitsOverride(_Strict):
 
     min_position: float | None = None
     max_position: float | None = None
-    max_velocity: float | None = Field(default=None, gt=0.0)
-    max_acceleration: float | None = Field(default=None, gt=0.0)
-    max_jerk: float | None = Field(default=None, gt=0.0)
+    # (a floor, not just > 0: ruckig cannot time a stop under a subnormal limit, and a stop
+    # that takes hours is no stop)
+    max_velocity: float | None = Field(default=None, ge=MIN_MOTION_LIMIT)
+    max_acceleration: float | None = Field(default=None, ge=MIN_MOTION_LIMIT)
+    max_jerk: float | None = Field(default=None, ge=MIN_MOTION_LIMIT)
     max_effort: float | None = Field(default=None, gt=0.0)
 
 

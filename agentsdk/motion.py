@@ -47,6 +47,7 @@ import numpy as np
 
 from . import scope
 from .backend import ModeCode
+from .config import format_value
 from .errors import CommandRejected, InvalidValueError, LimitViolation, UnknownJointError
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .trajectory import (
@@ -260,7 +261,7 @@ class Motion:
     async def feedback(self, rate: float = 50.0) -> AsyncIterator[Feedback]:
         """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included)."""
         if not (rate > 0 and math.isfinite(rate)):
-            raise InvalidValueError(f"feedback rate must be a positive number, got {rate!r}")
+            raise InvalidValueError(f"feedback rate must be a positive number of Hz, got {format_value(rate)}")
         clock = self._mgr.loop.clock
         period = 1.0 / rate
         next_t = clock.now()
@@ -598,7 +599,10 @@ class MotionManager:
         except (TypeError, ValueError):
             raise InvalidValueError(f"move_to: targets must be numbers, got {dict(positions)!r}") from None
         if not np.isfinite(goal).all():
-            raise InvalidValueError(f"move_to: non-finite target in {dict(positions)!r}")
+            j = int(np.flatnonzero(~np.isfinite(goal))[0])
+            raise InvalidValueError(
+                f"move_to: non-finite target {format_value(goal[j])} for joint {names[j]!r}"
+            )
         if duration is not None:
             try:
                 duration = float(duration)

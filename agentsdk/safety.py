@@ -105,7 +105,8 @@ class SafetyConfig(BaseModel):
     #: damping gain used by category 1 where position control is absent (N·m·s/rad)
     stop_damping: float = Field(default=5.0, ge=0.0, le=MAX_GAIN)
     #: scale of the joints' max_acceleration used when decelerating to a stop
-    stop_deceleration_scale: float = Field(default=1.0, gt=0.0, le=1.0)
+    #: (at least 1 %: a stop under a vanishing deceleration never ends)
+    stop_deceleration_scale: float = Field(default=1.0, ge=0.01, le=1.0)
     #: minimum seconds between two identical clamp warnings in the log
     warn_interval: float = Field(default=1.0, ge=0.0)
     #: a controlled stop is achieved once every measured speed is below this (rad/s or m/s) ...

@@ -48,11 +48,14 @@ from typing import Literal, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
-from ruckig import ControlInterface, InputParameter, Result, Ruckig, Synchronization
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError, Synchronization
 from ruckig import Trajectory as _RuckigTrajectory
 
 from .errors import CommandRejected, ConfigurationError, InvalidValueError, LimitViolation, UnknownJointError
 from .types import FloatArray, JointInfo
+
+#: the longest profile ruckig computes (its ``ErrorTrajectoryDuration``, result -101, beyond 7.6e3 s)
+MAX_PROFILE_DURATION = 7.6e3
 
 __all__ = [
     "MAX_TIME_FROM_START",
@@ -86,8 +89,6 @@ _END_VEL_EPS = float(np.finfo(np.float32).eps)
 MAX_TIME_FROM_START = 1e6
 #: shortest time between two points (and from the start to a first point at a time > 0), s
 MIN_SEGMENT_DURATION = 1e-9
-#: ruckig (Community) refuses profiles longer than this (its ErrorTrajectoryDuration, -101)
-_RUCKIG_MAX_DURATION = 7.6e3
 _MIN_GAP = 1e-6  # s, breakpoints closer than this are merged
 _INF_JERK_RAMP = 0.002  # s, acceleration ramp time used for joints with max_jerk = inf
 
@@ -1037,12 +1038,15 @@ class _Ruckig:
         inp.minimum_duration = min_duration
         try:
             res = self.otg.calculate(inp, self.traj)
-        except RuntimeError as exc:  # ruckig raises for invalid input
+        except (RuntimeError, RuckigError) as exc:  # ruckig raises for invalid input
             raise CommandRejected(f"trajectory generation failed: {exc}") from exc
-        except ValueError as exc:  # a result code its Python enum does not know, e.g. -101
-            code = str(exc).split()[0] if str(exc) else "?"
-            detail = " (the motion would last longer than ruckig's limit of 7600 s)" if code == "-101" else ""
-            raise CommandRejected(f"trajectory generation failed: ruckig error {code}{detail}") from exc
+        except ValueError as exc:  # a result code the Python enum lacks (-101: longer than ruckig can time)
+            if "-101" in str(exc):
+                raise CommandRejected(
+                    f"trajectory generation failed: the move would last longer than {MAX_PROFILE_DURATION:g} s, "
+                    "the longest profile ruckig times"
+                ) from None
+            raise CommandRejected(f"trajectory generation failed: ruckig returned {exc}") from None
         if res != Result.Working:
             raise CommandRejected(f"trajectory generation failed: ruckig returned {res.name}")
         return self.traj
@@ -1383,8 +1387,11 @@ def plan_point_to_point(
     _check_start_velocity(v0, infos)
     if duration is not None and not (math.isfinite(duration) and duration > 0.0):
         raise InvalidValueError(f"duration must be a positive number of seconds, got {duration}")
-    if duration is not None and duration > _RUCKIG_MAX_DURATION:
-        raise InvalidValueError(f"duration {duration:g} s is longer than the supported {_RUCKIG_MAX_DURATION:g} s")
+    if duration is not None and duration > MAX_PROFILE_DURATION:
+        raise InvalidValueError(
+            f"duration {duration:g} s is longer than {MAX_PROFILE_DURATION:g} s, the longest move ruckig times; "
+            "split the motion or use a trajectory"
+        )
     rk = _Ruckig(lim)
     zero = np.zeros(len(names))
     tr = rk.solve(q0, v0, a0, q1, zero, duration)

@@ -436,3 +436,68 @@ def test_signal_stops_the_motors_at_rest_before_disabling_them(tmp_path: Path, l
             assert np.abs(data.velocity[before]).max() > 0.3, f"trial {k}: was not moving"
             v_off = np.abs(data.velocity[before[-1]]).max()
             assert v_off < 0.1, f"trial {k}: motors disabled at {v_off:.3f} rad/s (category 0, not 1)"
+
+
+# ------------------------------------------------------------ set_zero (issue 10, item 7) and close
+async def _settle(robot: Robot, joint: str, target: float | None = None, limit: float = 10.0) -> float:
+    """Wait until ``joint`` is at rest (and at ``target`` if given); returns its position."""
+    async with asyncio.timeout(limit):
+        while True:
+            st = await robot.read()
+            k = robot.joint_index[joint]
+            q, v = float(st.position[k]), float(st.velocity[k])
+            if abs(v) < 0.02 and (target is None or abs(q - target) < 0.01):
+                return q
+            await robot.clock.sleep(0.02)
+
+
+async def test_set_zero_on_vcan0_refused_with_torque_on_then_zeroes_without_moving(
+    leg: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Before: the zero frame went out while holding and the old target moved the knee (0.655 rad).
+
+    Also: no bus call that can block runs on the event loop (sends without a timeout,
+    joining a reader thread, shutting the socket down), through set_zero, enable and close.
+    """
+    from can.interfaces.socketcan import SocketcanBus
+
+    loop_thread = threading.get_ident()
+    blocking: list[str] = []
+    real_send, real_stop = SocketcanBus.send, can.Notifier.stop
+
+    def send(self: SocketcanBus, msg: can.Message, timeout: float | None = None) -> None:
+        if threading.get_ident() == loop_thread and (timeout is None or timeout > 0.02):
+            blocking.append(f"send(timeout={timeout})")
+        real_send(self, msg, timeout)
+
+    def stop(self: can.Notifier, timeout: float = 5.0) -> None:
+        if threading.get_ident() == loop_thread and timeout > 0:
+            blocking.append(f"Notifier.stop(timeout={timeout})")
+        real_stop(self, timeout)
+
+    monkeypatch.setattr(SocketcanBus, "send", send)
+    monkeypatch.setattr(can.Notifier, "stop", stop)
+    proc = start_emulator(leg)
+    try:
+        await _wait_async(lambda: proc.has(EMULATOR_READY) or proc.popen.poll() is not None)
+        assert proc.popen.poll() is None, proc.output()
+        async with agentsdk.connect("can", robot=leg) as robot:
+            await robot.command(agentsdk.JointCommand("position", {"knee": 0.6}))
+            await _settle(robot, "knee", 0.6)
+            with pytest.raises(agentsdk.CommandRejected, match=r"set_zero\('knee'\) refused"):
+                await robot.controller.set_zero("knee")
+            await robot.clock.sleep(0.5)
+            assert await _settle(robot, "knee") == pytest.approx(0.6, abs=0.01)  # nothing moved
+
+            await robot.estop(0)
+            await robot.reset()
+            await _settle(robot, "knee")
+            await robot.controller.set_zero("knee")
+            assert (await robot.read()).positions()["knee"] == pytest.approx(0.0, abs=0.02)
+            await robot.enable()  # holds the knee where it is: 0 in the new frame
+            await robot.clock.sleep(0.5)
+            assert await _settle(robot, "knee") == pytest.approx(0.0, abs=0.02)
+            assert robot.safety.state is agentsdk.SafetyState.OK
+    finally:
+        proc.stop()
+    assert blocking == []

@@ -265,13 +265,13 @@ class CanController(Backend):
         try:
             async with asyncio.timeout(wait):
                 while True:  # never block the event loop on a full transmit queue: retry
+                    sent = time.time()  # before the send: the reply can be stamped before send() returns
+                    self._any_reply.clear()
                     try:
                         bus.send(msg, timeout=0.0)
                         break
                     except can.CanOperationError:
                         await asyncio.sleep(self.period)
-                sent = time.time()
-                self._any_reply.clear()
                 while self._reply_stamp[k] < sent:
                     await self._any_reply.wait()
                     self._any_reply.clear()

@@ -36,6 +36,7 @@ non-finite value or a speed above 1e4 rad/s (m/s) raises
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -45,8 +46,12 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import pybullet as p
 from pydantic import BaseModel, ConfigDict, Field
+
+from .quiet import filtered_native_output
+
+with filtered_native_output():  # "pybullet build time: ..." goes to the log, not the user's terminal
+    import pybullet as p
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, substeps
 from agentsdk.config import MAX_GAIN
@@ -149,6 +154,11 @@ class PybulletController(Backend):
             await run_blocking(self._build, name="agentsdk-pybullet-build")
 
     def _build(self) -> None:
+        # PyBullet's b3Warning/b3Printf lines go to the log, not into the user's output
+        with filtered_native_output():
+            self._build_client()
+
+    def _build_client(self) -> None:
         opts: PybulletOptions = self.options
         try:
             self._cid = p.connect(p.GUI if opts.gui else p.DIRECT)
@@ -374,10 +384,12 @@ class PybulletController(Backend):
     async def _close(self) -> None:
         cid, self._cid = self._cid, -1
         if cid >= 0:
-            try:
-                p.disconnect(physicsClientId=cid)
-            except p.error:  # already gone
-                pass
+            # the GUI prints its threads' shutdown
+            with filtered_native_output() if self.options.gui else contextlib.nullcontext():
+                try:
+                    p.disconnect(physicsClientId=cid)
+                except p.error:  # already gone
+                    pass
 
     # ------------------------------------------------------------ servo
     def _write(self, sp: SetpointView) -> None:

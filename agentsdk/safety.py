@@ -483,7 +483,7 @@ class SafetyLayer:
             hi = self._emax[idx]
             lo = -hi
             what, unit = "effort", "N·m"
-        out = np.minimum(np.maximum(values, lo), hi)
+        out: np.ndarray = np.minimum(np.maximum(values, lo), hi)
         bad = out != values
         reject = self.config.limit_policy == "reject"
         names = self.loop.names
@@ -825,7 +825,8 @@ class SafetyLayer:
         )
         timer = aloop.create_task(loop.clock.sleep(bound), name="agentsdk-stop-bound")
         try:
-            await asyncio.wait({ramp, fault, timer}, return_when=asyncio.FIRST_COMPLETED)
+            waits: set[asyncio.Future[Any]] = {ramp, fault, timer}
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
         finally:
             self._fault_waiters.discard(fault)
             for t in (ramp, timer):

@@ -129,7 +129,7 @@ class TrajectoryPoint:
         accelerations: Sequence[float] | npt.ArrayLike | None = None,
     ) -> None:
         try:
-            t = float(time_from_start)  # type: ignore[arg-type]
+            t = float(time_from_start)
         except (TypeError, ValueError) as exc:
             raise InvalidValueError(f"time_from_start: {time_from_start!r} is not a number") from exc
         object.__setattr__(self, "time_from_start", t)
@@ -236,7 +236,9 @@ class Trajectory:
                 for j, v in enumerate(vals):
                     if not math.isfinite(v):
                         raise InvalidValueError(f"point {k}: {what[:-1]} of joint {names[j]!r} is {v}")
-        object.__setattr__(self, "times", _frozen_array([p.time_from_start for p in points]))
+        times = np.array([p.time_from_start for p in points], dtype=np.float64)
+        times.setflags(write=False)
+        object.__setattr__(self, "times", times)
         object.__setattr__(self, "positions", _frozen_array([p.positions for p in points]))
         object.__setattr__(
             self,
@@ -665,7 +667,8 @@ class TrajectorySampler:
     @property
     def final_positions(self) -> FloatArray:
         """Joint positions at the end of the trajectory (full joint order)."""
-        return self._end_state[0]
+        positions: FloatArray = self._end_state[0]
+        return positions
 
     def finished(self, t: float) -> bool:
         """True once ``t`` is at or past the last point's time."""
@@ -789,7 +792,7 @@ def _root_candidates(dc: FloatArray, T: FloatArray) -> FloatArray:
     if d < 1 or S == 0:
         return np.zeros((S, 0, N))
     p = np.moveaxis(dc, 2, 1).reshape(S * N, d1)  # (K, d+1) ascending
-    ok = np.isfinite(p).all(axis=1)
+    ok = np.asarray(np.isfinite(p).all(axis=1))
     p = np.where(ok[:, None], p, 0.0)
     scale = np.abs(p).max(axis=1)
     lead = p[:, -1]

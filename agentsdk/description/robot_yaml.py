@@ -112,8 +112,13 @@ def check_config(config: RobotConfig, description: RobotDescription) -> tuple[Jo
     joints = apply_overrides(description, config)
     names = description.joint_names
     label = _robot_label(config, description)
-    for section, keys in (("gains", config.gains), ("initial_positions", config.initial_positions)):
-        unknown = [k for k in keys if k not in names and not (section == "gains" and k == "default")]
+    gravity = config.gravity_compensation if isinstance(config.gravity_compensation, dict) else {}
+    for section, keys in (
+        ("gains", config.gains),
+        ("initial_positions", config.initial_positions),
+        ("gravity_compensation", gravity),
+    ):
+        unknown = [k for k in keys if k not in names and not (section != "initial_positions" and k == "default")]
         if unknown:
             raise ConfigurationError(
                 f"{label}: {section} names unknown joint(s) {', '.join(repr(u) for u in unknown)}; "

@@ -241,6 +241,11 @@ class Backend(ABC):
         """
         return None
 
+    @property
+    def floating_base(self) -> bool:
+        """True when the robot's base floats (robot.yaml ``floating_base``; a simulator's option may override)."""
+        return bool(self.config.floating_base)
+
     @functools.cached_property
     def dynamics(self) -> DynamicsModel:
         """The description's rigid-body model (``g(q)``, ``M(q)``), built on first use."""
@@ -257,6 +262,7 @@ class Backend(ABC):
             bandwidth=mg.bandwidth,
             damping_ratio=mg.damping_ratio,
             timestep=self.servo_timestep,
+            floating_base=self.floating_base,
         )
 
     @functools.cached_property

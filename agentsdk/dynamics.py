@@ -261,8 +261,13 @@ class DynamicsModel:
         bandwidth: float = 10.0,
         damping_ratio: float = 1.0,
         timestep: float | None = 0.001,
+        floating_base: bool = False,
     ) -> GainReport:
-        """Model-based servo gains at ``positions`` (see :func:`model_gains`)."""
+        """Model-based servo gains at ``positions`` (see :func:`model_gains`).
+
+        ``floating_base``: the robot stands on its limbs, so each joint also carries the rest of
+        the robot (:meth:`carried_inertia`).
+        """
         damping = np.zeros(len(self.names))
         friction = np.zeros(len(self.names))
         if self.description.format == "urdf":
@@ -283,7 +288,59 @@ class DynamicsModel:
             bandwidth=bandwidth,
             damping_ratio=damping_ratio,
             timestep=timestep,
+            carried=self.carried_inertia(positions) if floating_base else None,
         )
+
+    def carried_inertia(self, positions: np.ndarray) -> FloatArray:
+        """Per joint, the inertia of the part of the robot on the base side of the joint, shared by the limbs.
+
+        A robot standing on its limbs moves its body with its joints: joint ``j`` carries the
+        mass ``m_r`` of everything not below it (the base and the other limbs) at the distance
+        ``r`` of that mass's centre from the joint axis, shared among the ``n`` limbs (chains of
+        movable joints leaving the base): ``m_r r**2 / n`` (``m_r / n`` for a prismatic joint).
+        """
+        m, d = self.model, self._data
+        np.copyto(d.qpos, self.qpos(positions))
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        total = float(m.body_subtreemass[0])
+        com_total = d.subtree_com[0]
+        limbs = self._limbs()
+        out = np.zeros(len(self.names))
+        for k, name in enumerate(self.names):
+            jid = m.joint(name).id
+            body = int(m.jnt_bodyid[jid])
+            rest = total - float(m.body_subtreemass[body])
+            if rest <= 0.0:
+                continue
+            com = (total * com_total - float(m.body_subtreemass[body]) * d.subtree_com[body]) / rest
+            if int(m.jnt_type[jid]) == int(mujoco.mjtJoint.mjJNT_SLIDE):
+                out[k] = rest / limbs
+                continue
+            arm = com - d.xanchor[jid]
+            axis = d.xaxis[jid]
+            perp = arm - float(arm @ axis) * axis
+            out[k] = rest * float(perp @ perp) / limbs
+        return out
+
+    def _limbs(self) -> int:
+        """How many chains of movable joints leave the base body (at least 1)."""
+        m = self.model
+        tops = [b for b in range(1, m.nbody) if m.body_parentid[b] == 0]
+        base = tops[0] if len(tops) == 1 else 0
+        # descend through bodies without joints (fixed links) to the body the limbs hang from
+        while True:
+            children = [b for b in range(1, m.nbody) if m.body_parentid[b] == base and b != base]
+            if len(children) == 1 and m.body_jntnum[children[0]] == 0 and m.body_jntnum[base] == 0 and base != 0:
+                base = children[0]
+                continue
+            break
+
+        def moves(b: int) -> bool:
+            children = (c for c in range(1, m.nbody) if m.body_parentid[c] == b and c != b)
+            return bool(m.body_jntnum[b]) or any(moves(c) for c in children)
+
+        return max(1, sum(1 for c in range(1, m.nbody) if m.body_parentid[c] == base and c != base and moves(c)))
 
 
 @dataclass(frozen=True)
@@ -316,8 +373,13 @@ def model_gains(
     bandwidth: float = 10.0,
     damping_ratio: float = 1.0,
     timestep: float | None = 0.001,
+    carried: np.ndarray | None = None,
 ) -> GainReport:
     """Per-joint servo gains from the joint-space inertia ``M`` (n, n) at the start pose.
+
+    ``carried``: for a robot standing on its limbs (floating base), the inertia each joint
+    carries besides its own chain (:meth:`DynamicsModel.carried_inertia`); ``I`` below is the
+    larger of the two.
 
     With ``w = 2*pi*bandwidth``, ``z = damping_ratio``, ``I = M_jj`` (the inertia joint
     ``j`` moves when the other joints are held, at least :data:`MIN_INERTIA`), ``b`` and
@@ -345,6 +407,8 @@ def model_gains(
     friction = np.zeros(n) if friction is None else np.asarray(friction, dtype=float)
     effort = np.asarray(max_effort, dtype=float)
     inertia = np.maximum(np.diag(m).copy(), MIN_INERTIA)
+    if carried is not None:
+        inertia = np.maximum(inertia, np.asarray(carried, dtype=float))
     try:
         inv_diag = np.diag(np.linalg.inv(m + MIN_INERTIA * np.eye(n))) if n else np.zeros(0)
         free = np.minimum(np.maximum(1.0 / np.maximum(inv_diag, 1e-300), MIN_INERTIA), inertia)
@@ -368,7 +432,8 @@ def model_gains(
             s = STABILITY_FRACTION
             a_, b_ = h * h, -4.0 * s * h * z * math.sqrt(inertia[j])
             c_ = -s * (4.0 * free[j] + 2.0 * h * damping[j])
-            root = (-b_ + math.sqrt(b_ * b_ - 4.0 * a_ * c_)) / (2.0 * a_)
+            disc = b_ * b_ - 4.0 * a_ * c_
+            root = max(0.0, (-b_ + math.sqrt(disc)) / (2.0 * a_)) if disc >= 0.0 else 0.0
             limit = root * root
             if p > limit:
                 p, why = limit, "timestep"

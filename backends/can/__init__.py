@@ -33,6 +33,13 @@ Joint <-> motor mapping (robot.yaml ``backends.can.motors``)::
 
     q_motor = direction * gear_ratio * q_joint + zero_offset
     tau_motor = direction * tau_joint / gear_ratio,   kp_motor = kp / gear_ratio**2
+
+Gravity compensation (``tau_model`` of the servo law, robot.yaml ``gravity_compensation``): the
+motors run the PD law in firmware, so the host computes ``g(q)`` at the last measured position
+from the description's rigid-body model (:class:`agentsdk.dynamics.DynamicsModel`, a MuJoCo model
+compiled from the same description) once per cycle and adds it to the MIT torque feed-forward,
+which the encoder clamps to the motor's torque range. ``CanController.gravity_torque`` is the
+last value sent (joint side).
 """
 
 from __future__ import annotations
@@ -156,6 +163,11 @@ class CanController(Backend):
 
     async def _open(self) -> None:
         opts: CanOptions = self.options
+        # tau_model: g(q) from the description's model, for the joints with gravity compensation
+        self._gc_mask = self.gravity_compensation.astype(float)
+        self._gc_model = self.dynamics if self._gc_mask.any() else None
+        #: the gravity torque (joint side, N·m) added to the last command's feed-forward
+        self.gravity_torque = np.zeros(len(self.joints))
         try:
             self._bus = self._make_bus()
             self._estop_bus = self._make_bus()
@@ -329,7 +341,12 @@ class CanController(Backend):
         d, g, z = self._dir, self._gear, self._zero
         pos = d * g * sp.position + z
         vel = d * g * sp.velocity
-        tau = d * sp.effort / g
+        if self._gc_model is not None:  # tau_model: g(q) at the last measured position
+            gt = self._gc_model.gravity(self._q, self.gravity_torque)
+            gt *= self._gc_mask
+            tau = d * (sp.effort + gt) / g
+        else:
+            tau = d * sp.effort / g
         kp = sp.kp / (g * g)
         kd = sp.kd / (g * g)
         en = sp.enabled

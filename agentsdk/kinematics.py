@@ -10,12 +10,12 @@ The kinematic model is the description compiled by MuJoCo with
 
 * every link kept as a body (``fusestatic`` off), so links attached by fixed joints
   (``tool0``, ``ee_link``, ``*_hand_tcp``) are frames like any other;
-* for URDF, no geometry: the model carries the URDF ``<inertial>`` data only (a link
-  without one is massless, as the URDF spec says), so :meth:`Kinematics.gravity` is
-  the URDF's rigid-body gravity torque, and meshes are never loaded. Inertias that
-  MuJoCo's compiler rejects (not positive definite, violating the triangle
-  inequality, massless moving links) are repaired to the nearest valid ones and
-  listed in :attr:`Kinematics.repaired_inertias`; the kinematics is unaffected;
+* for URDF, the robot exactly as the MuJoCo backend builds it
+  (:func:`agentsdk.description.mjspec.build_spec`: one body per link, the
+  description's repaired inertials, mimic joints as constraints) without geometry,
+  so :meth:`Kinematics.gravity` is the simulators' rigid-body gravity torque and
+  meshes are never loaded. The description's inertial repairs are listed in
+  :attr:`Kinematics.repaired_inertias`;
 * for MJCF, the model as written (MuJoCo is its reference implementation).
 
 Conventions (as ROS / KDL / MoveIt):
@@ -210,7 +210,7 @@ class _Coupling:
     offset: float
 
 
-def _is_mjcf(description: Any) -> Path | None:
+def mjcf_source(description: Any) -> Path | None:
     """The MJCF file behind a description, or None for a URDF description."""
     for attr in ("mjcf_path", "mjcf_file"):
         path = getattr(description, attr, None)
@@ -225,80 +225,26 @@ def _is_mjcf(description: Any) -> Path | None:
     return None
 
 
-def _strip_geometry(spec: mujoco.MjSpec) -> None:
-    for geom in list(spec.geoms):
-        spec.delete(geom)
-    for site in list(spec.sites):
-        spec.delete(site)
-    for mesh in list(spec.meshes):
-        spec.delete(mesh)
-
-
-def _repair_inertias(spec: mujoco.MjSpec) -> list[str]:
-    """Replace inertias MuJoCo rejects by the nearest valid ones; return the bodies changed."""
-    changed: list[str] = []
-    for body in spec.bodies:
-        if body.name == "world":
-            continue
-        full = np.asarray(body.fullinertia, dtype=float)
-        if full.size == 6 and np.isfinite(full).all():
-            ixx, iyy, izz, ixy, ixz, iyz = full
-            mat = np.array([[ixx, ixy, ixz], [ixy, iyy, iyz], [ixz, iyz, izz]])
-        else:
-            rot = np.zeros(9)
-            mujoco.mju_quat2Mat(rot, np.asarray(body.iquat, dtype=float))
-            rot = rot.reshape(3, 3)
-            mat = rot @ np.diag(np.asarray(body.inertia, dtype=float)) @ rot.T
-        evals, evecs = np.linalg.eigh(mat)
-        if not np.abs(evals).max(initial=0.0) > 0.0:
-            continue  # no inertia at all: valid for a massless link (boundinertia covers moving ones)
-        floor = max(1e-9, 1e-6 * float(evals.max(initial=0.0)))
-        fixed = np.maximum(evals, floor)
-        # triangle inequality A + B >= C (principal moments of a physical body)
-        for k in range(3):
-            others = fixed.sum() - fixed[k]
-            if fixed[k] > others:
-                fixed[k] = others
-        if np.allclose(fixed, evals, rtol=1e-12, atol=0.0):
-            continue  # valid (massless moving bodies are handled by boundmass / boundinertia)
-        if np.linalg.det(evecs) < 0:
-            evecs[:, 0] = -evecs[:, 0]
-        quat = np.zeros(4)
-        mujoco.mju_mat2Quat(quat, evecs.reshape(-1))
-        body.fullinertia = [math.nan] * 6
-        body.inertia = fixed.tolist()
-        body.iquat = quat.tolist()
-        changed.append(body.name)
-    return changed
-
-
 def _compile(description: Any) -> tuple[mujoco.MjModel, list[str]]:
-    mjcf = _is_mjcf(description)
+    """The kinematic/dynamic model: an MJCF file as written, or the description built by ``build_spec``.
+
+    ``build_spec`` is how the MuJoCo backend builds the robot (one body per link, fixed
+    links kept, the description's repaired inertials, mimic joints as equality
+    constraints), so link frames and g(q) are the simulators' own. No collision geometry.
+    """
+    mjcf = mjcf_source(description)
     try:
         if mjcf is not None:
             spec = mujoco.MjSpec.from_file(str(mjcf))
+            spec.compiler.fusestatic = False
         else:
-            spec = mujoco.MjSpec.from_string(description.urdf_xml)
-            _strip_geometry(spec)
-    except Exception as exc:
-        raise DescriptionError(f"MuJoCo could not read the description of {description.name!r}: {exc}") from exc
-    spec.compiler.fusestatic = False
-    try:
-        return spec.compile(), []
-    except Exception as first:
-        if "inertia" not in str(first) and "mass" not in str(first):
-            raise DescriptionError(f"MuJoCo could not compile {description.name!r} for kinematics: {first}") from first
-    # invalid inertial data: kinematics does not need it; keep the nearest valid inertia
-    spec.compiler.balanceinertia = True
-    spec.compiler.boundmass = 1e-9
-    spec.compiler.boundinertia = 1e-12
-    repaired = _repair_inertias(spec)
-    try:
+            from .description.mjspec import build_spec
+
+            spec = build_spec(description, {}).spec
         model = spec.compile()
     except Exception as exc:
-        raise DescriptionError(f"MuJoCo could not compile {description.name!r} for kinematics: {exc}") from exc
-    log.debug("kinematics of %s: repaired the inertia of %s", description.name, ", ".join(repaired))
-    return model, repaired
+        raise DescriptionError(f"MuJoCo could not build the kinematics of {description.name!r}: {exc}") from exc
+    return model, [f"{r}" for r in getattr(description, "repairs", ()) if "inertia" in str(r) or "mass" in str(r)]
 
 
 # --------------------------------------------------------------------------- kinematics
@@ -489,7 +435,7 @@ class Kinematics:
                         parents[child] = parent
                         queue.append(child)
             return ordered, parents, root
-        if names and _is_mjcf(self.description) is None:
+        if names and mjcf_source(self.description) is None:
             missing = next(n for n in names if n not in links)
             raise DescriptionError(f"link {missing!r} of {self.name!r} is missing from the kinematic model")
 
@@ -586,7 +532,7 @@ class Kinematics:
 
     # ------------------------------------------------------------ forward kinematics
     def _pose(self, d: mujoco.MjData, bid: int) -> Pose:
-        return Pose._trusted(d.xpos[bid].copy(), _wxyz_to_xyzw(d.xquat[bid]))
+        return Pose.from_trusted_arrays(d.xpos[bid].copy(), _wxyz_to_xyzw(d.xquat[bid]))
 
     def fk(self, link: str, positions: Positions | None = None, reference: str | None = None) -> Pose:
         """Pose of ``link`` in the root frame (or in ``reference``'s frame) at ``positions``."""
@@ -659,7 +605,7 @@ class Kinematics:
                 bias = d.qfrc_bias.copy()
             finally:
                 m.opt.gravity[:] = saved
-        tau = bias[self._dadr].copy()
+        tau: FloatArray = bias[self._dadr].copy()
         for c in self._couplings:
             tau[c.leader] += c.multiplier * bias[c.dadr]
         return tau
@@ -695,7 +641,8 @@ class Kinematics:
         gen = self._ik_gen(None, link, pose, seed, position_only, position_tolerance, orientation_tolerance,
                            max_iterations, restarts, random_seed)
         with self._lock:
-            return run_sync(gen)
+            result: IKResult = run_sync(gen)
+            return result
 
     async def ik_async(
         self,
@@ -718,7 +665,8 @@ class Kinematics:
         """
         gen = self._ik_gen(IKSolver(self), link, pose, seed, position_only, position_tolerance,
                            orientation_tolerance, max_iterations, restarts, random_seed)
-        return await run_async(gen)
+        result: IKResult = await run_async(gen)
+        return result
 
     def _ik_gen(
         self,
@@ -790,6 +738,11 @@ class Kinematics:
         moving = {k for k, d in enumerate(self._dadr.tolist()) if d in dofs}
         moving |= {c.leader for c in self._couplings if c.dadr in dofs}
         return tuple(self.joint_names[k] for k in sorted(moving))
+
+    def prepare_ik(self) -> None:
+        """Build the IK solver now (imports mink); ``ik`` otherwise builds it on first use."""
+        with self._lock:
+            self._solver()
 
     def _solver(self) -> IKSolver:
         if self._ik is None:

@@ -65,6 +65,7 @@ class RunProgress:
         self.displayed = threading.Event()
 
     def start(self) -> RunProgress:
+        """Start the display thread and the wall/simulated time origins; returns ``self``."""
         self._t0 = time.perf_counter()
         self._sim0 = self._clock()
         self._thread = threading.Thread(target=self._run, name="agentsdk-progress", daemon=True)
@@ -85,6 +86,7 @@ class RunProgress:
         self.stop()
 
     def fields(self) -> dict[str, float]:
+        """Simulated seconds, wall seconds and the real-time factor since :meth:`start`."""
         sim = self._clock() - self._sim0
         wall = time.perf_counter() - self._t0
         return {"sim": sim, "wall": wall, "rtf": sim / wall if wall > 0 else 0.0}
@@ -103,12 +105,12 @@ class RunProgress:
             )
         )
         progress = Progress(*columns, console=self._console, transient=True, auto_refresh=False)
-        task = progress.add_task(self._label, total=self._total or None, **self.fields())
+        task = progress.add_task(self._label, total=self._total or None, **self.fields())  # type: ignore[arg-type]
         progress.start()
         try:
             while True:
                 f = self.fields()
-                progress.update(task, completed=f["sim"] if self._total else None, **f)
+                progress.update(task, completed=f["sim"] if self._total else None, **f)  # type: ignore[arg-type]
                 progress.refresh()
                 self.displayed.set()
                 if self._stop.wait(self._interval):

@@ -28,6 +28,7 @@ from .errors import AgentSDKError, BackendStartError, CommandRejected
 from .loop import ControlLoop, HookHandle, Phase
 from .registry import load_backend
 from .safety import PositionBounds, SafetyConfig, SafetyLayer
+from .threads import run_blocking
 from .types import AppliedCommand, FloatArray, JointCommand, JointInfo, JointState
 
 if TYPE_CHECKING:
@@ -57,6 +58,7 @@ class Robot:
         self.safety = safety
         self._motions = motions
         self._kinematics: Kinematics | None = None
+        self._kinematics_error: Exception | None = None
 
     # ------------------------------------------------------------ metadata
     @property
@@ -224,10 +226,30 @@ class Robot:
         ``positions=None`` means the latest measured state; see :mod:`agentsdk.kinematics`.
         """
         if self._kinematics is None:
-            from .kinematics import Kinematics
-
-            self._kinematics = Kinematics.for_robot(self)
+            if self._kinematics_error is not None:
+                raise self._kinematics_error
+            self._kinematics = self._build_kinematics()
         return self._kinematics
+
+    def _build_kinematics(self) -> Kinematics:
+        from .kinematics import Kinematics
+
+        kin = Kinematics.for_robot(self)
+        kin.prepare_ik()
+        return kin
+
+    async def _prepare_kinematics(self) -> None:
+        """Compile the kinematic model and import the IK solver off the event loop.
+
+        Both take from milliseconds to a second (a large mesh robot, the first ``import
+        mink``); done lazily on first use they would stall the loop, which the stall
+        watchdog rightly treats as an e-stop. A description the kinematics cannot model
+        fails later, at ``robot.kinematics``, not at connect.
+        """
+        try:
+            self._kinematics = await run_blocking(self._build_kinematics, name="agentsdk-kinematics")
+        except Exception as exc:  # reported at first use of robot.kinematics
+            self._kinematics_error = exc
 
     @property
     def link_names(self) -> tuple[str, ...]:
@@ -396,12 +418,17 @@ async def _open_robot(
 ) -> Robot:
     from .motion import MotionManager
 
-    cls = load_backend(backend)
-    config, description = resolve_robot(robot, strict=strict)
-    joints = apply_overrides(description, config)
-    safety_cfg = SafetyConfig.from_sources(config.safety, safety)
-    bounds = PositionBounds(joints, safety_cfg.position_margin)
-    backend_obj = cls(config, description, joints, realtime=realtime, **options)
+    def prepare() -> tuple[Backend, SafetyConfig, PositionBounds]:
+        # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
+        # so that other robots on this event loop keep their deadlines while this one loads
+        cls = load_backend(backend)
+        config, description = resolve_robot(robot, strict=strict)
+        joints = apply_overrides(description, config)
+        safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
+        bounds = PositionBounds(joints, safety_cfg.position_margin)
+        return cls(config, description, joints, realtime=realtime, **options), safety_cfg, bounds
+
+    backend_obj, safety_cfg, bounds = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
     loop = ControlLoop(backend_obj)
     motions = MotionManager(loop, bounds, safety_cfg.stop_deceleration_scale)
     layer = SafetyLayer(loop, safety_cfg, bounds, motions)
@@ -414,8 +441,14 @@ async def _open_robot(
         layer.shutdown_now()
         raise BackendStartError(f"backend {backend!r} failed to start: {exc}") from exc
     layer.start()
-    log.debug("connected %s on %s (%d joints)", description.name, backend, len(joints))
-    return Robot(loop, layer, motions)
+    log.debug("connected %s on %s (%d joints)", backend_obj.description.name, backend, len(backend_obj.joints))
+    robot_obj = Robot(loop, layer, motions)
+    try:
+        await robot_obj._prepare_kinematics()
+    except BaseException:
+        await robot_obj.close()
+        raise
+    return robot_obj
 
 
 class _Connection:

@@ -231,6 +231,9 @@ class Backend(ABC):
         #: home pose, else 0 -- always inside the limits
         self.initial_positions = _readonly([start.positions[j.name] for j in joints])
         gc = np.array([config.gravity_compensation_for(j.name) for j in joints], dtype=bool)
+        override = getattr(self.options, "gravity_compensation", None)  # a backend option may switch it
+        if override is not None:
+            gc[:] = bool(override)
         gc.flags.writeable = False
         #: per joint: the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)
         self.gravity_compensation: np.ndarray = gc

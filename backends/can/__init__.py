@@ -80,6 +80,9 @@ _SETTLE_CYCLES = 3
 class CanOptions(CanBusConfig):
     """robot.yaml ``backends.can`` plus runtime options (all overridable in ``connect``)."""
 
+    #: override robot.yaml ``gravity_compensation`` for every joint (None: robot.yaml); off for a plant
+    #: without gravity (the free-motor emulator)
+    gravity_compensation: bool | None = None
     #: fraction of the control period to wait for replies each cycle
     reply_deadline: float = Field(default=0.8, gt=0.0, le=1.0)
     #: consecutive cycles without a reply before a motor is declared lost (-> FAULT)

@@ -426,7 +426,9 @@ async def _open_robot(
         joints = apply_overrides(description, config)
         safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
         bounds = PositionBounds(joints, safety_cfg.position_margin)
-        return cls(config, description, joints, realtime=realtime, **options), safety_cfg, bounds
+        backend_obj = cls(config, description, joints, realtime=realtime, **options)
+        backend_obj.servo_gains  # noqa: B018 - gains from the model (a compile) here, not on the event loop
+        return backend_obj, safety_cfg, bounds
 
     backend_obj, safety_cfg, bounds = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
     loop = ControlLoop(backend_obj)

@@ -156,7 +156,7 @@ async def test_gravity_compensation_per_joint(tmp_path: Path) -> None:
 
 def test_gravity_compensation_names_unknown_joints(tmp_path: Path) -> None:
     yaml = robot_yaml(tmp_path, UR5, "gravity_compensation: {elbow: false}\n")
-    with pytest.raises(ConfigurationError, match=r"gravity_compensation names unknown joint\(s\) 'elbow'"):
+    with pytest.raises(ConfigurationError, match=r"gravity_compensation.elbow: unknown joint 'elbow'; did you mean"):
         resolve_robot(yaml)  # which runs check_config
 
 

@@ -219,7 +219,9 @@ class CanController(Backend):
         opts: CanOptions = self.options
         # tau_model: g(q) from the description's model, for the joints with gravity compensation
         self._gc_mask = self.gravity_compensation.astype(float)
-        self._gc_model = self.dynamics if self._gc_mask.any() else None
+        self._gc_model = None
+        if self._gc_mask.any():  # compiling the model is blocking work: not on the event loop
+            self._gc_model = await run_blocking(lambda: self.dynamics, name="agentsdk-can-dynamics")
         #: the gravity torque (joint side, N·m) added to the last command's feed-forward
         self.gravity_torque = np.zeros(len(self.joints))
         try:

@@ -131,10 +131,16 @@ def check_config(config: RobotConfig, description: RobotDescription) -> tuple[Jo
     names = description.joint_names
     label = _robot_label(config, description)
     problems = []
-    for section, keys in (("gains", config.gains), ("initial_positions", config.initial_positions)):
-        unknown = [k for k in keys if k not in names and not (section == "gains" and k == "default")]
+    gravity = config.gravity_compensation if isinstance(config.gravity_compensation, dict) else {}
+    for section, keys in (
+        ("gains", config.gains),
+        ("initial_positions", config.initial_positions),
+        ("gravity_compensation", gravity),
+    ):
+        unknown = [k for k in keys if k not in names and not (section != "initial_positions" and k == "default")]
         if unknown:
-            problems.append(_unknown_joints(label, section, unknown, names, "default" if section == "gains" else ""))
+            extra = "default" if section != "initial_positions" else ""
+            problems.append(_unknown_joints(label, section, unknown, names, extra))
     if problems:
         raise ConfigurationError("\n".join(problems))
     urdf = {j.name: j for j in description.joints}

@@ -35,6 +35,13 @@ Joint <-> motor mapping (robot.yaml ``backends.can.motors``)::
 
     q_motor = direction * gear_ratio * q_joint + zero_offset
     tau_motor = direction * tau_joint / gear_ratio,   kp_motor = kp / gear_ratio**2
+
+Gravity compensation (``tau_model`` of the servo law, robot.yaml ``gravity_compensation``): the
+motors run the PD law in firmware, so the host computes ``g(q)`` at the last measured position
+from the description's rigid-body model (:class:`agentsdk.dynamics.DynamicsModel`, a MuJoCo model
+compiled from the same description) once per cycle and adds it to the MIT torque feed-forward,
+which the encoder clamps to the motor's torque range. ``CanController.gravity_torque`` is the
+last value sent (joint side).
 """
 
 from __future__ import annotations
@@ -73,6 +80,9 @@ _SETTLE_CYCLES = 3
 class CanOptions(CanBusConfig):
     """robot.yaml ``backends.can`` plus runtime options (all overridable in ``connect``)."""
 
+    #: override robot.yaml ``gravity_compensation`` for every joint (None: robot.yaml); off for a plant
+    #: without gravity (the free-motor emulator)
+    gravity_compensation: bool | None = None
     #: fraction of the control period to wait for replies each cycle
     reply_deadline: float = Field(default=0.8, gt=0.0, le=1.0)
     #: consecutive cycles without a reply before a motor is declared lost (-> FAULT)
@@ -207,6 +217,13 @@ class CanController(Backend):
 
     async def _open(self) -> None:
         opts: CanOptions = self.options
+        # tau_model: g(q) from the description's model, for the joints with gravity compensation
+        self._gc_mask = self.gravity_compensation.astype(float)
+        self._gc_model = None
+        if self._gc_mask.any():  # compiling the model is blocking work: not on the event loop
+            self._gc_model = await run_blocking(lambda: self.dynamics, name="agentsdk-can-dynamics")
+        #: the gravity torque (joint side, N·m) added to the last command's feed-forward
+        self.gravity_torque = np.zeros(len(self.joints))
         try:
             self._bus = self._make_bus()
             self._estop_bus = self._make_bus()
@@ -427,7 +444,12 @@ class CanController(Backend):
         d, g, z = self._dir, self._gear, self._zero
         pos = d * g * sp.position + z
         vel = d * g * sp.velocity
-        tau = d * sp.effort / g
+        if self._gc_model is not None:  # tau_model: g(q) at the last measured position
+            gt = self._gc_model.gravity(self._q, self.gravity_torque)
+            gt *= self._gc_mask
+            tau = d * (sp.effort + gt) / g
+        else:
+            tau = d * sp.effort / g
         kp = sp.kp / (g * g)
         kd = sp.kd / (g * g)
         en = sp.enabled

@@ -98,6 +98,7 @@ import math
 import os
 import re
 import tempfile
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
@@ -678,7 +679,20 @@ class Recorder:
         self._data: RunData | None = None
         self.truncated = False
         self.metadata = self._metadata(metadata or {})
-        self._layout = self._tf_layout() if self.tf_rate else None
+        # the kinematics (a MuJoCo model compile, ~0.2 s with its imports) is built in a thread:
+        # done in the event loop it would stall a running control loop
+        self._layout: TfLayout | None = None
+        self._layout_thread: threading.Thread | None = None
+        self._layout_ready = asyncio.Event()
+        try:
+            self._loop: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
+        except RuntimeError:
+            self._loop = None
+        if self.tf_rate:
+            self._layout_thread = threading.Thread(
+                target=self._build_layout, name="agentsdk-recorder-kinematics", daemon=True
+            )
+            self._layout_thread.start()
         self._sinks: list[_Sink] = []
         self._json_path: Path | None = None
         self._temp: Path | None = None
@@ -753,15 +767,28 @@ class Recorder:
         md.update({k: str(v) for k, v in extra.items()})
         return md
 
-    def _tf_layout(self) -> TfLayout | None:
+    def _build_layout(self) -> None:
         try:
             kin = self._robot.kinematics
             if tuple(kin.joint_names) != self.names:
                 raise ConfigurationError("kinematics joint order differs from the robot's")
-            return TfLayout(kin)
+            self._layout = TfLayout(kin)
         except Exception as exc:  # a robot whose model the kinematics cannot build still records joints
             log.warning("recording without /tf: no kinematics for %s (%s)", self._robot.name, exc)
-            return None
+        finally:
+            loop = self._loop
+            if loop is not None:
+                try:
+                    loop.call_soon_threadsafe(self._layout_ready.set)
+                except RuntimeError:  # the event loop is closed: nobody waits
+                    pass
+
+    def _layout_pending(self) -> bool:
+        return self._layout_thread is not None and self._layout_thread.is_alive()
+
+    def _join_layout(self) -> None:
+        if self._layout_thread is not None:
+            self._layout_thread.join()
 
     def _write_description(self) -> None:
         desc = getattr(self._robot, "description", None)
@@ -842,7 +869,7 @@ class Recorder:
             prev = np.concatenate(([self._last_sample], s[:-1]))
             st_rows = np.flatnonzero(s != prev)
             self._last_sample = int(s[-1])
-        if self.tf_rate and self._layout is not None:
+        if self.tf_rate:
             s = np.floor(t * self.tf_rate + 1e-6).astype(np.int64)
             prev = np.concatenate(([self._last_tf], s[:-1]))
             tf_rows = np.flatnonzero(s != prev)
@@ -891,6 +918,8 @@ class Recorder:
     async def _write_task(self) -> None:
         """Write the backlog in slices of at most ``_SLICE_S`` s, yielding to the loop in between; flush at the end."""
         try:
+            if self._layout_pending():
+                await self._layout_ready.wait()
             while not self._finished:
                 if self._write_for(_SLICE_S):
                     for s in self._sinks:
@@ -924,6 +953,8 @@ class Recorder:
         return False
 
     def _write_backlog(self) -> Iterator[None]:
+        while self._layout_pending():
+            yield
         while self._backlog:
             chunk, side = self._backlog[0]
             if chunk is not None:
@@ -967,6 +998,7 @@ class Recorder:
         if self._robot.safety.event_count != self._event_cursor:
             self._take_events()
         self._rotate()
+        self._join_layout()
         path = self.path or self._json_path
         try:
             while not self._write_some(1 << 30):
@@ -997,6 +1029,7 @@ class Recorder:
         assert self._json_path is not None
         if not self._finished:
             self._rotate()
+            self._join_layout()
             while not self._write_some(1 << 30):
                 pass
             for s in self._sinks:

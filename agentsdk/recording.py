@@ -107,6 +107,9 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 import numpy as np
+from mcap.records import Channel, Chunk, Footer, Message, Metadata
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, Writer
 
 from .backend import ModeCode, SetpointView
 from .errors import ConfigurationError
@@ -421,8 +424,6 @@ class _Sink:
     """One MCAP output: the agentsdk JSON format (Foxglove-ready) or a rosbag2-compatible CDR file."""
 
     def __init__(self, path: Path, *, ros2: bool, names: tuple[str, ...], metadata: Mapping[str, str]) -> None:
-        from mcap.writer import CompressionType, Writer
-
         from . import __version__
 
         self.path, self.ros2 = path, ros2
@@ -688,11 +689,6 @@ class Recorder:
             self._loop: asyncio.AbstractEventLoop | None = asyncio.get_running_loop()
         except RuntimeError:
             self._loop = None
-        if self.tf_rate:
-            self._layout_thread = threading.Thread(
-                target=self._build_layout, name="agentsdk-recorder-kinematics", daemon=True
-            )
-            self._layout_thread.start()
         self._sinks: list[_Sink] = []
         self._json_path: Path | None = None
         self._temp: Path | None = None
@@ -715,6 +711,11 @@ class Recorder:
         except BaseException:
             self._close_sinks(ok=False)
             raise
+        if self.tf_rate:  # started last: its imports must not hold the import lock the code above needs
+            self._layout_thread = threading.Thread(
+                target=self._build_layout, name="agentsdk-recorder-kinematics", daemon=True
+            )
+            self._layout_thread.start()
         # first observer: sees the setpoint exactly as written, before a watchdog changes it
         self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, self._on_tick, order=RECORDER_ORDER)
         self._transition_handle = StateMachine.add_transition_listener(self._on_transition)
@@ -1046,9 +1047,6 @@ def _scan_mcap(p: Path) -> tuple[dict[str, str], list[tuple[str, int, bytes]], b
     and the reason (the ``mcap recover`` idea).  Chunk CRCs are checked, so a
     damaged chunk ends the read instead of returning garbage.
     """
-    from mcap.records import Channel, Chunk, Footer, Message, Metadata
-    from mcap.stream_reader import StreamReader, breakup_chunk
-
     md: dict[str, str] = {}
     topics: dict[int, str] = {}
     out: list[tuple[str, int, bytes]] = []

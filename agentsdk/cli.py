@@ -650,6 +650,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``agentsdk`` command line with ``argv`` (default ``sys.argv[1:]``) and return its exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     passthrough = {"emulate-can": lambda rest: _cmd_emulate_can(argparse.Namespace(), rest),
@@ -674,8 +675,14 @@ def main(argv: list[str] | None = None) -> int:
     except AgentSDKError as exc:
         if debug:
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        _print_error(exc)
         return EXIT_USER_ERROR
+
+
+def _print_error(exc: BaseException) -> None:
+    """``error: ...`` on stderr, one line per problem (indented continuation lines stay as they are)."""
+    for line in str(exc).splitlines() or [type(exc).__name__]:
+        print(line if line[:1].isspace() else f"error: {line}", file=sys.stderr)
 
 
 if __name__ == "__main__":

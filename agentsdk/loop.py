@@ -350,8 +350,7 @@ class ControlLoop:
                 await asyncio.shield(asyncio.gather(task, return_exceptions=True))
             except asyncio.CancelledError:
                 cancelled = True
-        if isinstance(self.clock, LockstepClock):
-            self.clock.cancel_all(RobotClosedError("robot closed"))
+        self.clock.fail(RobotClosedError(f"robot on backend {self.backend.name!r} is closed"), final=True)
         self._hooks[Phase.COMMAND].clear()
         try:
             await asyncio.shield(self.backend._close())
@@ -380,6 +379,7 @@ class ControlLoop:
             return
         await self.backend._recover()
         self._fault = None
+        self.clock.resume()
         self._read()
         self.hold_current()
         with self._torque_lock:
@@ -481,8 +481,7 @@ class ControlLoop:
                 listener(fault)
             except Exception:
                 log.exception("fault listener failed")
-        if isinstance(self.clock, LockstepClock):
-            self.clock.cancel_all(fault)
+        self.clock.fail(fault)
 
     # ------------------------------------------------------------ setpoint writers
     def hold_current(self, joints: np.ndarray | None = None) -> None:

@@ -61,6 +61,11 @@ class ResultCode(enum.IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class MotionResult:
+    """How a motion ended.
+
+    A FollowJointTrajectory-style result code, the final error per joint, a message and the robot time.
+    """
+
     code: ResultCode
     #: final position error per joint (desired goal - actual), rad or m
     error: Mapping[str, float]
@@ -70,6 +75,7 @@ class MotionResult:
 
     @property
     def ok(self) -> bool:
+        """True when the motion ended SUCCESSFUL."""
         return self.code is ResultCode.SUCCESSFUL
 
 
@@ -140,6 +146,7 @@ class Motion:
             raise
 
     def done(self) -> bool:
+        """True once the motion has ended (its result is available)."""
         return self._future.done()
 
     def result(self) -> MotionResult:

@@ -27,6 +27,7 @@ from .errors import AgentSDKError, BackendStartError, CommandRejected
 from .loop import ControlLoop, HookHandle, Phase
 from .registry import load_backend
 from .safety import PositionBounds, SafetyConfig, SafetyLayer
+from .threads import run_blocking
 from .types import AppliedCommand, FloatArray, JointCommand, JointInfo, JointState
 
 if TYPE_CHECKING:
@@ -363,12 +364,17 @@ async def _open_robot(
 ) -> Robot:
     from .motion import MotionManager
 
-    cls = load_backend(backend)
-    config, description = resolve_robot(robot, strict=strict)
-    joints = apply_overrides(description, config)
-    safety_cfg = SafetyConfig.from_sources(config.safety, safety)
-    bounds = PositionBounds(joints, safety_cfg.position_margin)
-    backend_obj = cls(config, description, joints, realtime=realtime, **options)
+    def prepare() -> tuple[Backend, SafetyConfig, PositionBounds]:
+        # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
+        # so that other robots on this event loop keep their deadlines while this one loads
+        cls = load_backend(backend)
+        config, description = resolve_robot(robot, strict=strict)
+        joints = apply_overrides(description, config)
+        safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
+        bounds = PositionBounds(joints, safety_cfg.position_margin)
+        return cls(config, description, joints, realtime=realtime, **options), safety_cfg, bounds
+
+    backend_obj, safety_cfg, bounds = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
     loop = ControlLoop(backend_obj)
     motions = MotionManager(loop, bounds, safety_cfg.stop_deceleration_scale)
     layer = SafetyLayer(loop, safety_cfg, bounds, motions)
@@ -381,7 +387,7 @@ async def _open_robot(
         layer.shutdown_now()
         raise BackendStartError(f"backend {backend!r} failed to start: {exc}") from exc
     layer.start()
-    log.debug("connected %s on %s (%d joints)", description.name, backend, len(joints))
+    log.debug("connected %s on %s (%d joints)", backend_obj.description.name, backend, len(backend_obj.joints))
     return Robot(loop, layer, motions)
 
 

@@ -38,12 +38,13 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .backend import ModeCode, SetpointView
+from .config import MAX_GAIN
 from .errors import (
     ConfigurationError,
     EStopActive,
@@ -72,28 +73,37 @@ __all__ = [
 
 log = logging.getLogger("agentsdk.safety")
 
+#: shortest accepted stall_timeout (s): the heartbeat runs every stall_timeout / 10
+MIN_STALL_TIMEOUT = 0.01
+
 
 class SafetyConfig(BaseModel):
-    """Safety settings (robot.yaml ``safety:``, overridable in ``connect(safety=...)``)."""
+    """Safety settings (robot.yaml ``safety:``, overridable in ``connect(safety=...)``).
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    Every number must be finite and within its range: a NaN compares false with
+    every bound (it would silently disable the check it configures), a negative
+    step would make the ramp itself drive the robot.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     #: what to do with an out-of-limit command: clamp it (and record) or reject it
     limit_policy: Literal["clamp", "reject"] = "clamp"
     #: soft margin inside the URDF position limits (rad or m)
     position_margin: float = Field(default=0.0, ge=0.0)
-    #: max change of a position setpoint per control cycle; "auto" = max_velocity * period; None = off
-    max_position_step: float | Literal["auto"] | None = "auto"
+    #: max change of a position setpoint per control cycle (rad or m, > 0); "auto" = max_velocity * period;
+    #: None = off
+    max_position_step: Annotated[float, Field(gt=0.0)] | Literal["auto"] | None = "auto"
     #: a streamed command older than this puts its joints in HOLD (robot time, s)
     command_timeout: float = Field(default=0.25, gt=0.0)
     #: command modes the command watchdog applies to (position targets hold by themselves)
     watchdog_modes: tuple[CommandMode, ...] = ("velocity", "effort")
     #: HOLD keeps position ("position") or only damps ("damping")
     hold: Literal["position", "damping"] = "position"
-    #: event-loop stall watchdog (wall-clock seconds); None disables the thread
-    stall_timeout: float | None = Field(default=0.25, gt=0.0)
+    #: event-loop stall watchdog (wall-clock seconds, at least 10 ms); None disables the thread
+    stall_timeout: Annotated[float, Field(ge=MIN_STALL_TIMEOUT)] | None = 0.25
     #: damping gain used by category 1 where position control is absent (N·m·s/rad)
-    stop_damping: float = Field(default=5.0, ge=0.0)
+    stop_damping: float = Field(default=5.0, ge=0.0, le=MAX_GAIN)
     #: scale of the joints' max_acceleration used when decelerating to a stop
     stop_deceleration_scale: float = Field(default=1.0, gt=0.0, le=1.0)
     #: minimum seconds between two identical clamp warnings in the log
@@ -103,23 +113,45 @@ class SafetyConfig(BaseModel):
     #: ... waiting at most this long (robot s) after the deceleration ramp ended
     rest_timeout: float = Field(default=1.0, ge=0.0)
     #: a measured position this far (rad or m) beyond a joint's limits is a protective stop; None = off
-    position_limit_tolerance: float | None = Field(default=0.1, gt=0.0)
+    position_limit_tolerance: Annotated[float, Field(gt=0.0)] | None = 0.1
     #: stop category of that protective stop (IEC 60204-1)
     position_limit_stop: Literal[0, 1, 2] = 2
 
     @classmethod
     def from_sources(
-        cls, yaml_section: Mapping[str, Any] | None, override: SafetyConfig | Mapping[str, Any] | None
+        cls,
+        yaml_section: Mapping[str, Any] | None,
+        override: SafetyConfig | Mapping[str, Any] | None,
+        *,
+        source: str = "robot.yaml",
     ) -> SafetyConfig:
+        """The robot.yaml ``safety`` section with ``connect(safety=...)`` on top, validated.
+
+        Raises :class:`ConfigurationError` with one line per problem, naming where
+        the value came from (``source``: the robot.yaml, or ``connect(safety=...)``).
+        """
         data = dict(yaml_section or {})
+        given: dict[str, Any] = {}
         if isinstance(override, SafetyConfig):
-            data.update(override.model_dump(exclude_unset=True))
+            given = override.model_dump(exclude_unset=True)
         elif override:
-            data.update(override)
+            if not isinstance(override, Mapping):
+                raise ConfigurationError(
+                    f"connect(safety=...) expects a mapping or a SafetyConfig, got {type(override).__name__}"
+                )
+            given = dict(override)
+        data.update(given)
         try:
             return cls(**data)
         except ValidationError as exc:
-            raise ConfigurationError(f"invalid safety configuration:\n{exc}") from exc
+            from .config import validation_problems
+
+            lines = []
+            for line in validation_problems(exc, cls):
+                key = line.split(":", 1)[0].split(".", 1)[0]
+                where = "connect(safety=...)" if key in given else f"{source}: safety"
+                lines.append(f"{where}.{line}" if where.endswith("safety") else f"{where}: {line}")
+            raise ConfigurationError("\n".join(lines)) from None
 
 
 class SafetyState(enum.Enum):
@@ -804,7 +836,8 @@ class SafetyLayer:
 
     def estop_threadsafe(self, category: int = 0) -> None:
         """Latch an e-stop from any thread. Category 0 acts at once in the calling thread;
-        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone)."""
+        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone).
+        """
         if category not in (0, 1, 2):
             raise InvalidValueError(f"stop category must be 0, 1 or 2 (IEC 60204-1), got {category!r}")
         aloop = self._aloop

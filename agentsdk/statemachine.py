@@ -187,9 +187,11 @@ class State:
 
     @property
     def is_composite(self) -> bool:
+        """True for a state with a nested machine or parallel regions."""
         return self.machine is not None or self.parallel is not None
 
     def completion_event(self, final_state: str | None = None) -> str:
+        """The event fired when this composite state completes (optionally per final state reached)."""
         if isinstance(self.done, Mapping):
             if final_state is not None and final_state in self.done:
                 return self.done[final_state]
@@ -299,9 +301,11 @@ class StateContext:
 
     @property
     def name(self) -> str:
+        """The state's own name (the last path segment)."""
         return self.state.rsplit("/", 1)[-1]
 
     async def sleep(self, dt: float) -> None:
+        """Sleep ``dt`` seconds on the robot's clock (simulated time in lockstep)."""
         await self.clock.sleep(dt)
 
 
@@ -342,6 +346,40 @@ class _Unhandled(Exception):
         self.path = path
         self.estopped = estopped
         self.fatal = fatal
+
+
+def _leaves(eg: BaseExceptionGroup) -> list[BaseException]:
+    out: list[BaseException] = []
+    for exc in eg.exceptions:
+        out.extend(_leaves(exc) if isinstance(exc, BaseExceptionGroup) else [exc])
+    return out
+
+
+def _merge_region_failures(eg: BaseExceptionGroup, path: str) -> BaseException:
+    """What a parallel state raises when its regions failed: every failure, none dropped.
+
+    One failure is raised as it is. Several (regions failing in the same step) become
+    one :class:`_Unhandled` carrying an ``ExceptionGroup`` of every region's exception,
+    e-stopped/fatal if any of them was. A leaf that is not an ``Exception``
+    (``KeyboardInterrupt``, ``SystemExit``) wins: the group is re-raised as it came.
+    """
+    leaves = [e for e in _leaves(eg) if not isinstance(e, asyncio.CancelledError)]
+    if not leaves:
+        return asyncio.CancelledError()
+    if any(not isinstance(e, Exception) for e in leaves):
+        return eg
+    if len(leaves) == 1:
+        return leaves[0]
+    causes = [e.exc if isinstance(e, _Unhandled) else e for e in leaves]
+    where = [e.path for e in leaves if isinstance(e, _Unhandled)]
+    group = ExceptionGroup(f"{len(causes)} parallel regions of {path} failed: {', '.join(where) or path}", causes)
+    unhandled = [e for e in leaves if isinstance(e, _Unhandled)]
+    return _Unhandled(
+        group,
+        path,
+        estopped=any(u.estopped for u in unhandled),
+        fatal=any(u.fatal for u in unhandled),
+    )
 
 
 @dataclass(slots=True)
@@ -455,14 +493,17 @@ class StateMachine:
 
     @property
     def finished(self) -> bool:
+        """True once the machine has reached a final state."""
         return self._sm_finished
 
     @classmethod
     def states(cls) -> tuple[str, ...]:
+        """Every state path of this machine, nested ones included."""
         return tuple(cls._require_spec().states)
 
     @classmethod
     def events(cls) -> tuple[str, ...]:
+        """Every event name used by a transition, in declaration order."""
         spec = cls._require_spec()
         return tuple(dict.fromkeys(e.event for e in spec.edges))
 
@@ -755,10 +796,7 @@ class StateMachine:
                 for child in children:
                     tg.create_task(child._sm_loop(), name=child.machine_path)
         except BaseExceptionGroup as eg:
-            leaf: BaseException = eg
-            while isinstance(leaf, BaseExceptionGroup):
-                leaf = leaf.exceptions[0]
-            raise leaf from None
+            raise _merge_region_failures(eg, f"{self._sm_path}/{state.name}") from None
         return state.completion_event()
 
     async def _sm_timer(self, delay: float, token: object) -> None:

@@ -326,6 +326,7 @@ class EmulatedMotor:
         self.raw_position = x + h * v_new
 
     def snapshot(self, t: float) -> MotorSnapshot:
+        """The motor's state at time ``t`` (for tests and the plant)."""
         return MotorSnapshot(
             motor_id=self.motor_id,
             position=self.position,
@@ -546,6 +547,7 @@ class MotorEmulator:
 
     @property
     def running(self) -> bool:
+        """True while the emulator's bus thread runs."""
         return self._thread is not None and self._thread.is_alive()
 
     @property
@@ -555,19 +557,23 @@ class MotorEmulator:
 
     @property
     def profile(self) -> VendorProfile:
+        """The vendor profile the emulated motors speak."""
         return self._profile
 
     @property
     def master_id(self) -> int:
+        """The CAN id the replies are sent to."""
         return self._master_id
 
     @property
     def motor_ids(self) -> tuple[int, ...]:
+        """The ids of the emulated motors."""
         return tuple(self._motors)
 
     # ----------------------------------------------------------------- knobs (thread-safe)
     @property
     def drop_rate(self) -> float:
+        """Fraction of requests left unanswered (fault injection, 0..1)."""
         return self._drop_rate
 
     @drop_rate.setter
@@ -578,6 +584,7 @@ class MotorEmulator:
 
     @property
     def reply_latency(self) -> float:
+        """Delay (s) before each reply is sent (fault injection)."""
         return self._reply_latency
 
     @reply_latency.setter

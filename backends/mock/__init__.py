@@ -33,14 +33,16 @@ _POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
 
 
 class MockOptions(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """robot.yaml ``backends.mock`` / ``connect("mock", ...)`` options (every number finite)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     #: first-order lag time constant (s); 0 = ideal tracking
     lag: float = Field(default=0.0, ge=0.0)
     #: joints that never move (fault injection)
     frozen_joints: tuple[str, ...] = ()
-    #: inertia used to integrate effort commands (kg·m²)
-    inertia: float = Field(default=0.05, gt=0.0)
+    #: inertia used to integrate effort commands (kg·m²); tiny values would overflow the integration
+    inertia: float = Field(default=0.05, ge=1e-9)
     #: damping of a joint with torque off (1/s)
     coast_damping: float = Field(default=20.0, ge=0.0)
     #: fail the next read/step with a BackendFault (fault injection)
@@ -51,6 +53,11 @@ class MockOptions(BaseModel):
 
 
 class MockController(Backend):
+    """A kinematic stand-in for fast tests.
+
+    Ideal or first-order tracking, effort integrated on a fixed inertia, fault injection.
+    """
+
     name = "mock"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True

@@ -677,6 +677,7 @@ class Recorder:
         self._last_sample = math.floor(self._prev_t * rate + 1e-6) if rate else 0
         self._last_tf = math.floor(self._prev_t * self.tf_rate + 1e-6) - 1 if self.tf_rate else 0
         self._last_cmd: tuple[np.ndarray, ...] | None = None
+        self._held: tuple[int, tuple[np.ndarray, ...]] | None = None
         self._event_cursor = robot.safety.event_count
         self._pending_side: list[tuple[int, str, dict[str, Any]]] = []
         self._finished = False
@@ -848,23 +849,33 @@ class Recorder:
         self._pending_side.append((_ns(rec.time), TRANSITIONS, msg))
 
     # ----------------------------------------------------------- blocks
-    def _rotate(self) -> None:
+    def _rotate(self, final: bool = False) -> None:
         self._rotated_at = time.perf_counter()
         m = self._k
         self._k = 0
         if m == 0:
-            if self._pending_side:
+            chunk = None
+            if final and self._held is not None:  # the run's last tick, held back by the previous block
+                ns, row = self._held
+                self._held = None
+                chunk = _Chunk(
+                    st_ns=np.zeros(0, np.int64), q=self._block.q[:0].copy(), v=self._block.v[:0].copy(),
+                    e=self._block.e[:0].copy(), cmd_ns=np.array([ns], np.int64),
+                    cmd={f: r[None] for f, r in zip(_CMD_FIELDS, row, strict=True)},
+                    tf_ns=np.zeros(0, np.int64), tf_q=self._block.q[:0].copy(),
+                )
+            if self._pending_side or chunk is not None:
                 side, self._pending_side = self._pending_side, []
-                self._backlog.append((None, side))
+                self._backlog.append((chunk, side))
                 self._kick()
             return
-        chunk = self._select(self._block, m)
+        chunk = self._select(self._block, m, final)
         side, self._pending_side = self._pending_side, []
         self._backlog.append((chunk, side))
         self._backlog_ticks += len(chunk.st_ns)
         self._kick()
 
-    def _select(self, b: _Block, m: int) -> _Chunk:
+    def _select(self, b: _Block, m: int, final: bool = False) -> _Chunk:
         t = b.t[:m]
         if self.rate is None:
             st_rows = np.arange(m)
@@ -892,18 +903,30 @@ class Recorder:
                 changed[0] |= bool((a[0] != lrow).any())
         keep = changed.copy()
         keep[:-1] |= changed[1:]  # the last tick of a hold, so line plots stay flat
-        keep[-1] = True
+        if final:
+            keep[-1] = True
         self._last_cmd = tuple(a[m - 1].copy() for a in arrays)
         cmd_rows = np.flatnonzero(keep)
         ns = np.rint(t * _NS).astype(np.int64)
         cns = np.rint(b.tc[:m] * _NS).astype(np.int64)
+        # Block boundaries follow the wall clock, so they must not add messages: the last row of a
+        # block is held back and written only if the next block starts with a change (or at the end)
+        held, self._held = self._held, None
+        if not keep[-1]:
+            self._held = (int(cns[m - 1]), self._last_cmd)
+        cmd = {f: a[cmd_rows] for f, a in zip(_CMD_FIELDS, arrays, strict=True)}
+        cmd_ns = cns[cmd_rows]
+        if held is not None and changed[0]:
+            h_ns, h_row = held
+            cmd = {f: np.concatenate((r[None], cmd[f])) for f, r in zip(_CMD_FIELDS, h_row, strict=True)}
+            cmd_ns = np.concatenate(([h_ns], cmd_ns))
         return _Chunk(
             st_ns=ns[st_rows],
             q=b.q[st_rows],
             v=b.v[st_rows],
             e=b.e[st_rows],
-            cmd_ns=cns[cmd_rows],
-            cmd={f: a[cmd_rows] for f, a in zip(_CMD_FIELDS, arrays, strict=True)},
+            cmd_ns=cmd_ns,
+            cmd=cmd,
             tf_ns=ns[tf_rows],
             tf_q=b.q[tf_rows],
         )
@@ -1001,7 +1024,7 @@ class Recorder:
             self._task.cancel()
         if self._robot.safety.event_count != self._event_cursor:
             self._take_events()
-        self._rotate()
+        self._rotate(final=True)
         self._join_layout()
         path = self.path or self._json_path
         try:

@@ -238,3 +238,21 @@ async def test_plot_of_a_trajectory_run_shows_its_targets(tmp_path: Path) -> Non
             y = y[np.isfinite(y)]
             # no flat line at 0 rad: every curve follows the trajectory
             assert np.ptp(y) > 0.3, (name, line.get_label())
+
+
+async def test_block_boundaries_do_not_change_the_recorded_commands() -> None:
+    """Blocks are cut by the wall clock (crash safety): where they fall must not change the content."""
+    runs = []
+    for block in (4096, 7):
+        async with agentsdk.connect("mock", robot="arm3") as robot:
+            rec = Recorder(robot, keep=True, tf_rate=None, block_ticks=block)
+            await _wave(robot)
+            await robot.clock.sleep(0.3)  # a hold at the end
+        rec.finish()
+        runs.append(rec.data())
+    a, b = runs
+    np.testing.assert_array_equal(a.cmd_time, b.cmd_time)
+    np.testing.assert_array_equal(a.cmd_position, b.cmd_position)
+    np.testing.assert_array_equal(a.state_time, b.state_time)
+    np.testing.assert_array_equal(a.desired_position(), b.desired_position())
+    assert a.cmd_time[-1] == a.state_time[-1] - round(a.period * 1e9)  # the last tick's setpoint is kept

@@ -185,7 +185,8 @@ def test_sigkilled_recording_is_readable_up_to_its_last_chunk(tmp_path: Path) ->
 
 
 async def test_keep_true_memory_does_not_grow_with_the_run() -> None:
-    async with agentsdk.connect("mock", robot="arm3") as robot:
+    # tracemalloc slows every allocation several times: the stall watchdog (wall clock) is off here
+    async with agentsdk.connect("mock", robot="arm3", safety={"stall_timeout": None}) as robot:
         rec = Recorder.attach(robot, keep=True, tf_rate=None)
 
         async def run(seconds: float) -> None:
@@ -202,6 +203,7 @@ async def test_keep_true_memory_does_not_grow_with_the_run() -> None:
         try:
             before = tracemalloc.take_snapshot()
             await run(40.0)  # 20 000 ticks: ~5 MB of rows if they were kept in memory
+            await robot.clock.sleep(0.1)  # lockstep time advances once the writer task is idle
             after = tracemalloc.take_snapshot()
         finally:
             tracemalloc.stop()

@@ -118,6 +118,11 @@ class Interrupted(Exception):
         return 128 + self.signum
 
 
+
+async def _awaited(awaitable: Awaitable[Any]) -> Any:
+    """``await awaitable`` as a coroutine (``create_task`` takes coroutines, ``main`` may return any awaitable)."""
+    return await awaitable
+
 async def run_behavior(
     main_fn: Callable[[Any], Awaitable[Any]],
     *,
@@ -143,7 +148,7 @@ async def run_behavior(
         if on_robot is not None:
             on_robot(bot)
         aloop = asyncio.get_running_loop()
-        task = aloop.create_task(main_fn(bot), name="agentsdk-behavior")
+        task: asyncio.Task[Any] = aloop.create_task(_awaited(main_fn(bot)), name="agentsdk-behavior")
         stop_task: asyncio.Task[None] | None = None
         signals: list[int] = []
 

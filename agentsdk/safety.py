@@ -300,6 +300,7 @@ class SafetyLayer:
         #: watched[mode code] -> True if the command watchdog applies to that mode
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
         self._fed = np.zeros(n)  # robot time of the last command per joint
+        #: the limiter's origin: the position setpoint written last tick (always updated in place)
         self._written = loop.state.position.copy()
         #: goal of a direct position command being ramped (max_position_step), per joint
         self._goal = loop.setpoint.position.copy()
@@ -336,6 +337,11 @@ class SafetyLayer:
             loop.add_hook(Phase.OBSERVE, self._on_tick, order=SAFETY_OBSERVE_ORDER),
             loop.add_fault_listener(self._on_fault),
         ]
+        origin = self._written.view()
+        origin.flags.writeable = False
+        # trajectories check their steps against this limiter before writing: a planned motion is
+        # never clipped silently; an abort that resets a reference to the measured state says so
+        motions.attach_limiter(origin, self._step, self._rebase_reference, self.record)
         if config.position_limit_tolerance is not None:
             self.add_check(
                 MeasuredPositionCheck(loop.joints, config.position_limit_tolerance, config.position_limit_stop)
@@ -346,7 +352,7 @@ class SafetyLayer:
         """Start the heartbeat and the stall watchdog thread (called by connect once the loop runs)."""
         self._aloop = asyncio.get_running_loop()
         self._loop_thread_id = threading.get_ident()
-        self._written = self.loop.setpoint.position.copy()
+        np.copyto(self._written, self.loop.setpoint.position)
         self._goal = self._written.copy()
         if self.config.stall_timeout is not None:
             self._beat = time.monotonic()
@@ -543,6 +549,13 @@ class SafetyLayer:
             out.append(arr)
         return out[0], out[1]
 
+    def _rebase_reference(self, idx: np.ndarray, positions: np.ndarray) -> None:
+        """An abort reset the reference of joints ``idx`` to their measured ``positions``: the
+        position-step limiter measures the next step from there (a jump back to where the
+        joint is reduces the servo effort; it is not a step to limit).
+        """
+        self._written[idx] = positions
+
     def ramp_start(self, mode: CommandMode, idx: np.ndarray) -> np.ndarray | None:
         """Where a direct position command's setpoint starts this tick (the ramp's current position)."""
         return self._written[idx] if mode == "position" else None
@@ -592,6 +605,18 @@ class SafetyLayer:
             np.minimum(out, written + self._step, out=out)
         else:
             out = target
+        owned = self.motions.owned_mask
+        if owned.any():
+            # a planned motion is never clipped silently (the motions check their steps first, so
+            # this only fires for a writer that did not): report it, the motion aborts
+            clipped = (out != sp.position) & owned & pos_mode
+            if clipped.any():
+                j = int(np.argmax(clipped))
+                self.motions.limiter_clipped(
+                    np.flatnonzero(clipped),
+                    f"the limiter clipped the setpoint of joint {self.loop.names[j]!r} from {sp.position[j]:.6g} "
+                    f"to {out[j]:.6g} (position bounds or max_position_step)",
+                )
         np.copyto(sp.position, out, where=pos_mode)
         ramping &= out != target
         np.copyto(written, out, where=pos_mode)
@@ -901,7 +926,7 @@ class SafetyLayer:
         self.check_fault()
         loop = self.loop
         await loop.enable()
-        self._written = loop.state.position.copy()
+        np.copyto(self._written, loop.state.position)
         self._goal = self._written.copy()
         self._ramping[:] = False
         self._held[:] = False

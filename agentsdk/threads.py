@@ -72,6 +72,7 @@ async def run_blocking(fn: Callable[..., _T], *args: Any, name: str = "agentsdk-
             done.set_exception(value)
 
     def _work() -> None:
+        value: Any
         try:
             result = fn(*args)
         except BaseException as exc:  # handed to the awaiting task, re-raised there

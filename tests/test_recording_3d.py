@@ -223,8 +223,8 @@ async def test_plot_of_a_trajectory_run_shows_its_targets(tmp_path: Path) -> Non
         rec = Recorder.attach(robot, keep=True, tf_rate=None)
         traj = Trajectory(
             joint_names=("joint1", "joint2"),
-            points=[TrajectoryPoint(positions=[0.8, 0.4], time_from_start=1.0),
-                    TrajectoryPoint(positions=[-0.5, 0.9], time_from_start=2.0)],
+            points=[TrajectoryPoint(positions=[0.8, 0.4], time_from_start=2.0),
+                    TrajectoryPoint(positions=[-0.5, 0.9], time_from_start=4.0)],
         )
         await robot.follow(traj)
     rec.finish()

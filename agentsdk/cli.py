@@ -315,8 +315,10 @@ class _RunExtras:
         video: str | None = None,
         video_fps: float = 30.0,
         video_size: tuple[int, int] = (640, 480),
+        record_format: str = "mcap",
     ) -> None:
         self.record, self.plot, self.rate = record, plot, rate
+        self.record_format = record_format
         self.video, self.video_fps, self.video_size = video, video_fps, video_size
         self.video_recorder: Any = None
         self.progress_on, self.view, self.label, self.metadata, self.total = progress, view, label, metadata, total
@@ -331,7 +333,7 @@ class _RunExtras:
             from .recording import Recorder
 
             self.recorder = Recorder.attach(bot, self.record, rate=self.rate, keep=bool(self.plot),
-                                            metadata=self.metadata)
+                                            metadata=self.metadata, format=self.record_format)
         if self.view and bot.backend == "mujoco":
             self.viewer = _MujocoView(bot)
         if self.video:
@@ -410,6 +412,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise ConfigurationError("--record-rate needs --record or --plot")
     if args.record_rate is not None and not args.record_rate > 0:
         raise ConfigurationError(f"--record-rate must be > 0 Hz, got {args.record_rate:g}")
+    if args.record_format != "mcap" and not args.record:
+        raise ConfigurationError("--record-format needs --record")
     if args.view:
         _check_view(backend)
         if backend == "pybullet":
@@ -424,6 +428,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         video=args.video,
         video_fps=args.video_fps,
         video_size=video_size,
+        record_format=args.record_format,
         label=f"{behavior_name} on {robot} ({backend})",
         metadata={
             "robot": robot_spec_for_metadata(robot),
@@ -494,6 +499,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     _check_output(args.record, "recording")
     _check_output(args.plot, "plot")
     data = read_recording(args.recording)
+    if data.truncated and not args.quiet:
+        print(f"warning: {args.recording} was not finished (the recording process was killed?); "
+              f"replaying the {data.duration:.3f} s recovered from it", file=sys.stderr)
     backend = args.backend or data.backend or "mujoco"
     robot = args.robot or data.robot
     if args.tolerance is not None and not args.tolerance >= 0:
@@ -650,6 +658,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--debug", action="store_true", help="show tracebacks")
     r.add_argument("--record", metavar="RUN.mcap", help="record joint states, commands, safety events and "
                    "state-machine transitions to an MCAP file (Foxglove-readable)")
+    r.add_argument("--record-format", choices=("mcap", "ros2"), default="mcap",
+                   help="mcap: agentsdk channels + Foxglove /tf and /robot_description (default); "
+                   "ros2: a rosbag2 MCAP with CDR sensor_msgs/JointState and tf2_msgs/TFMessage")
     r.add_argument("--record-rate", type=float, metavar="HZ",
                    help="decimate recorded joint states to HZ (commands are always complete)")
     r.add_argument("--plot", metavar="OUT.png", help="plot desired vs actual position per joint and the error")

@@ -179,6 +179,6 @@ def check_robot(
             source = "from the model, agentsdk.dynamics.model_gains"
         out.append("")
         out.append(f"servo gains on {backend} ({source}; p N·m/rad, d N·m·s/rad):")
-        pairs = zip(r["joints"], r["gains"], strict=True)
-        out.extend(_wrap([f"{name} p={g[0]:.4g} d={g[1]:.4g}" for name, g in pairs]))
+        gain_pairs = zip(r["joints"], r["gains"], strict=True)
+        out.extend(_wrap([f"{name} p={g[0]:.4g} d={g[1]:.4g}" for name, g in gain_pairs]))
     return report

@@ -79,10 +79,10 @@ def coupling_matrix(model: mujoco.MjModel, joints: Sequence[str]) -> FloatArray:
         follower, leader = int(model.eq_obj1id[e]), int(model.eq_obj2id[e])
         if leader < 0:
             continue
-        k = index.get(model.joint(leader).name)
-        if k is None or model.joint(follower).name in index:
+        col = index.get(model.joint(leader).name)
+        if col is None or model.joint(follower).name in index:
             continue
-        s[model.jnt_dofadr[follower], k] += float(model.eq_data[e, 1])
+        s[model.jnt_dofadr[follower], col] += float(model.eq_data[e, 1])
     return s
 
 
@@ -193,7 +193,7 @@ class DynamicsModel:
 
         ``base``: a floating base link's pose in the world (ignored for a fixed base).
         """
-        qpos = self._qpos
+        qpos: np.ndarray = self._qpos
         qpos[self._qadr] = positions
         for adr, leader, mult, offset in self._followers:
             qpos[adr] = offset + mult * positions[leader]

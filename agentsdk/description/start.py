@@ -129,9 +129,9 @@ def start_pose(
     clipped: dict[str, float] = {}
     for j in joints:
         value, source = 0.0, "zero"
-        for src, values in layers:
-            if j.name in values:
-                value, source = float(values[j.name]), src
+        for src, layer in layers:
+            if j.name in layer:
+                value, source = float(layer[j.name]), src
                 break
         lo, hi = j.lower, j.upper
         inside = min(max(value, lo), hi) if not (math.isnan(lo) or math.isnan(hi)) else value

@@ -352,11 +352,11 @@ class PybulletController(Backend):
         self._friction_any = any(friction) and self._implicit
         for link in range(-1, len(infos)):
             p.changeDynamics(body, link, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
-        for j in self._dofs:
+        for dof in self._dofs:
             # two calls: given together with maxJointVelocity, PyBullet 3.2.7 ignores jointDamping (the URDF
             # damping then acts twice, explicitly in PyBullet and implicitly here: light damped links diverge)
-            p.changeDynamics(body, j, jointDamping=0.0, physicsClientId=cid)
-            p.changeDynamics(body, j, maxJointVelocity=_SPEED_CAP, physicsClientId=cid)
+            p.changeDynamics(body, dof, jointDamping=0.0, physicsClientId=cid)
+            p.changeDynamics(body, dof, maxJointVelocity=_SPEED_CAP, physicsClientId=cid)
         # turn the default velocity motors off (they hold the joints otherwise); keep URDF friction
         if nd:
             p.setJointMotorControlArray(

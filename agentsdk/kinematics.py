@@ -739,6 +739,10 @@ class Kinematics:
         moving |= {c.leader for c in self._couplings if c.dadr in dofs}
         return tuple(self.joint_names[k] for k in sorted(moving))
 
+    def bind_state(self, source: Callable[[], JointState]) -> None:
+        """Use ``source()`` (e.g. ``robot.latest_state``) as the default for every ``positions`` argument."""
+        self._state = source
+
     def prepare_ik(self) -> None:
         """Build the IK solver now (imports mink); ``ik`` otherwise builds it on first use."""
         with self._lock:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Generator, Mapping
+from collections.abc import Callable, Generator, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType, TracebackType
 from typing import TYPE_CHECKING, Any
@@ -232,24 +232,17 @@ class Robot:
         return self._kinematics
 
     def _build_kinematics(self) -> Kinematics:
-        from .kinematics import Kinematics
-
-        kin = Kinematics.for_robot(self)
-        kin.prepare_ik()
+        kin = _build_kinematics(self.description, self.joints)
+        kin.bind_state(self.latest_state)
         return kin
 
-    async def _prepare_kinematics(self) -> None:
-        """Compile the kinematic model and import the IK solver off the event loop.
-
-        Both take from milliseconds to a second (a large mesh robot, the first ``import
-        mink``); done lazily on first use they would stall the loop, which the stall
-        watchdog rightly treats as an e-stop. A description the kinematics cannot model
-        fails later, at ``robot.kinematics``, not at connect.
-        """
-        try:
-            self._kinematics = await run_blocking(self._build_kinematics, name="agentsdk-kinematics")
-        except Exception as exc:  # reported at first use of robot.kinematics
-            self._kinematics_error = exc
+    def _adopt_kinematics(self, kin: Kinematics | Exception) -> None:
+        """Take the kinematics built at connect (or the error that building them raised)."""
+        if isinstance(kin, Exception):
+            self._kinematics_error = kin
+        else:
+            kin.bind_state(self.latest_state)
+            self._kinematics = kin
 
     @property
     def link_names(self) -> tuple[str, ...]:
@@ -457,7 +450,7 @@ async def _open_robot(
 ) -> Robot:
     from .motion import MotionManager
 
-    def prepare() -> tuple[Backend, SafetyConfig, PositionBounds]:
+    def prepare() -> tuple[Backend, SafetyConfig, PositionBounds, Kinematics | Exception]:
         # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
         # so that other robots on this event loop keep their deadlines while this one loads
         cls = load_backend(backend)
@@ -467,9 +460,18 @@ async def _open_robot(
         bounds = PositionBounds(joints, safety_cfg.position_margin)
         backend_obj = cls(config, description, joints, realtime=realtime, **options)
         backend_obj.servo_gains  # noqa: B018 - gains from the model (a compile) here, not on the event loop
-        return backend_obj, safety_cfg, bounds
+        # the kinematic model and the IK solver (the first ``import mink`` loads scipy's shared
+        # libraries, holding the GIL for up to a second on a slow machine): built here, before the
+        # control loop runs, so that neither the loop nor the stall watchdog waits for them. A
+        # description the kinematics cannot model fails at ``robot.kinematics``, not here.
+        kin: Kinematics | Exception
+        try:
+            kin = _build_kinematics(backend_obj.description, backend_obj.joints)
+        except Exception as exc:
+            kin = exc
+        return backend_obj, safety_cfg, bounds, kin
 
-    backend_obj, safety_cfg, bounds = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
+    backend_obj, safety_cfg, bounds, kin = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
     loop = ControlLoop(backend_obj)
     motions = MotionManager(loop, bounds, safety_cfg.stop_deceleration_scale)
     layer = SafetyLayer(loop, safety_cfg, bounds, motions)
@@ -484,12 +486,16 @@ async def _open_robot(
     layer.start()
     log.debug("connected %s on %s (%d joints)", backend_obj.description.name, backend, len(backend_obj.joints))
     robot_obj = Robot(loop, layer, motions)
-    try:
-        await robot_obj._prepare_kinematics()
-    except BaseException:
-        await robot_obj.close()
-        raise
+    robot_obj._adopt_kinematics(kin)
     return robot_obj
+
+
+def _build_kinematics(description: Any, joints: Sequence[JointInfo]) -> Kinematics:
+    from .kinematics import Kinematics
+
+    kin = Kinematics(description, joints)
+    kin.prepare_ik()
+    return kin
 
 
 class _Connection:

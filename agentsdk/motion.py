@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import enum
+import functools
 from collections.abc import AsyncIterator, Generator, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -40,7 +41,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
 
-_POS = ModeCode.POSITION
+_POS = int(ModeCode.POSITION)  # a plain int: numpy handles an IntEnum member slowly
 
 
 class ResultCode(enum.IntEnum):
@@ -124,7 +125,10 @@ class Motion:
         self.idx = idx
         self.joint_names = names
         self._future: asyncio.Future[MotionResult] = asyncio.get_running_loop().create_future()
-        self._feedback: Feedback | None = None
+        #: the executor driving this motion (its per-tick buffers hold the latest feedback)
+        self._exec: _Exec | None = None
+        self._fb_cache: Feedback | None = None
+        self._fb_cache_tick = 0
         self._cancel_requested = False
 
     # awaitable ------------------------------------------------------------
@@ -161,7 +165,7 @@ class Motion:
         next_t = clock.now()
         last: Feedback | None = None
         while True:
-            fb = self._feedback
+            fb = self._latest_feedback()
             if fb is not None and fb is not last:
                 last = fb
                 yield fb
@@ -170,12 +174,25 @@ class Motion:
             next_t += period
             await clock.sleep_until(next_t)
 
+    def _latest_feedback(self) -> Feedback | None:
+        """The feedback of the latest tick the executor ran, built when asked (not every tick)."""
+        ex = self._exec
+        if ex is None or ex.fb_tick == 0:
+            return None
+        if self._fb_cache is None or self._fb_cache_tick != ex.fb_tick:
+            q, v = ex.out[0].copy(), ex.out[1].copy()
+            actual, actual_v = ex.fb_state.copy()
+            self._fb_cache = Feedback(ex.fb_time, self.joint_names, q, v, actual, actual_v, q - actual,
+                                      ex.fb_progress)
+            self._fb_cache_tick = ex.fb_tick
+        return self._fb_cache
+
     def __repr__(self) -> str:
         state = self._future.result().code.name if self._future.done() else "running"
         return f"<Motion {list(self.joint_names)} {state}>"
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, slots=True)
 class _Exec:
     """Executor state of one motion (lives in the control tick)."""
 
@@ -194,6 +211,30 @@ class _Exec:
     des_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
     des_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
     on_done: Any = None
+    # per-tick buffers (allocated once in __post_init__; the tick writes them in place)
+    #: the joints as a slice when they are consecutive (cheaper indexing), else ``idx``
+    sel: Any = None
+    #: the sampler's output ``[q, v, a]`` of the latest tick (shape (3, joints))
+    out: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))
+    #: setpoint rows effort, kp, kd written every tick (0, the default gains)
+    fixed: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))
+    #: True when a path tolerance is finite (else the path check is skipped)
+    check_path: bool = False
+    #: the latest tick's time, measured position/velocity and progress (read by Motion feedback)
+    fb_tick: int = 0
+    fb_time: float = 0.0
+    fb_progress: float = 0.0
+    #: measured ``[position, velocity]`` of the joints at the latest tick (shape (2, joints))
+    fb_state: np.ndarray = field(default_factory=lambda: np.zeros((2, 0)))
+
+    def __post_init__(self) -> None:
+        n = len(self.idx)
+        start = int(self.idx[0]) if n else 0
+        consecutive = n > 0 and bool(np.array_equal(self.idx, np.arange(start, start + n)))
+        self.sel = slice(start, start + n) if consecutive else self.idx
+        self.out = np.zeros((3, n))
+        self.fb_state = np.zeros((2, n))
+        self.check_path = bool(np.isfinite(self.path_tol).any())
 
 
 class MotionManager:
@@ -294,7 +335,11 @@ class MotionManager:
         for j in ex.idx.tolist():
             self._owner[j] = ex
         self.owned_mask[ex.idx] = True
-        self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+        loop = self.loop
+        ex.fixed = np.vstack([np.zeros(len(ex.idx)), loop.gain_p[ex.idx], loop.gain_d[ex.idx]])
+        if ex.motion is not None:
+            ex.motion._exec = ex
+        self.loop.add_hook(Phase.COMMAND, functools.partial(self._update, ex))
 
     def _release(self, ex: _Exec) -> None:
         for j in ex.idx.tolist():
@@ -420,58 +465,64 @@ class MotionManager:
 
     # --------------------------------------------------------- every tick
     def _update(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
+        # allocation-free: the sample goes into ex.out, the setpoint rows are written in a few
+        # block operations (a slice when the joints are consecutive), feedback is built on demand
         if ex.phase == "dead":
             return False
-        idx = ex.idx
-        q, v, a = ex.sampler.sample(t)
-        ex.des_q, ex.des_v, ex.des_a = q, v, a
-        loop = self.loop
-        sp.mode[idx] = _POS
-        sp.enabled[idx] = True
-        sp.position[idx] = q
-        sp.velocity[idx] = v
-        sp.effort[idx] = 0.0
-        sp.kp[idx] = loop.gain_p[idx]
-        sp.kd[idx] = loop.gain_d[idx]
-        sp.target[idx] = q
-        actual = st.position[idx]
-        err = q - actual
+        sel = ex.sel
+        out = ex.sampler.sample_into(t, ex.out)
+        ex.des_q, ex.des_v, ex.des_a = out
+        q = out[0]
+        sp.mode[sel] = _POS
+        sp.enabled[sel] = True
+        block = sp.block
+        block[0:2, sel] = out[0:2]  # position, velocity
+        block[2:5, sel] = ex.fixed  # effort feed-forward 0, default kp, kd
+        sp.target[sel] = q
+        fb_state = ex.fb_state
+        if st.block is not None:
+            fb_state[:] = st.block[0:2, sel]
+        else:
+            fb_state[0] = st.position[sel]
+            fb_state[1] = st.velocity[sel]
+        actual = fb_state[0]
+        ex.fb_time = t
+        ex.fb_tick += 1
         m = ex.motion
-        if m is not None:
-            dur = ex.sampler.duration
-            if ex.phase == "stopping":  # the stop ramp is not progress along the trajectory: keep the last value
-                progress = m._feedback.progress if m._feedback is not None else 0.0
-            else:
-                progress = min(1.0, (t - ex.t0) / dur) if dur > 0 else 1.0
-            m._feedback = Feedback(t, m.joint_names, q, v, actual.copy(), st.velocity[idx].copy(), err, progress)
         elapsed = t - ex.t0
-        if ex.phase == "follow":
-            over = np.abs(err) > ex.path_tol
-            if over.any():
-                k = int(np.argmax(over))
-                self._begin_stop(ex, ResultCode.PATH_TOLERANCE_VIOLATED,
-                                 f"path tolerance violated on joint {m.joint_names[k] if m else k!r}: "
-                                 f"error {err[k]:.4f} > {ex.path_tol[k]:.4f}")
-                return True
-            if elapsed >= ex.sampler.duration:
+        dur = ex.sampler.duration
+        phase = ex.phase
+        if phase != "stopping":  # the stop ramp is not progress along the trajectory: keep the last value
+            ex.fb_progress = min(1.0, elapsed / dur) if dur > 0 else 1.0
+        if phase == "follow":
+            if ex.check_path:
+                err = q - actual
+                over = np.abs(err) > ex.path_tol
+                if over.any():
+                    k = int(np.argmax(over))
+                    self._begin_stop(ex, ResultCode.PATH_TOLERANCE_VIOLATED,
+                                     f"path tolerance violated on joint {m.joint_names[k] if m else k!r}: "
+                                     f"error {err[k]:.4f} > {ex.path_tol[k]:.4f}")
+                    return True
+            if elapsed >= dur:
                 ex.phase = "settle"
         if ex.phase == "settle":
             gerr = np.abs(ex.goal - actual)
             if (gerr <= ex.goal_tol).all():
                 self._finish(ex, ResultCode.SUCCESSFUL, "")
-                self._hold_at(idx, ex.goal)
+                self._hold_at(ex.idx, ex.goal)
                 return False
             if elapsed >= ex.sampler.duration + ex.goal_time:
                 k = int(np.argmax(gerr - ex.goal_tol))
                 name = m.joint_names[k] if m else str(k)
                 self._finish(ex, ResultCode.GOAL_TOLERANCE_VIOLATED,
                              f"goal tolerance violated on joint {name!r}: error {gerr[k]:.4f} > {ex.goal_tol[k]:.4f}")
-                self._hold_at(idx, ex.goal)
+                self._hold_at(ex.idx, ex.goal)
                 return False
         elif ex.phase == "stopping" and elapsed >= ex.sampler.duration:
             final = ex.des_q.copy()
             self._finish(ex, ex.stop_code, ex.stop_msg)
-            self._hold_at(idx, final)
+            self._hold_at(ex.idx, final)
             return False
         return True
 

@@ -142,7 +142,8 @@ class SafetyEvent:
     detail: str
 
 
-_POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
+#: mode codes as plain ints (numpy compares arrays with an IntEnum member slowly, through enum attribute lookups)
+_POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.EFFORT)
 
 #: OBSERVE-phase order of the safety layer's watchdogs: after recorders and other observers
 SAFETY_OBSERVE_ORDER = 1000
@@ -213,11 +214,23 @@ class MeasuredPositionCheck:
         self._category = category
         self._armed = np.zeros(len(joints), dtype=bool)
         self._all_armed = False
+        n = len(joints)
+        # allocation-free per tick: [q, -q] >= [lo, -hi] in one comparison (NaN compares False: outside)
+        self._sign = np.array([[1.0], [-1.0]])
+        self._bounds = np.vstack([self._lo, -self._hi])
+        self._pm_q = np.zeros((2, n))
+        self._ok = np.zeros((2, n), dtype=bool)
+        self._n2 = 2 * n
 
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""
         q = state.position
-        inside = (q >= self._lo) & (q <= self._hi)  # (NaN is outside)
+        np.multiply(q, self._sign, out=self._pm_q)
+        ok = self._ok
+        np.greater_equal(self._pm_q, self._bounds, out=ok)
+        if self._all_armed and np.count_nonzero(ok) == self._n2:
+            return None
+        inside = ok[0] & ok[1]
         if not self._all_armed:
             self._armed |= inside
             self._all_armed = bool(self._armed.all())
@@ -280,6 +293,18 @@ class SafetyLayer:
         self._emax = np.where(np.isnan(emax), np.inf, emax)
         self._vmin = -self._vmax
         self._emin = -self._emax
+        #: the limits of the setpoint's velocity and effort rows (``Setpoint.block[1:3]``)
+        self._ff_min = np.vstack([self._vmin, self._emin])
+        self._ff_max = np.vstack([self._vmax, self._emax])
+        #: ... and with the position row (``Setpoint.block[0:3]``)
+        self._rows_min = np.vstack([self._lo, self._vmin, self._emin])
+        self._rows_max = np.vstack([self._hi, self._vmax, self._emax])
+        #: scratch of the per-tick filter: the step window [written - step, written + step]
+        self._window_lo = np.zeros(n)
+        self._window_hi = np.zeros(n)
+        #: ``mode.tobytes()`` / ``enabled.tobytes()`` of a setpoint with every joint in position mode, torque on
+        self._all_position = np.full(n, _POS, dtype=np.int8).tobytes()
+        self._all_enabled = np.ones(n, dtype=bool).tobytes()
         #: deceleration available to stop a velocity stream before a position limit
         self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
@@ -541,18 +566,40 @@ class SafetyLayer:
         every other position-mode joint (trajectory, stop ramp, hold) is limited to what
         its writer put in the setpoint for this cycle. Feed-forward terms are clipped to
         the velocity and effort limits as a backstop.
+
+        Allocation-free: preallocated scratch arrays and ufuncs with ``out=`` (``np.clip``
+        and ``ndarray.any`` cost microseconds of dispatch on small arrays); the common case,
+        every joint in position mode with torque on and no ramp, skips the masks.
         """
         if self._latched.is_set() and not self._latch_handled:
             self._enforce_latch()
+        ramping = self._ramping
+        np.greater(ramping, self.motions.owned_mask, out=ramping)  # ramping &= ~owned
+        if (
+            sp.mode.tobytes() == self._all_position
+            and sp.enabled.tobytes() == self._all_enabled
+            and not np.count_nonzero(ramping)
+        ):
+            # position, velocity and effort (rows 0:3) into [lo, hi], +-max velocity, +-max effort at once
+            # (ufunc input and out are the same array object: a second view would cost an overlap check)
+            rows = sp.block[0:3]
+            np.maximum(rows, self._rows_min, out=rows)
+            np.minimum(rows, self._rows_max, out=rows)
+            pos, written, step = sp.position, self._written, self._step
+            if step is not None:
+                lo, hi = self._window_lo, self._window_hi
+                np.subtract(written, step, out=lo)
+                np.add(written, step, out=hi)
+                np.maximum(pos, lo, out=pos)
+                np.minimum(pos, hi, out=pos)
+            written[:] = pos
+            return
         pos_mode = (sp.mode == _POS) & sp.enabled
         written = self._written
         # joints not in position mode track the measured position (bumpless switch)
         np.copyto(written, st.position, where=~pos_mode)
-        ramping = self._ramping
         ramping &= pos_mode
-        ramping &= ~self.motions.owned_mask
         target = np.where(ramping, self._goal, sp.position)
-        # (ufuncs with out=: np.clip costs several µs of dispatch on small arrays)
         np.maximum(target, self._lo, out=target)
         np.minimum(target, self._hi, out=target)
         if self._step is not None:
@@ -563,10 +610,9 @@ class SafetyLayer:
         np.copyto(sp.position, out, where=pos_mode)
         ramping &= out != target
         np.copyto(written, out, where=pos_mode)
-        np.maximum(sp.velocity, self._vmin, out=sp.velocity)
-        np.minimum(sp.velocity, self._vmax, out=sp.velocity)
-        np.maximum(sp.effort, self._emin, out=sp.effort)
-        np.minimum(sp.effort, self._emax, out=sp.effort)
+        ff = sp.block[1:3]
+        np.maximum(ff, self._ff_min, out=ff)
+        np.minimum(ff, self._ff_max, out=ff)
         streamed = sp.enabled & (sp.mode != _POS)
         if streamed.any():
             self._limit_streams(st.position, sp, streamed)
@@ -591,8 +637,10 @@ class SafetyLayer:
             sp.effort[eff & outward] = 0.0
 
     def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
-        # the ramp origin of joints outside position mode is their fresh measurement
-        np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
+        all_position = sp.mode.tobytes() == self._all_position and sp.enabled.tobytes() == self._all_enabled
+        if not all_position:
+            # the ramp origin of joints outside position mode is their fresh measurement
+            np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
         if self._state is not SafetyState.OK and self._state is not SafetyState.HOLD:
             return
         if self._latched.is_set():
@@ -604,6 +652,8 @@ class SafetyLayer:
                 log.error("safety check: %s; e-stop category %d", violation.detail, violation.category)
                 self._begin_stop(violation.category, violation.kind)
                 return
+        if all_position and not self._watched[_POS]:
+            return  # no joint is streamed: nothing for the command watchdog
         # in HOLD too: another joint's stream may go stale while the first one is held
         streamed = self._watched[sp.mode] & sp.enabled & ~self._held
         if not streamed.any():

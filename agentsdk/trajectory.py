@@ -388,11 +388,15 @@ class TrajectorySampler:
     """
 
     __slots__ = (
-        "_B",
         "_c",
         "_end_state",
         "_knots",
         "_n",
+        "_nseg",
+        "_out",
+        "_out_flat",
+        "_p",
+        "_segs",
         "_start_state",
         "end_time",
         "indices",
@@ -536,7 +540,22 @@ class TrajectorySampler:
             seg_coeffs.append(body)
         self._c = np.concatenate(seg_coeffs, axis=0) if seg_coeffs else np.zeros((0, 6, n))
         self._knots = knots
-        self._B = np.zeros((3, 6))
+        # per segment, the coefficients of q, qd and qdd side by side (6, 3 * joints): one sample is
+        # one vector-matrix product with the powers of the local time [1, tau, ..., tau^5]
+        d1 = np.arange(1.0, 6.0)[:, None]
+        d2 = np.array([2.0, 6.0, 12.0, 20.0])[:, None]
+        segs = []
+        for c in self._c:
+            three = np.zeros((6, 3, n))
+            three[:, 0] = c
+            three[:5, 1] = d1 * c[1:]
+            three[:4, 2] = d2 * c[2:]
+            segs.append(three.reshape(6, 3 * n))
+        self._segs = segs
+        self._nseg = len(segs)
+        self._p = np.zeros(6)
+        self._out: FloatArray | None = None
+        self._out_flat: FloatArray | None = None
         self._end_state = np.vstack([P[-1], v_end, a_end])
         if len(self._c):  # the state at the start of the first segment
             c0 = self._c[0]
@@ -560,23 +579,30 @@ class TrajectorySampler:
         return t >= self.end_time
 
     def sample_into(self, t: float, out: FloatArray) -> FloatArray:
-        """Write ``[q, qd, qdd]`` at absolute time ``t`` into ``out`` (shape (3, joints)) and return it."""
-        knots = self._knots
-        i = bisect_right(knots, t) - 1
-        if i >= len(self._c):
+        """Write ``[q, qd, qdd]`` at absolute time ``t`` into ``out`` (shape (3, joints)) and return it.
+
+        Allocation-free for a C-contiguous ``out`` (the control tick calls it every period).
+        """
+        i = bisect_right(self._knots, t) - 1
+        if i >= self._nseg:
             out[...] = self._end_state
             return out
         if i < 0:
             out[...] = self._start_state
             return out
-        tau = t - knots[i]
+        tau = t - self._knots[i]
         t2 = tau * tau
         t3 = t2 * tau
-        B = self._B
-        B[0] = (1.0, tau, t2, t3, t3 * tau, t3 * t2)
-        B[1, 1:] = (1.0, 2.0 * tau, 3.0 * t2, 4.0 * t3, 5.0 * t3 * tau)
-        B[2, 2:] = (2.0, 6.0 * tau, 12.0 * t2, 20.0 * t3)
-        np.dot(B, self._c[i], out=out)
+        p = self._p
+        p[:] = (1.0, tau, t2, t3, t3 * tau, t3 * t2)
+        if out is not self._out:  # a new output array: check it once, keep its flat view
+            self._out = out
+            self._out_flat = out.reshape(-1) if out.flags.c_contiguous else None
+        flat = self._out_flat
+        if flat is not None:
+            np.dot(p, self._segs[i], out=flat)
+        else:
+            out[...] = np.dot(p, self._segs[i]).reshape(3, -1)
         return out
 
     def sample(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:

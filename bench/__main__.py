@@ -62,19 +62,19 @@ Runner = Callable[[bool], list[Section]]
 
 
 def _overhead(quick: bool) -> list[Section]:
-    from bench import overhead
+    from agentsdk.bench import overhead
 
     return [overhead.run_overhead(quick)]
 
 
 def _rtf(quick: bool) -> list[Section]:
-    from bench import overhead
+    from agentsdk.bench import overhead
 
     return [overhead.run_rtf(quick)]
 
 
 def _planning(quick: bool) -> list[Section]:
-    from bench import planning
+    from agentsdk.bench import planning
 
     return [planning.run(quick)]
 

@@ -10,7 +10,8 @@ in lockstep (one control tick per cycle: updaters -> safety filter -> ``_write``
 ``_step`` -> ``_read`` -> tick hooks). The raw loops do the same control without the
 SDK, on the same model built the same way:
 
-* raw MuJoCo: the URDF compiled through ``MjSpec`` with the same general actuators
+* raw MuJoCo: the model built body by body like the backend builds it (``build_spec``
+  with the robot's self-collision model) with the same general actuators
   (gain 1, affine bias ``[0, -kp, -kd]``, force-limited), same options; per cycle:
   read ``qpos/qvel/actuator_force``, write ``ctrl = kp*q_des + kd*v_des + ff``,
   ``mj_step(nstep)``.
@@ -99,31 +100,43 @@ def _load_robot(name: str) -> _Robot:
 
 
 class RawMujoco:
-    """The MuJoCo backend's model and servo law, without the SDK."""
+    """The MuJoCo backend's model and servo law, without the SDK.
+
+    The model is built the way the backend builds it: body by body from the
+    description (``agentsdk.description.mjspec.build_spec``) with the robot's
+    self-collision model (``agentsdk.description.collision.for_robot``), the
+    same options and the same servo actuators, so both loops step the very same
+    model (their final states agree bit for bit).
+    """
 
     def __init__(self, rb: _Robot) -> None:
         import mujoco
 
         from agentsdk.backends.mujoco import MujocoOptions
+        from agentsdk.description.collision import for_robot
+        from agentsdk.description.mjspec import build_spec
 
         self.mj = mujoco
         opts = MujocoOptions(**rb.config.backend_options("mujoco"))
-        spec = mujoco.MjSpec.from_string(rb.description.urdf_xml)
-        files = {p.name: p for p in rb.description.mesh_files}
-        for mesh in spec.meshes:  # (the shipped robots have no meshes; same repointing as the backend)
-            path = files.get(Path(mesh.file).name)
-            if path is not None:
-                mesh.file = str(path)
+        collision = for_robot(rb.description, rb.config, opts.self_collision)
+        spec = build_spec(rb.description, collision.shapes, shell=collision.shell).spec
+        if collision.mode == "false":
+            for geom in spec.geoms:
+                geom.contype, geom.conaffinity = 2, 1
+        else:
+            for a, b in sorted(collision.excluded):
+                spec.add_exclude(bodyname1=a, bodyname2=b)
+        if opts.floating_base:
+            tops = list(spec.worldbody.bodies)
+            tops[0].add_freejoint()
         spec.option.timestep = opts.timestep
         spec.option.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{opts.integrator.upper()}")
         spec.option.gravity = list(opts.gravity)
-        if opts.floating_base:
-            root = spec.worldbody.first_body()
-            if root is not None:
-                root.add_freejoint()
         for j in rb.joints:
             sj = spec.joint(j.name)
-            sj.damping = sj.damping + opts.joint_damping
+            damping = np.array(sj.damping, dtype=float)
+            damping[0] += opts.joint_damping
+            sj.damping = damping.tolist()
             sj.armature = sj.armature + opts.armature
             act = spec.add_actuator()
             act.name = f"{j.name}_servo"
@@ -132,8 +145,11 @@ class RawMujoco:
             act.gaintype = mujoco.mjtGain.mjGAIN_FIXED
             act.biastype = mujoco.mjtBias.mjBIAS_AFFINE
             act.gainprm[0] = 1.0
-            act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
-            act.forcerange = [-j.max_effort, j.max_effort]
+            if np.isfinite(j.max_effort):
+                act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+                act.forcerange = [-j.max_effort, j.max_effort]
+            else:
+                act.forcelimited = mujoco.mjtLimited.mjLIMITED_FALSE
         m = self.model = spec.compile()
         d = self.data = mujoco.MjData(m)
         self.nsub = round(rb.period / opts.timestep)
@@ -145,7 +161,8 @@ class RawMujoco:
         m.actuator_biasprm[:, 1] = -rb.kp
         m.actuator_biasprm[:, 2] = -rb.kd
         mujoco.mj_resetData(m, d)
-        for name, q in rb.config.initial_positions.items():
+        start = {**rb.description.default_positions, **rb.config.initial_positions}
+        for name, q in start.items():
             if name in [j.name for j in rb.joints]:
                 d.qpos[m.jnt_qposadr[m.joint(name).id]] = q
         mujoco.mj_forward(m, d)
@@ -392,7 +409,7 @@ async def _sdk_wave(
 
         try:
             await cycles(0, warmup)
-            ticks0 = r.controller.ticks
+            ticks0 = r.ticks
             if profiler is not None:
                 profiler.enable()
             t0 = time.perf_counter()
@@ -407,7 +424,7 @@ async def _sdk_wave(
                 profiler.disable()
             raise _Stalled(f"{robot} {backend}: {exc}") from exc
         _check_stall(r, f"{robot} {backend}")
-        ticks = r.controller.ticks - ticks0
+        ticks = r.ticks - ticks0
         final = (await r.read()).position.copy()
     return wall, cpu, final, ticks
 

@@ -14,6 +14,7 @@ and raises :class:`SimulationDiverged` instead, like dm_control's
 
 from __future__ import annotations
 
+import math
 from math import inf
 from typing import Any, Literal
 
@@ -121,11 +122,28 @@ class MujocoController(Backend):
             for mm in (desc.mimics if desc.format == "urdf" else ())
         ]
         self._home_key = int(mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "home")) if desc.format == "mjcf" else -1
-        self._ctrl = np.zeros(m.nu)
-        self._q = np.zeros(len(self.joints))
-        self._v = np.zeros(len(self.joints))
+        d = self.data
+        n = len(self.joints)
+        # views into the model and data, made once (each attribute access builds a new array object)
+        self._ctrl = d.ctrl
+        self._tmp = np.zeros(n)
         self._bias = m.actuator_biasprm  # view: (nu, 10)
+        self._bias_kp = self._bias[:, 1]
+        self._bias_kd = self._bias[:, 2]
+        self._force = d.actuator_force
+        self._qacc = d.qacc
+        q, v = _gather_view(d.qpos, self._qadr), _gather_view(d.qvel, self._dadr)
+        self._gather = q is None or v is None
+        self._q = np.zeros(n) if q is None or v is None else q
+        self._v = np.zeros(n) if q is None or v is None else v
+        self._qpos, self._qvel = d.qpos, d.qvel
+        self._n = n
+        # the divergence warnings' counters, a view (a slice when their codes are consecutive)
+        codes = np.array([int(w) for w in _WARNINGS], dtype=np.intp)
+        self._warn_view = _gather_view(d.warning.number, codes)
+        self._warn_codes = codes
         self._warn = np.zeros(len(_WARNINGS), dtype=np.int64)
+        self._warn_bytes = b""
         self._reset_state()
 
     def _urdf_spec(self) -> mujoco.MjSpec:
@@ -199,6 +217,7 @@ class MujocoController(Backend):
             d.qpos[follower] = multiplier * d.qpos[leader] + offset
         mujoco.mj_forward(m, d)
         self._warn[:] = [d.warning[w].number for w in _WARNINGS]
+        self._warn_bytes = self._warnings().tobytes()
 
     async def _close(self) -> None:
         # nothing to release: the model and data are freed with the object
@@ -206,29 +225,43 @@ class MujocoController(Backend):
             self.data.ctrl[:] = 0.0
 
     def _write(self, sp: SetpointView) -> None:
-        en = sp.enabled
-        ctrl = self._ctrl
+        # ctrl = kp*q_des + kd*v_des + ff, computed in place in MuJoCo's ctrl (no temporaries)
+        ctrl, tmp = self._ctrl, self._tmp
         np.multiply(sp.kp, sp.position, out=ctrl)
-        ctrl += sp.kd * sp.velocity
+        np.multiply(sp.kd, sp.velocity, out=tmp)
+        ctrl += tmp
         ctrl += sp.effort
-        if not en.all():
+        en = sp.enabled
+        if np.count_nonzero(en) != self._n:
             ctrl[~en] = 0.0
-            self._bias[:, 1] = np.where(en, -sp.kp, 0.0)
-            self._bias[:, 2] = np.where(en, -sp.kd, 0.0)
+            self._bias_kp[:] = np.where(en, -sp.kp, 0.0)
+            self._bias_kd[:] = np.where(en, -sp.kd, 0.0)
         else:
-            np.negative(sp.kp, out=self._bias[:, 1])
-            np.negative(sp.kd, out=self._bias[:, 2])
-        self.data.ctrl[:] = ctrl
+            np.negative(sp.kp, out=self._bias_kp)
+            np.negative(sp.kd, out=self._bias_kd)
 
     async def _step(self, dt: float) -> None:
         m, d = self.model, self.data
         t0 = d.time
         mujoco.mj_step(m, d, nstep=self._nsub)
-        w = d.warning
+        if self._warnings().tobytes() != self._warn_bytes:
+            self._check_warnings(t0)
+        # |x|^2 is NaN or inf as soon as one element is (one BLAS call instead of isfinite + all)
+        qacc = self._qacc
+        if not math.isfinite(qacc.dot(qacc)) and not np.isfinite(qacc).all():
+            raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
+
+    def _warnings(self) -> np.ndarray:
+        view = self._warn_view
+        return view if isinstance(view, np.ndarray) else self.data.warning.number[self._warn_codes]
+
+    def _check_warnings(self, t0: float) -> None:
+        w = self.data.warning
         for k, code in enumerate(_WARNINGS):
             n = w[code].number
             if n != self._warn[k]:
                 self._warn[k] = n
+                self._warn_bytes = self._warnings().tobytes()
                 # MuJoCo has already reset the state: report the time before this step
                 # and the dof it flagged (lastinfo), not the reset values
                 raise SimulationDiverged(
@@ -236,23 +269,32 @@ class MujocoController(Backend):
                     f"t={t0:.4f} s ({mujoco.mjtWarning(code).name} at dof {w[code].lastinfo}); "
                     "lower the gains or the timestep"
                 )
-        if not np.isfinite(d.qacc).all():
-            raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
+        self._warn_bytes = self._warnings().tobytes()
 
     def _read(self) -> JointReading:
-        d = self.data
-        np.take(d.qpos, self._qadr, out=self._q)
-        np.take(d.qvel, self._dadr, out=self._v)
-        return self._q, self._v, d.actuator_force
+        if self._gather:  # joints not consecutive in qpos / qvel (else _q, _v are views)
+            self._qpos.take(self._qadr, out=self._q)
+            self._qvel.take(self._dadr, out=self._v)
+        return self._q, self._v, self._force
 
     def _emergency_stop(self, category: int) -> None:
         # thread-safe enough: plain stores into arrays the loop thread reads at its next step
-        self.data.ctrl[:] = 0.0
-        self._bias[:, 1] = 0.0
-        self._bias[:, 2] = 0.0
+        self._ctrl[:] = 0.0
+        self._bias_kp[:] = 0.0
+        self._bias_kd[:] = 0.0
 
     async def _recover(self) -> None:
         self._reset_state()
+
+
+def _gather_view(arr: np.ndarray, idx: np.ndarray) -> np.ndarray | None:
+    """A view of ``arr[idx]`` when ``idx`` is a run of consecutive indices (no copy per tick), else None."""
+    if len(idx) == 0:
+        return arr[0:0]
+    start = int(idx[0])
+    if np.array_equal(idx, np.arange(start, start + len(idx))):
+        return arr[start : start + len(idx)]
+    return None
 
 
 def _one_line(exc: BaseException) -> str:

@@ -362,6 +362,8 @@ class ControlLoop:
                 cancelled = True
         if isinstance(self.clock, LockstepClock):
             self.clock.cancel_all(RobotClosedError("robot closed"))
+        elif isinstance(self.clock, RealtimeClock):
+            self.clock.release()
         self._hooks[Phase.COMMAND].clear()
         try:
             await asyncio.shield(self.backend.close())

@@ -280,6 +280,7 @@ class SafetyLayer:
             self._step = np.full(n, float(step))
         #: watched[mode code] -> True if the command watchdog applies to that mode
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
+        self._watch_position = "position" in config.watchdog_modes
         self._fed = np.zeros(n)  # robot time of the last command per joint
         self._written = loop.state.position.copy()
         #: goal of a direct position command being ramped (max_position_step), per joint
@@ -652,7 +653,7 @@ class SafetyLayer:
                 log.error("safety check: %s; e-stop category %d", violation.detail, violation.category)
                 self._begin_stop(violation.category, violation.kind)
                 return
-        if all_position and not self._watched[_POS]:
+        if all_position and not self._watch_position:
             return  # no joint is streamed: nothing for the command watchdog
         # in HOLD too: another joint's stream may go stale while the first one is held
         streamed = self._watched[sp.mode] & sp.enabled & ~self._held
@@ -943,11 +944,19 @@ class SafetyLayer:
         timeout = self.config.stall_timeout
         assert timeout is not None
         poll = min(0.002, timeout / 20)
-        while not self._thread_stop.wait(poll):
+        wait = poll
+        # The thread sleeps until the heartbeat it last saw would be ``timeout`` old (not a poll
+        # every few ms: with several robots in a process, each thread's wake-ups cost the loop
+        # thread a GIL hand-off); it polls only while torque is off (nothing to watch then).
+        while not self._thread_stop.wait(wait):
             last = self._beat
             now = time.monotonic()
+            wait = poll
             # watched as long as torque is on: a category 2 stop holds with torque on
-            if now - last <= timeout or self.loop.torque_off or self.loop.closed:
+            if self.loop.torque_off or self.loop.closed:
+                continue
+            if now - last <= timeout:
+                wait = max(last + timeout - now, 0.0) + 1e-4
                 continue
             # the event loop is stuck: stop the actuators from this thread
             try:

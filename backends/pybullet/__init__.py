@@ -56,14 +56,15 @@ from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
 from agentsdk.types import MODES
 
-__all__ = ["PybulletController", "PybulletOptions"]
+__all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
 
 log = logging.getLogger("agentsdk.backends.pybullet")
 
 #: joint speed above which the simulation is declared diverged (rad/s or m/s)
 MAX_SPEED = 1e4
-#: PyBullet clamps joint speeds to ``maxJointVelocity`` (default 100): lift it above MAX_SPEED
-_SPEED_CAP = 10.0 * MAX_SPEED
+#: PyBullet clamps joint speeds to ``maxJointVelocity`` (default 100): the backend lifts it to this, above MAX_SPEED
+SPEED_CAP = 10.0 * MAX_SPEED
+_MAX_SPEED_SQ = MAX_SPEED * MAX_SPEED
 
 _MOVABLE = {p.JOINT_REVOLUTE: "revolute", p.JOINT_PRISMATIC: "prismatic"}
 #: PyBullet's state queries (getBasePositionAndOrientation, getJointStates) fail beyond this many links
@@ -131,6 +132,10 @@ class PybulletController(Backend):
         self._tau = np.zeros(n)
         self._raw = np.zeros(n)
         self._neg_lim = -self.max_effort
+        self._tmp = np.zeros(n)
+        self._kdm = np.zeros(n)
+        self._mask = np.zeros(n, dtype=bool)
+        self._all_on = np.ones(n, dtype=bool).tobytes()
         self._q = np.zeros(n)
         self._v = np.zeros(n)
         # what _read returns (the substep scratch arrays above change inside _step)
@@ -292,7 +297,7 @@ class PybulletController(Backend):
         for link in range(-1, len(infos)):
             p.changeDynamics(body, link, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
         for j in self._dofs:
-            p.changeDynamics(body, j, jointDamping=0.0, maxJointVelocity=_SPEED_CAP, physicsClientId=cid)
+            p.changeDynamics(body, j, jointDamping=0.0, maxJointVelocity=SPEED_CAP, physicsClientId=cid)
         # turn the default velocity motors off (they hold the joints otherwise); keep URDF friction
         if nd:
             p.setJointMotorControlArray(
@@ -305,10 +310,16 @@ class PybulletController(Backend):
         # preallocated work arrays
         self._q_all = np.zeros(nd)
         self._v_all = np.zeros(nd)
+        self._ql: list[float] = [0.0] * nd
+        self._vl: list[float] = [0.0] * nd
         self._f_all = np.zeros(nd)
         self._d_all = np.zeros(nd)
+        self._hd = np.zeros(nd)
+        self._rhs = np.zeros(nd)
         self._zeros = [0.0] * nd
-        self._diag = np.diag_indices(nd)
+        self._neg_damping = -self._damping
+        #: every dof is a commanded joint, in command order (no gather/scatter per substep)
+        self._sel_all = bool(np.array_equal(self._sel, np.arange(nd)))
 
     def simulator_report(self) -> dict[str, Any]:
         """What the loaded PyBullet body holds: commanded joints, link masses, colliding link pairs.
@@ -379,54 +390,84 @@ class PybulletController(Backend):
         np.copyto(self._en, sp.enabled)
 
     async def _step(self, dt: float) -> None:
+        # Allocation-free per substep: preallocated arrays, ufuncs with out= (ufunc dispatch is
+        # the cost on arrays this small), joint states gathered from PyBullet's tuples once.
         cid, body, dofs = self._cid, self._body, self._dofs
         h = self.options.timestep
-        sel = self._sel
-        tau, raw = self._tau, self._raw
-        f_all, d_all = self._f_all, self._d_all
-        lim = self.max_effort
+        q_all, v_all, f_all, d_all = self._q_all, self._v_all, self._f_all, self._d_all
+        tau, raw, tmp, kdm, mask = self._tau, self._raw, self._tmp, self._kdm, self._mask
+        qd, vd, ff, kp, kd = self._qd, self._vd, self._ff, self._kp, self._kd
+        lim, neg_lim, neg_damping, damping = self.max_effort, self._neg_lim, self._neg_damping, self._damping
+        sel, every = self._sel, self._sel_all
+        q, v = (q_all, v_all) if every else (self._q, self._v)
+        set_motors, step = p.setJointMotorControlArray, p.stepSimulation
         for _ in range(self._nsub):
-            q = np.take(self._q_all, sel, out=self._q)
-            v = np.take(self._v_all, sel, out=self._v)
+            if not every:
+                q_all.take(sel, out=q)
+                v_all.take(sel, out=v)
             # the servo law, clamped; zero torque for disabled joints / torque off
-            np.subtract(self._qd, q, out=raw)
-            raw *= self._kp
-            raw += self._kd * (self._vd - v)
-            raw += self._ff
-            np.maximum(raw, self._neg_lim, out=tau)  # ufuncs: np.clip dispatch costs µs here
+            np.subtract(qd, q, out=raw)
+            np.multiply(raw, kp, out=raw)
+            np.subtract(vd, v, out=tmp)
+            np.multiply(kd, tmp, out=tmp)
+            np.add(raw, tmp, out=raw)
+            np.add(raw, ff, out=raw)
+            np.maximum(raw, neg_lim, out=tau)  # ufuncs: np.clip dispatch costs µs here
             np.minimum(tau, lim, out=tau)
             en = self._en  # cleared by _emergency_stop from any thread: takes effect at the next substep
-            if not en.all():
+            all_on = en.tobytes() == self._all_on
+            if not all_on:
                 tau[~en] = 0.0
             # generalized force on every dof: servo torque minus passive damping
-            np.multiply(self._damping, self._v_all, out=f_all)
-            np.negative(f_all, out=f_all)
-            f_all[sel] += tau
+            np.multiply(neg_damping, v_all, out=f_all)
+            if every:
+                np.add(f_all, tau, out=f_all)
+            else:
+                f_all[sel] += tau
             if self._implicit:
                 # velocity derivative of the forces: damping, plus kd of the unsaturated enabled servos
-                np.copyto(d_all, self._damping)
-                d_all[sel] += np.where(en & (np.abs(raw) < lim), self._kd, 0.0)
-                if d_all.any():
-                    q_list = self._q_all.tolist()
-                    mass = np.array(p.calculateMassMatrix(body, q_list, physicsClientId=cid))
-                    bias = p.calculateInverseDynamics(
-                        body, q_list, self._v_all.tolist(), self._zeros, physicsClientId=cid
-                    )
-                    mass[self._diag] += h * d_all
-                    qacc = np.linalg.solve(mass, f_all - bias)
-                    f_all -= h * d_all * qacc
-            p.setJointMotorControlArray(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
-            p.stepSimulation(physicsClientId=cid)
+                np.abs(raw, out=tmp)
+                np.less(tmp, lim, out=mask)
+                if not all_on:
+                    mask &= en
+                kdm.fill(0.0)
+                np.copyto(kdm, kd, where=mask)
+                if every:
+                    np.add(damping, kdm, out=d_all)
+                else:
+                    np.copyto(d_all, damping)
+                    d_all[sel] += kdm
+                if np.count_nonzero(d_all):
+                    ql, vl = self._ql, self._vl
+                    mass = np.array(p.calculateMassMatrix(body, ql, physicsClientId=cid))
+                    bias = p.calculateInverseDynamics(body, ql, vl, self._zeros, physicsClientId=cid)
+                    hd = self._hd
+                    np.multiply(d_all, h, out=hd)
+                    diag = mass.reshape(-1)[:: len(dofs) + 1]  # a view of the diagonal
+                    np.add(diag, hd, out=diag)
+                    rhs = self._rhs
+                    np.subtract(f_all, bias, out=rhs)
+                    qacc = np.linalg.solve(mass, rhs)
+                    np.multiply(hd, qacc, out=rhs)
+                    np.subtract(f_all, rhs, out=f_all)
+            set_motors(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
+            step(physicsClientId=cid)
             self._time += h
             self._sense()
 
     def _sense(self) -> None:
-        states = p.getJointStates(self._body, self._dofs, physicsClientId=self._cid) if self._dofs else ()
+        if not self._dofs:
+            return
+        states = p.getJointStates(self._body, self._dofs, physicsClientId=self._cid)
+        ql = self._ql = [s[0] for s in states]
+        vl = self._vl = [s[1] for s in states]
         q, v = self._q_all, self._v_all
-        for k, s in enumerate(states):
-            q[k] = s[0]
-            v[k] = s[1]
-        # NaN in v makes the comparison False, so one max covers finiteness of v too
+        q[:] = ql
+        v[:] = vl
+        # fast path: |v|^2 <= MAX_SPEED^2 bounds every |v_i|, and q.q is finite iff every q_i is
+        # (NaN fails both comparisons); only a state that fails it gets the per-joint check
+        if v.dot(v) <= _MAX_SPEED_SQ and math.isfinite(q.dot(q)):
+            return
         if not (np.abs(v).max(initial=0.0) <= MAX_SPEED and np.isfinite(q).all()):
             bad = int(np.argmax(~np.isfinite(q) | ~np.isfinite(v) | (np.abs(v) > MAX_SPEED)))
             name = p.getJointInfo(self._body, self._dofs[bad], physicsClientId=self._cid)[1].decode()
@@ -436,8 +477,10 @@ class PybulletController(Backend):
             )
 
     def _read(self) -> JointReading:
-        np.take(self._q_all, self._sel, out=self._rq)
-        np.take(self._v_all, self._sel, out=self._rv)
+        if self._sel_all:  # the arrays change inside _step only, and the loop copies them at once
+            return self._q_all, self._v_all, self._tau
+        self._q_all.take(self._sel, out=self._rq)
+        self._v_all.take(self._sel, out=self._rv)
         return self._rq, self._rv, self._tau
 
     def _emergency_stop(self, category: int) -> None:

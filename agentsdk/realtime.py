@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import asyncio
 import ctypes
-import ctypes.util
 import heapq
 import itertools
 import math
@@ -107,7 +106,7 @@ def _libc() -> Any:
             _LIBC = False
         else:
             try:
-                lib = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+                lib = ctypes.CDLL(None, use_errno=True)  # libc is in the process already (find_library spawns ldconfig)
                 lib.timerfd_create.argtypes = [ctypes.c_int, ctypes.c_int]
                 lib.timerfd_create.restype = ctypes.c_int
                 lib.timerfd_settime.argtypes = [

@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import asyncio
 import ctypes
-import ctypes.util
 import os
 import sys
 import tempfile
@@ -138,7 +137,7 @@ class _Timerfd:
     """A bare periodic timerfd (Linux) through ctypes, for the raw loop: no SDK code."""
 
     def __init__(self) -> None:
-        self.libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        self.libc = ctypes.CDLL(None, use_errno=True)
         self.fd = self.libc.timerfd_create(1, os.O_NONBLOCK | os.O_CLOEXEC)  # CLOCK_MONOTONIC
         if self.fd < 0:
             raise OSError(ctypes.get_errno(), "timerfd_create")

@@ -144,6 +144,9 @@ class MujocoController(Backend):
         self._warn_codes = codes
         self._warn = np.zeros(len(_WARNINGS), dtype=np.int64)
         self._warn_bytes = b""
+        self._all_enabled = np.ones(n, dtype=bool).tobytes()
+        #: kp and kd bytes the bias terms were last set from (None: set them at the next write)
+        self._gains: bytes | None = None
         self._reset_state()
 
     def _urdf_spec(self) -> mujoco.MjSpec:
@@ -232,19 +235,24 @@ class MujocoController(Backend):
         ctrl += tmp
         ctrl += sp.effort
         en = sp.enabled
-        if np.count_nonzero(en) != self._n:
+        if en.tobytes() != self._all_enabled:
+            self._gains = None
             ctrl[~en] = 0.0
             self._bias_kp[:] = np.where(en, -sp.kp, 0.0)
             self._bias_kd[:] = np.where(en, -sp.kd, 0.0)
-        else:
+            return
+        gains = sp.kp.tobytes() + sp.kd.tobytes()
+        if gains != self._gains:  # the bias terms change only with the gains
+            self._gains = gains
             np.negative(sp.kp, out=self._bias_kp)
             np.negative(sp.kd, out=self._bias_kd)
 
     async def _step(self, dt: float) -> None:
-        m, d = self.model, self.data
+        d = self.data
         t0 = d.time
-        mujoco.mj_step(m, d, nstep=self._nsub)
-        if self._warnings().tobytes() != self._warn_bytes:
+        mujoco.mj_step(self.model, d, nstep=self._nsub)
+        view = self._warn_view
+        if view is None or view.tobytes() != self._warn_bytes:
             self._check_warnings(t0)
         # |x|^2 is NaN or inf as soon as one element is (one BLAS call instead of isfinite + all)
         qacc = self._qacc
@@ -252,8 +260,9 @@ class MujocoController(Backend):
             raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
 
     def _warnings(self) -> np.ndarray:
+        """The counters of the divergence warnings (``_WARNINGS`` order)."""
         view = self._warn_view
-        return view if isinstance(view, np.ndarray) else self.data.warning.number[self._warn_codes]
+        return view if view is not None else self.data.warning.number[self._warn_codes]
 
     def _check_warnings(self, t0: float) -> None:
         w = self.data.warning
@@ -279,6 +288,7 @@ class MujocoController(Backend):
 
     def _emergency_stop(self, category: int) -> None:
         # thread-safe enough: plain stores into arrays the loop thread reads at its next step
+        self._gains = None  # the next write sets the bias terms again
         self._ctrl[:] = 0.0
         self._bias_kp[:] = 0.0
         self._bias_kd[:] = 0.0

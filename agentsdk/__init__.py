@@ -58,11 +58,14 @@ from .errors import (
     SafetyFault,
     SimulationDiverged,
     UnknownJointError,
+    UnknownLinkError,
+    UnreachablePoseError,
     UnsupportedModeError,
 )
 from .feedback import FeedbackAgent, LoopStats, run_feedback
 from .loop import HookHandle, Phase, Setpoint, StateView
 from .motion import Feedback, Motion, MotionResult, ResultCode, Tolerances
+from .pose import Pose
 from .registry import available_backends, load_backend, register_backend, unregister_backend
 from .robot import Robot, connect
 from .safety import SafetyCheck, SafetyConfig, SafetyEvent, SafetyState, SafetyViolation
@@ -106,6 +109,7 @@ __all__ = [
     "Motion",
     "MotionResult",
     "Phase",
+    "Pose",
     "RealtimeClock",
     "ResultCode",
     "Robot",
@@ -126,6 +130,8 @@ __all__ = [
     "Trajectory",
     "TrajectoryPoint",
     "UnknownJointError",
+    "UnknownLinkError",
+    "UnreachablePoseError",
     "UnsupportedModeError",
     "__version__",
     "available_backends",

@@ -258,8 +258,13 @@ class _RunExtras:
         label: str,
         metadata: dict[str, str],
         total: float | None = None,
+        video: str | None = None,
+        video_fps: float = 30.0,
+        video_size: tuple[int, int] = (640, 480),
     ) -> None:
         self.record, self.plot, self.rate = record, plot, rate
+        self.video, self.video_fps, self.video_size = video, video_fps, video_size
+        self.video_recorder: Any = None
         self.progress_on, self.view, self.label, self.metadata, self.total = progress, view, label, metadata, total
         self.recorder: Any = None
         self.progress: Any = None
@@ -275,6 +280,10 @@ class _RunExtras:
                                             metadata=self.metadata)
         if self.view and bot.backend == "mujoco":
             self.viewer = _MujocoView(bot)
+        if self.video:
+            from .video import VideoRecorder
+
+            self.video_recorder = VideoRecorder.attach(bot, self.video, fps=self.video_fps, size=self.video_size)
         if self.progress_on:
             from .progress import RunProgress
 
@@ -287,6 +296,10 @@ class _RunExtras:
             self.progress.stop()
         if self.viewer is not None:
             self.viewer.close()
+        if self.video_recorder is not None:
+            video, self.video_recorder = self.video_recorder, None
+            path = video.finish(progress=self.progress_on)
+            lines.append(f"video written to {path} ({len(video.frames)} frames at {video.fps:g} fps)")
         rec = self.recorder
         if rec is None:
             return lines
@@ -300,6 +313,22 @@ class _RunExtras:
             plot_run(rec.data(), self.plot)
             lines.append(f"plot written to {self.plot}")
         return lines
+
+
+def _video_args(args: argparse.Namespace) -> tuple[int, int]:
+    if args.video is None:
+        return (640, 480)
+    from .video import check_video_path
+
+    check_video_path(args.video)
+    w, sep, h = str(args.video_size).lower().partition("x")
+    try:
+        size = (int(w), int(h))
+    except ValueError:
+        sep = ""
+    if not sep:
+        raise ConfigurationError(f"--video-size expects WIDTHxHEIGHT (e.g. 640x480), got {args.video_size!r}")
+    return size
 
 
 def _options(items: list[str] | None) -> dict[str, Any]:
@@ -322,6 +351,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     options = _options(args.option)
     _check_output(args.record, "recording")
     _check_output(args.plot, "plot")
+    video_size = _video_args(args)
     if args.record_rate is not None and not (args.record or args.plot):
         raise ConfigurationError("--record-rate needs --record or --plot")
     if args.record_rate is not None and not args.record_rate > 0:
@@ -337,6 +367,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         rate=args.record_rate,
         progress=progress_enabled(args.quiet),
         view=args.view,
+        video=args.video,
+        video_fps=args.video_fps,
+        video_size=video_size,
         label=f"{behavior_name} on {robot} ({backend})",
         metadata={
             "robot": robot_spec_for_metadata(robot),
@@ -566,6 +599,10 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--record-rate", type=float, metavar="HZ",
                    help="decimate recorded joint states to HZ (commands are always complete)")
     r.add_argument("--plot", metavar="OUT.png", help="plot desired vs actual position per joint and the error")
+    r.add_argument("--video", metavar="RUN.mp4",
+                   help="render the run offscreen (no display needed) to an .mp4 or .gif file")
+    r.add_argument("--video-fps", type=float, default=30.0, metavar="FPS", help="video frame rate (robot time)")
+    r.add_argument("--video-size", default="640x480", metavar="WxH", help="video size in pixels")
     r.add_argument("--view", action="store_true",
                    help="show the simulation (MuJoCo viewer / PyBullet GUI; needs a display; implies --realtime)")
 
@@ -602,6 +639,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the ``agentsdk`` command line with ``argv`` (default ``sys.argv[1:]``) and return its exit code."""
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     passthrough = {"emulate-can": lambda rest: _cmd_emulate_can(argparse.Namespace(), rest),

@@ -93,9 +93,11 @@ class RealtimeClock(Clock):
         self._timer_failed = False
 
     def now(self) -> float:
+        """Seconds since this clock was created (``time.monotonic`` based)."""
         return time.monotonic() - self._t0
 
     async def sleep_until(self, deadline: float) -> None:
+        """Sleep until ``deadline`` (clock seconds): an asyncio sleep, then a short cooperative spin for precision."""
         remaining = deadline - self.now()
         if remaining <= 0.0:
             await asyncio.sleep(0)
@@ -140,14 +142,17 @@ class LockstepClock(Clock):
         self.wakeup = asyncio.Event()
 
     def now(self) -> float:
+        """Simulated time: ticks elapsed times the control period (no accumulated drift)."""
         # tick count * period: no accumulated floating-point drift
         return self._tick * self.period
 
     @property
     def ticks(self) -> int:
+        """Control ticks elapsed since the start."""
         return self._tick
 
     async def sleep_until(self, deadline: float) -> None:
+        """Resume once the control loop has advanced simulated time to ``deadline``."""
         if deadline <= self.now():
             await asyncio.sleep(0)
             return
@@ -157,6 +162,7 @@ class LockstepClock(Clock):
         await fut  # cancellation cancels fut; advance() skips it
 
     def next_deadline(self) -> float | None:
+        """The earliest pending sleeper's deadline, or None when nobody waits."""
         heap = self._heap
         while heap and heap[0][2].done():
             heapq.heappop(heap)

@@ -103,13 +103,16 @@ class RobotConfig(_Strict):
 
     @property
     def control_period(self) -> float:
+        """Seconds per control tick (``1 / update_rate``)."""
         return 1.0 / self.update_rate
 
     def gains_for(self, joint: str) -> Gains:
+        """The gains configured for ``joint`` (its own entry, else ``default``, else p=100, d=5)."""
         g = self.gains.get(joint) or self.gains.get("default")
         return g if g is not None else Gains(p=100.0, d=5.0)
 
     def backend_options(self, backend: str) -> dict[str, Any]:
+        """A copy of the robot.yaml options for ``backend`` (empty when none)."""
         return dict(self.backends.get(backend, {}))
 
 

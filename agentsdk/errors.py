@@ -9,6 +9,8 @@ exception                       what the caller can do
 ``BackendStartError``           the backend failed to open (hardware, sim)
 ``CommandRejected``             fix the command; the robot state is unchanged
 ``UnknownJointError``           (a ``CommandRejected``, ``KeyError``)
+``UnknownLinkError``            (a ``CommandRejected``, ``KeyError``) no such link
+``UnreachablePoseError``        (a ``CommandRejected``) IK found no solution: names the residual
 ``InvalidValueError``           (a ``CommandRejected``, ``ValueError``) NaN/inf, shape
 ``LimitViolation``              (a ``CommandRejected``) outside a joint limit
 ``UnsupportedModeError``        (a ``CommandRejected``) mode not offered
@@ -41,6 +43,8 @@ __all__ = [
     "SafetyFault",
     "SimulationDiverged",
     "UnknownJointError",
+    "UnknownLinkError",
+    "UnreachablePoseError",
     "UnsupportedModeError",
 ]
 
@@ -74,6 +78,27 @@ class UnknownJointError(CommandRejected, KeyError):
 
     def __str__(self) -> str:  # KeyError would repr() the message
         return str(self.args[0]) if self.args else ""
+
+
+class UnknownLinkError(CommandRejected, KeyError):
+    """A link (frame) name is not part of the robot."""
+
+    def __str__(self) -> str:  # KeyError would repr() the message
+        return str(self.args[0]) if self.args else ""
+
+
+class UnreachablePoseError(CommandRejected):
+    """Inverse kinematics found no joint positions within the limits that reach the pose.
+
+    The message names the link, the residual (position error in m, orientation error in
+    rad) of the best attempt and the tolerances; ``result`` holds that best attempt
+    (an :class:`agentsdk.kinematics.IKResult` with ``ok == False``), never to be used as
+    a solution without checking.
+    """
+
+    def __init__(self, message: str, result: object = None) -> None:
+        super().__init__(message)
+        self.result = result
 
 
 class InvalidValueError(CommandRejected, ValueError):

@@ -62,6 +62,11 @@ class ResultCode(enum.IntEnum):
 
 @dataclass(frozen=True, slots=True)
 class MotionResult:
+    """How a motion ended.
+
+    A FollowJointTrajectory-style result code, the final error per joint, a message and the robot time.
+    """
+
     code: ResultCode
     #: final position error per joint (desired goal - actual), rad or m
     error: Mapping[str, float]
@@ -71,6 +76,7 @@ class MotionResult:
 
     @property
     def ok(self) -> bool:
+        """True when the motion ended SUCCESSFUL."""
         return self.code is ResultCode.SUCCESSFUL
 
 
@@ -144,6 +150,7 @@ class Motion:
             raise
 
     def done(self) -> bool:
+        """True once the motion has ended (its result is available)."""
         return self._future.done()
 
     def result(self) -> MotionResult:
@@ -259,7 +266,7 @@ class MotionManager:
                 return j, ex.motion
         return None
 
-    def _desired(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def desired(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Current desired (q, v, a) for joints: from their executor, else the setpoint/state."""
         loop = self.loop
         sp, st = loop.setpoint, loop.state
@@ -299,7 +306,7 @@ class MotionManager:
         goal_tol = _per_joint(tol.goal, names, "goal")
         if not tol.goal_time >= 0:
             raise InvalidValueError(f"goal_time must be >= 0, got {tol.goal_time!r}")
-        q0, v0, a0 = self._desired(idx)
+        q0, v0, a0 = self.desired(idx)
         self._preempt(idx)
         t0 = ctl.stamp
         sampler = TrajectorySampler(traj, start_time=t0, start_positions=q0, start_velocities=v0,
@@ -326,7 +333,7 @@ class MotionManager:
         if not np.isfinite(goal).all():
             raise InvalidValueError(f"move_to: non-finite target in {dict(positions)!r}")
         self.bounds.check(goal, idx)
-        q0, v0, a0 = self._desired(idx)
+        q0, v0, a0 = self.desired(idx)
         joints = [ctl.joints[i] for i in idx.tolist()]
         traj = plan_point_to_point((q0, v0, a0), goal, joints, duration=duration)
         return self.follow(traj, tol)
@@ -355,7 +362,7 @@ class MotionManager:
                 seen.append(ex)
         for ex in seen:
             rest = np.array([j for j in ex.idx.tolist() if j not in set(idx.tolist())], dtype=np.intp)
-            q, v, a = self._desired(rest) if len(rest) else (None, None, None)
+            q, v, a = self.desired(rest) if len(rest) else (None, None, None)
             self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
             if len(rest):
                 # joints the new trajectory does not cover come to rest smoothly
@@ -415,7 +422,7 @@ class MotionManager:
 
             handle = loop.add_hook(Phase.COMMAND, _until_still)
         else:
-            q, v, a = self._desired(idx)
+            q, v, a = self.desired(idx)
             for ex in set(self._owner):
                 if ex is not None:
                     self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")

@@ -65,6 +65,7 @@ class RunProgress:
         self.displayed = threading.Event()
 
     def start(self) -> RunProgress:
+        """Start the display thread and the wall/simulated time origins; returns ``self``."""
         self._t0 = time.perf_counter()
         self._sim0 = self._clock()
         self._thread = threading.Thread(target=self._run, name="agentsdk-progress", daemon=True)
@@ -85,6 +86,7 @@ class RunProgress:
         self.stop()
 
     def fields(self) -> dict[str, float]:
+        """Simulated seconds, wall seconds and the real-time factor since :meth:`start`."""
         sim = self._clock() - self._sim0
         wall = time.perf_counter() - self._t0
         return {"sim": sim, "wall": wall, "rtf": sim / wall if wall > 0 else 0.0}

@@ -287,15 +287,18 @@ class RunData:
 
     @property
     def robot(self) -> str:
+        """The robot name stored in the recording's metadata."""
         return self.metadata.get("robot", "")
 
     @property
     def backend(self) -> str:
+        """The backend name stored in the recording's metadata."""
         return self.metadata.get("backend", "")
 
     def command_index(self, t_ns: np.ndarray, *, applied_before: bool = True) -> np.ndarray:
         """Index of the setpoint in effect: the latest command stamped before ``t_ns``
-        (``applied_before=True``: the setpoint that produced a state stamped ``t_ns``) or at/before it."""
+        (``applied_before=True``: the setpoint that produced a state stamped ``t_ns``) or at/before it.
+        """
         side = "left" if applied_before else "right"
         return np.searchsorted(self.cmd_time, t_ns, side=side) - 1
 
@@ -813,9 +816,11 @@ class ReplayResult:
 
     @property
     def worst(self) -> float:
+        """The largest absolute divergence over all joints."""
         return max(self.max_abs.values(), default=0.0)
 
     def lines(self) -> list[str]:
+        """A table of the divergence per joint, one line per row."""
         width = max([len("joint"), *(len(n) for n in self.names)])
         out = [
             f"divergence of joint positions (replayed - recorded) over {self.samples} samples"

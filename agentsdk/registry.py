@@ -55,6 +55,7 @@ def register_backend(name: str, cls: type[Backend]) -> None:
 
 
 def unregister_backend(name: str) -> None:
+    """Remove a backend registered with :func:`register_backend` (no error when absent)."""
     _local.pop(name, None)
 
 

@@ -18,6 +18,8 @@ from pathlib import Path
 from types import MappingProxyType, TracebackType
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from .backend import Backend, Capabilities, SetpointView
 from .clock import Clock
 from .description import apply_overrides, resolve_robot
@@ -28,7 +30,12 @@ from .safety import PositionBounds, SafetyConfig, SafetyLayer
 from .types import AppliedCommand, FloatArray, JointCommand, JointInfo, JointState
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
+    from .description import RobotDescription
+    from .kinematics import Kinematics
     from .motion import Motion, MotionManager, MotionResult, Tolerances
+    from .pose import Pose
     from .trajectory import Trajectory
 
 __all__ = ["Robot", "connect"]
@@ -48,6 +55,7 @@ class Robot:
         #: the safety layer (state, events, e-stop)
         self.safety = safety
         self._motions = motions
+        self._kinematics: Kinematics | None = None
 
     # ------------------------------------------------------------ metadata
     @property
@@ -156,6 +164,43 @@ class Robot:
         """Call ``fn(exc)`` once if the control loop dies (backend fault, simulation divergence)."""
         return self._loop.add_fault_listener(fn)
 
+    @property
+    def description(self) -> RobotDescription:
+        """The loaded robot description (links, joints, repaired inertials, source file)."""
+        return self._loop.backend.description
+
+    def latest_state(self) -> JointState:
+        """The latest measured joint state, without awaiting (what :meth:`read` returns)."""
+        self._loop.check_open()
+        return self._loop.snapshot()
+
+    def desired_state(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """The current desired ``(positions, velocities, accelerations)`` of every joint, in joint order.
+
+        Where a motion or stop ramp drives a joint, its reference at the next tick; else the
+        setpoint of position-mode joints and the measured state of the others. A new motion
+        planned from here starts without a jump.
+        """
+        return self._motions.desired(np.arange(len(self._loop.joints), dtype=np.intp))
+
+    # ---------------------------------------------------------- kinematics
+    @property
+    def kinematics(self) -> Kinematics:
+        """FK, Jacobians, TF snapshots and IK of this robot (host-side, the same on every backend).
+
+        ``positions=None`` means the latest measured state; see :mod:`agentsdk.kinematics`.
+        """
+        if self._kinematics is None:
+            from .kinematics import Kinematics
+
+            self._kinematics = Kinematics.for_robot(self)
+        return self._kinematics
+
+    @property
+    def link_names(self) -> tuple[str, ...]:
+        """Every link (frame) of the robot, the root link first, fixed-joint links included."""
+        return self.kinematics.link_names
+
     # -------------------------------------------------------------- direct
     async def read(self) -> JointState:
         """The latest measured joint state (position, velocity, effort, stamp)."""
@@ -219,6 +264,37 @@ class Robot:
         self.safety.check_motion_allowed()
         motion = self._motions.move_to(positions, duration, tolerances)
         return await motion
+
+    async def move_to_pose(
+        self,
+        link: str,
+        pose: Pose | npt.ArrayLike,
+        linear: bool = False,
+        duration: float | None = None,
+        tolerances: Tolerances | None = None,
+        *,
+        position_only: bool = False,
+        path_tolerance: float = 1e-3,
+        velocity_scale: float = 1.0,
+        acceleration_scale: float = 1.0,
+    ) -> MotionResult:
+        """Move ``link`` to ``pose`` (root frame) and return the motion's result.
+
+        ``linear=False``: IK from the current desired positions, then :meth:`move_to`.
+        ``linear=True``: the link's origin follows the straight line (orientation: slerp),
+        densely sampled and IK'd into a joint trajectory timed from the joint limits and run
+        by :meth:`follow` (cancel, preemption, ``tolerances`` and safety as for any trajectory);
+        samples may deviate from the line by at most ``path_tolerance`` (m); ``velocity_scale`` and
+        ``acceleration_scale`` (in (0, 1], like MoveIt's scaling factors) slow the line down.
+        ``pose`` may be a position (3,) (implies ``position_only``). An unreachable target
+        returns ``MotionResult(INVALID_GOAL)`` whose message names the IK residual; nothing
+        moves. See :mod:`agentsdk.cartesian`.
+        """
+        from .cartesian import move_to_pose
+
+        return await move_to_pose(self, link, pose, linear, duration, tolerances, position_only=position_only,
+                                  path_tolerance=path_tolerance, velocity_scale=velocity_scale,
+                                  acceleration_scale=acceleration_scale)
 
     # -------------------------------------------------------------- safety
     async def estop(self, category: int = 1) -> None:

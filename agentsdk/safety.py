@@ -111,6 +111,10 @@ class SafetyConfig(BaseModel):
     def from_sources(
         cls, yaml_section: Mapping[str, Any] | None, override: SafetyConfig | Mapping[str, Any] | None
     ) -> SafetyConfig:
+        """Merge the robot.yaml ``safety`` section with a ``connect(safety=...)`` override.
+
+        The override wins key by key; the result is validated.
+        """
         data = dict(yaml_section or {})
         if isinstance(override, SafetyConfig):
             data.update(override.model_dump(exclude_unset=True))
@@ -855,7 +859,8 @@ class SafetyLayer:
 
     def estop_threadsafe(self, category: int = 0) -> None:
         """Latch an e-stop from any thread. Category 0 acts at once in the calling thread;
-        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone)."""
+        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone).
+        """
         if category not in (0, 1, 2):
             raise InvalidValueError(f"stop category must be 0, 1 or 2 (IEC 60204-1), got {category!r}")
         aloop = self._aloop

@@ -51,18 +51,22 @@ DEFAULT_STOP_TIMEOUT = 10.0
 class ClockLike(Protocol):
     """Time source: ``robot.clock`` (simulated time) or :class:`LoopClock`."""
 
-    def now(self) -> float: ...
+    def now(self) -> float:
+        """Current time in seconds."""
 
-    async def sleep(self, dt: float) -> None: ...
+    async def sleep(self, dt: float) -> None:
+        """Sleep ``dt`` seconds on this clock."""
 
 
 class LoopClock:
     """The default clock: the running asyncio loop's monotonic time."""
 
     def now(self) -> float:
+        """The running event loop's monotonic time."""
         return asyncio.get_running_loop().time()
 
     async def sleep(self, dt: float) -> None:
+        """``asyncio.sleep(dt)``."""
         await asyncio.sleep(dt)
 
     def __repr__(self) -> str:
@@ -77,9 +81,11 @@ class StoppableMotion(Protocol):
     motion resolves once the robot has stopped.
     """
 
-    def cancel(self) -> None: ...
+    def cancel(self) -> None:
+        """Request decelerate-and-hold; returns at once."""
 
-    def done(self) -> bool: ...
+    def done(self) -> bool:
+        """True once the motion has ended."""
 
     def __await__(self) -> Generator[Any, None, Any]: ...
 
@@ -134,6 +140,7 @@ class MotionScope:
 
     @property
     def closed(self) -> bool:
+        """True once the scope has exited (new motions are stopped at once)."""
         return self._closed
 
     @property
@@ -142,6 +149,7 @@ class MotionScope:
         return tuple(self._motions)
 
     def add(self, motion: StoppableMotion) -> None:
+        """Register ``motion`` to be stopped when the scope exits (stopped at once if already closed)."""
         if self._closed:
             _log.warning("motion %r started in closed scope %r: stopping it", motion, self.name)
             motion.cancel()

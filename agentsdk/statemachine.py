@@ -187,9 +187,11 @@ class State:
 
     @property
     def is_composite(self) -> bool:
+        """True for a state with a nested machine or parallel regions."""
         return self.machine is not None or self.parallel is not None
 
     def completion_event(self, final_state: str | None = None) -> str:
+        """The event fired when this composite state completes (optionally per final state reached)."""
         if isinstance(self.done, Mapping):
             if final_state is not None and final_state in self.done:
                 return self.done[final_state]
@@ -299,9 +301,11 @@ class StateContext:
 
     @property
     def name(self) -> str:
+        """The state's own name (the last path segment)."""
         return self.state.rsplit("/", 1)[-1]
 
     async def sleep(self, dt: float) -> None:
+        """Sleep ``dt`` seconds on the robot's clock (simulated time in lockstep)."""
         await self.clock.sleep(dt)
 
 
@@ -455,14 +459,17 @@ class StateMachine:
 
     @property
     def finished(self) -> bool:
+        """True once the machine has reached a final state."""
         return self._sm_finished
 
     @classmethod
     def states(cls) -> tuple[str, ...]:
+        """Every state path of this machine, nested ones included."""
         return tuple(cls._require_spec().states)
 
     @classmethod
     def events(cls) -> tuple[str, ...]:
+        """Every event name used by a transition, in declaration order."""
         spec = cls._require_spec()
         return tuple(dict.fromkeys(e.event for e in spec.edges))
 

@@ -102,6 +102,7 @@ class BackendConformance:
 
     # ------------------------------------------------------- metadata
     async def test_joint_metadata_matches_description(self) -> None:
+        """Joint names, types and limits read from the backend match the robot description."""
         config, desc = resolve_robot(self.robot)
         expected = apply_overrides(desc, config)
         async with self.open_robot() as robot:
@@ -113,6 +114,7 @@ class BackendConformance:
                 assert got.max_effort == want.max_effort, got.name
 
     async def test_read_is_finite_and_well_shaped(self) -> None:
+        """The first read returns finite positions, velocities and efforts, one per joint."""
         async with self.open_robot() as robot:
             await robot.clock.sleep(0.05)
             st = await robot.read()
@@ -135,6 +137,7 @@ class BackendConformance:
         pytest.fail(f"{what} not reached within {self.settle_time} s: state {st}")
 
     async def test_position_mode_reaches_target(self) -> None:
+        """A position command is reached within tolerance."""
         if "position" not in self.capabilities().modes:
             pytest.skip("backend does not declare position mode")
         async with self.open_robot() as robot:
@@ -145,6 +148,7 @@ class BackendConformance:
             await self._reach(robot, lambda st: np.all(np.abs(st.position - want) < tol), "position target")
 
     async def test_velocity_mode_reaches_target(self) -> None:
+        """A velocity command is tracked."""
         if "velocity" not in self.capabilities().modes:
             pytest.skip("backend does not declare velocity mode")
         async with self.open_robot() as robot:
@@ -165,6 +169,7 @@ class BackendConformance:
                     streamer.cancel()
 
     async def test_effort_mode_applies_effort(self) -> None:
+        """The measured effort matches a commanded effort of 5 % of the limit."""
         if "effort" not in self.capabilities().modes:
             pytest.skip("backend does not declare effort mode")
         async with self.open_robot() as robot:
@@ -178,6 +183,7 @@ class BackendConformance:
             assert abs(st.effort[0] - tau) < tol, f"effort on {j.name}: {st.effort[0]} != {tau}"
 
     async def test_undeclared_mode_is_rejected(self) -> None:
+        """A mode the backend does not declare is rejected with a specific error."""
         undeclared = [m for m in MODES if m not in self.capabilities().modes]
         if not undeclared:
             pytest.skip("backend declares every command mode")
@@ -189,6 +195,7 @@ class BackendConformance:
 
     # ---------------------------------------------------------- clock
     async def test_clock_is_monotonic_and_sleep_advances(self) -> None:
+        """The clock never goes backwards and ``sleep`` advances it."""
         async with self.open_robot() as robot:
             t0 = robot.clock.now()
             seen = [t0]
@@ -202,6 +209,7 @@ class BackendConformance:
 
     # ---------------------------------------------------------- close
     async def test_close_is_idempotent_and_later_calls_raise(self) -> None:
+        """``close()`` is idempotent and later commands raise ``RobotClosedError``."""
         threads_before = set(threading.enumerate())
         tasks_before = set(asyncio.all_tasks())
         async with self.open_robot() as robot:
@@ -227,6 +235,7 @@ class BackendConformance:
 
     # ----------------------------------------------------- concurrency
     async def test_concurrent_commands_are_serialized(self) -> None:
+        """Commands from concurrent tasks are applied one at a time, none lost."""
         if "position" not in self.capabilities().modes:
             pytest.skip("needs position mode")
         async with self.open_robot() as robot:
@@ -254,6 +263,7 @@ class BackendConformance:
             return out
 
     async def test_lockstep_is_deterministic(self) -> None:
+        """Two lockstep runs of the same commands give identical states (skipped unless declared deterministic)."""
         caps = self.capabilities()
         if not (caps.lockstep and caps.deterministic) or self.realtime:
             pytest.skip("backend is not a deterministic lockstep backend")
@@ -264,6 +274,7 @@ class BackendConformance:
 
     # ----------------------------------------------------- cancellation
     async def test_cancelled_waiter_leaves_backend_usable(self) -> None:
+        """A waiter cancelled mid-wait leaves the backend usable."""
         async with self.open_robot() as robot:
 
             async def waiter() -> None:
@@ -299,6 +310,7 @@ class BackendConformance:
             await robot.clock.sleep(robot.control_period)
 
     async def test_threadsafe_estop_removes_torque_within_one_tick(self) -> None:
+        """An e-stop requested from another thread removes torque within one tick."""
         if "effort" not in self.capabilities().modes:
             pytest.skip("needs effort mode to observe the actuator torque")
         async with self.open_robot() as robot:
@@ -317,6 +329,7 @@ class BackendConformance:
             assert not robot.setpoint.enabled.any()
 
     async def test_loop_stall_is_detected_and_removes_torque(self) -> None:
+        """A blocked event loop is detected by the stall watchdog, which removes torque."""
         if "effort" not in self.capabilities().modes:
             pytest.skip("needs effort mode to observe the actuator torque")
         timeout = 0.1
@@ -332,6 +345,7 @@ class BackendConformance:
 
     # ------------------------------------------------------- bad input
     async def test_bad_input_is_rejected_and_state_unchanged(self) -> None:
+        """Unknown joints, NaN and out-of-limit values are rejected and leave the state unchanged."""
         mode = "position" if "position" in self.capabilities().modes else sorted(self.capabilities().modes)[0]
         async with self.open_robot() as robot:
             await robot.clock.sleep(0.02)

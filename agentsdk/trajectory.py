@@ -572,6 +572,7 @@ class TrajectorySampler:
 
     @property
     def final_positions(self) -> FloatArray:
+        """Joint positions at the end of the trajectory (full joint order)."""
         return self._end_state[0]
 
     def finished(self, t: float) -> bool:
@@ -962,7 +963,8 @@ def plan(
 
     def knot_cost(i: int, cand: FloatArray) -> tuple[float, FloatArray]:
         """Duration of the two segments around knot i with velocity ``cand`` there, after reducing the
-        velocity of any joint that would leave its position limits (halve twice, then 0); inf if that fails."""
+        velocity of any joint that would leave its position limits (halve twice, then 0); inf if that fails.
+        """
         cand = cand.copy()
         for _ in range(3 * n + 1):
             d0, j = seg(i - 1, V[i - 1], cand)

@@ -52,6 +52,7 @@ class JointInfo:
     axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
     def within(self, position: float, margin: float = 0.0) -> bool:
+        """True when ``position`` lies within the limits shrunk by ``margin`` on both sides."""
         return self.lower + margin <= position <= self.upper - margin
 
 

@@ -17,6 +17,15 @@ if [ "${SKIP_VCAN:-0}" != 1 ] && [ ! -x /usr/bin/linux.uml ] && command -v apt-g
         { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends user-mode-linux iproute2 kmod >/dev/null; }
 fi
 
+# System packages: offscreen OpenGL (Mesa's EGL with the llvmpipe software rasterizer, OSMesa as a
+# fallback) so `agentsdk run --video` renders with MuJoCo on a machine without a display.
+if ! ldconfig -p 2>/dev/null | grep -q -E 'libEGL_mesa\.so|libOSMesa\.so' && command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+    export DEBIAN_FRONTEND=noninteractive
+    GL_PKGS="libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6"
+    apt-get install -y -q --no-install-recommends $GL_PKGS >/dev/null 2>&1 ||
+        { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends $GL_PKGS >/dev/null; }
+fi
+
 "$PY" -m ruff check .
 
 # The API reference (docs/, Sphinx autodoc): docstring or cross-reference problems fail the build.

@@ -641,3 +641,37 @@ def test_vcan_cli(vcan_buses: tuple[can.BusABC, can.BusABC]) -> None:
     finally:
         rc = _interrupt(proc)
     assert rc == 0
+
+
+# ---------------------------------------------------------------- MuJoCo plant (issue 13.5)
+def test_mujoco_plant_gravity_moves_limp_joints_and_a_servo_holds_them(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """The motors drive a MuJoCo simulation of mit_leg: gravity, coupled inertia, the gearbox mapping."""
+    from agentsdk.backends.can.mit import encode_command as enc
+    from agentsdk.backends.can.plant import MujocoPlant
+
+    host_bus, bus = buses
+    host = Host(host_bus)
+    em = MotorEmulator.from_robot("mit_leg", bus, plant="mujoco", timeout=1.0)
+    assert isinstance(em._plant, MujocoPlant)
+    start = {mid: em.snapshot(mid).position for mid in em.motor_ids}
+    knee = 3
+    r = ranges_for("AK70-10")
+    with em:
+        time.sleep(0.3)  # disabled motors: limp, the shank falls under gravity
+        fallen = em.snapshot(knee).position
+        assert abs(fallen - start[knee]) > 0.05, (start[knee], fallen)
+        host.send(knee, ENABLE)
+        wait_for(lambda: em.snapshot(knee).enabled, what="knee enabled")
+        target = start[knee]
+        for _ in range(300):  # stream a stiff hold at the start pose for ~0.6 s
+            host.send(knee, enc(target, 0.0, 200.0, 2.0, 0.0, r))
+            time.sleep(0.002)
+        held = em.snapshot(knee)
+        assert abs(held.position - target) < 0.1, (held.position, target)
+        assert abs(held.torque) > 0.01  # holding against gravity takes torque
+
+
+def test_unknown_plant_is_a_configuration_error(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    _, bus = buses
+    with pytest.raises(ConfigurationError, match="unknown plant"):
+        MotorEmulator.from_robot("mit_leg", bus, plant="gazebo")

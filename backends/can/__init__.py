@@ -93,6 +93,11 @@ class MotorStats:
 
 
 class CanController(Backend):
+    """Motors on a CAN bus speaking the MIT mini-cheetah protocol (python-can).
+
+    One request and one reply per motor per control tick.
+    """
+
     name = "can"
     capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True)
     options_model = CanOptions
@@ -350,7 +355,8 @@ class CanController(Backend):
 
     def _reply_time(self, msg: can.Message) -> float:
         """When the reply reached the bus (wall clock): its timestamp if that is plausibly
-        on our clock (socketcan, virtual), else now (interfaces with device timestamps)."""
+        on our clock (socketcan, virtual), else now (interfaces with device timestamps).
+        """
         now = time.time()
         ts = msg.timestamp
         if now - 1.0 < ts <= now + 0.001:

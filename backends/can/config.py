@@ -133,6 +133,7 @@ class CanBusConfig(_Strict):
 
     @property
     def vendor_profile(self) -> VendorProfile:
+        """The vendor profile (value ranges, special frames) this motor speaks."""
         return PROFILES[self.profile]
 
     def motor_timeout(self, joint: str) -> float:

@@ -50,7 +50,7 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import FrameType, TracebackType
-from typing import Any, Final
+from typing import Any, Final, Protocol
 
 import can
 
@@ -74,6 +74,7 @@ __all__ = [
     "MotorCounters",
     "MotorEmulator",
     "MotorSnapshot",
+    "Plant",
     "main",
 ]
 
@@ -81,6 +82,22 @@ log = logging.getLogger(__name__)
 
 #: ``gravity(positions) -> torques``: physical motor positions by motor id -> external torques by id.
 GravityFn = Callable[[Mapping[int, float]], Mapping[int, float]]
+
+
+class Plant(Protocol):
+    """The physics the emulated motors drive (instead of each motor being a free rotor).
+
+    ``attach`` is called once with the motors and the substep; then ``advance(h, t)``
+    integrates ``h`` seconds ending at ``t``: it runs each motor's firmware law (and its
+    command timeout, :meth:`EmulatedMotor.check_timeout`) on the plant and writes back each
+    motor's ``raw_position`` and ``velocity``. Called with the emulator's lock held.
+    """
+
+    def attach(self, motors: Mapping[int, EmulatedMotor], substep: float) -> None:
+        """Bind the motors (by CAN id) and the integration step."""
+
+    def advance(self, h: float, t: float) -> None:
+        """Integrate one substep."""
 
 #: Knobs of :meth:`MotorEmulator.set_faults`.
 _MOTOR_KNOBS: Final = frozenset({"silent", "wrong_id", "error_code", "drop_rate", "reply_latency"})
@@ -274,13 +291,17 @@ class EmulatedMotor:
         self.p_des = self.v_des = self.kp = self.kd = self.t_ff = 0.0
         self._watchdog_armed = False
 
-    def substep(self, h: float, t: float, external: float = 0.0) -> None:
-        """Integrate ``h`` seconds ending at time ``t`` (semi-implicit, implicit in PD and damping)."""
+    def check_timeout(self, t: float) -> None:
+        """The firmware's command timeout: no frame for ``timeout`` seconds zeroes kp, kd and t_ff (limp)."""
         if self._watchdog_armed and t - self.last_frame_time > self.timeout:
             self.kp = self.kd = self.t_ff = 0.0
             self._watchdog_armed = False
             self.counters.timeouts += 1
             self.timeout_events.append(t)
+
+    def substep(self, h: float, t: float, external: float = 0.0) -> None:
+        """Integrate ``h`` seconds ending at time ``t`` as a free rotor (implicit in PD and damping)."""
+        self.check_timeout(t)
         # Backward Euler in the velocity: J (v' - v) / h = tau(x + h v', v') - b v' - friction + external.
         # The right side is non-increasing in v', so the solution is unique: try the linear
         # (unsaturated) region, and if the torque it implies is out of range, solve the saturated one.
@@ -305,6 +326,7 @@ class EmulatedMotor:
         self.raw_position = x + h * v_new
 
     def snapshot(self, t: float) -> MotorSnapshot:
+        """The motor's state at time ``t`` (for tests and the plant)."""
         return MotorSnapshot(
             motor_id=self.motor_id,
             position=self.position,
@@ -345,7 +367,8 @@ class MotorEmulator:
     and ``flood_id`` (junk frames), ``seed`` (drops and junk), ``gravity`` (external
     torques from all physical positions, evaluated every substep), ``substep`` [s],
     ``poll_interval`` (longest recv wait, bounds how stale physics gets between frames),
-    ``clock`` (monotonic time source).
+    ``clock`` (monotonic time source), ``plant`` (what the motors drive: default each motor
+    is a free rotor; :class:`~agentsdk.backends.can.plant.MujocoPlant` simulates the robot).
     """
 
     def __init__(
@@ -365,6 +388,7 @@ class MotorEmulator:
         poll_interval: float = 0.002,
         max_catchup: float = 0.5,
         clock: Callable[[], float] = time.monotonic,
+        plant: Plant | None = None,
     ) -> None:
         if not motors:
             raise ConfigurationError("MotorEmulator needs at least one motor")
@@ -392,6 +416,11 @@ class MotorEmulator:
         self._flood_id = flood_id
         self._rng = random.Random(seed)
         self._gravity = gravity
+        if plant is not None and gravity is not None:
+            raise ConfigurationError("give either a plant or a gravity function, not both")
+        self._plant = plant
+        if plant is not None:
+            plant.attach(self._motors, float(substep))
         self._h = float(substep)
         self._poll = float(poll_interval)
         self._max_catchup = float(max_catchup)
@@ -459,15 +488,27 @@ class MotorEmulator:
         )
 
     @classmethod
-    def from_robot(cls, robot: str | Path, bus: can.BusABC, **knobs: Any) -> MotorEmulator:
+    def from_robot(
+        cls, robot: str | Path, bus: can.BusABC, *, plant: str | Plant | None = None, **knobs: Any
+    ) -> MotorEmulator:
         """Emulate the motors of ``robots/<robot>/robot.yaml`` (or a robot.yaml path / its directory).
 
         Reads the ``backends.can`` section; the robot's ``initial_positions`` become the
-        starting pose. Keyword ``knobs`` as in :meth:`from_config`.
+        starting pose. ``plant="mujoco"`` drives a MuJoCo simulation of the robot
+        (:class:`~agentsdk.backends.can.plant.MujocoPlant`) instead of free rotors; other
+        keyword ``knobs`` as in :meth:`from_config`.
         """
         robot_cfg, can_cfg = load_can_config(robot)
         knobs.setdefault("initial_positions", robot_cfg.initial_positions)
-        return cls.from_config(can_cfg, bus, **knobs)
+        if plant == "mujoco":
+            from .plant import MujocoPlant
+
+            plant = MujocoPlant(robot, can_cfg)
+        elif plant == "rotor":
+            plant = None
+        elif isinstance(plant, str):
+            raise ConfigurationError(f"unknown plant {plant!r}: 'rotor' or 'mujoco'")
+        return cls.from_config(can_cfg, bus, plant=plant, **knobs)
 
     # ----------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -506,6 +547,7 @@ class MotorEmulator:
 
     @property
     def running(self) -> bool:
+        """True while the emulator's bus thread runs."""
         return self._thread is not None and self._thread.is_alive()
 
     @property
@@ -515,19 +557,23 @@ class MotorEmulator:
 
     @property
     def profile(self) -> VendorProfile:
+        """The vendor profile the emulated motors speak."""
         return self._profile
 
     @property
     def master_id(self) -> int:
+        """The CAN id the replies are sent to."""
         return self._master_id
 
     @property
     def motor_ids(self) -> tuple[int, ...]:
+        """The ids of the emulated motors."""
         return tuple(self._motors)
 
     # ----------------------------------------------------------------- knobs (thread-safe)
     @property
     def drop_rate(self) -> float:
+        """Fraction of requests left unanswered (fault injection, 0..1)."""
         return self._drop_rate
 
     @drop_rate.setter
@@ -538,6 +584,7 @@ class MotorEmulator:
 
     @property
     def reply_latency(self) -> float:
+        """Delay (s) before each reply is sent (fault injection)."""
         return self._reply_latency
 
     @reply_latency.setter
@@ -681,9 +728,12 @@ class MotorEmulator:
             t = now - self._max_catchup
         motors = self._motors.values()
         gravity = self._gravity
+        plant = self._plant
         while t + h <= now:
             t += h
-            if gravity is None:
+            if plant is not None:
+                plant.advance(h, t)
+            elif gravity is None:
                 for m in motors:
                     m.substep(h, t)
             else:
@@ -817,6 +867,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--flood-rate", type=float, default=0.0, help="junk frames per second (0 = off)")
     p.add_argument("--flood-id", type=lambda s: int(s, 0), default=0x7FF, help="arbitration id of the junk frames")
     p.add_argument("--seed", type=int, default=0, help="seed of the drop/junk RNG")
+    p.add_argument("--plant", choices=("rotor", "mujoco"), default="rotor",
+                   help="what the motors drive: free rotors (default) or a MuJoCo simulation of the robot "
+                   "(gravity, coupled inertia, contacts)")
     p.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
     return p
 
@@ -844,9 +897,15 @@ def main(argv: list[str] | None = None) -> int:
 
     previous = {sig: signal.signal(sig, _on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
+        plant: Plant | None = None
+        if args.plant == "mujoco":
+            from .plant import MujocoPlant
+
+            plant = MujocoPlant(args.robot, can_cfg)
         emulator = MotorEmulator.from_config(
             can_cfg,
             bus,
+            plant=plant,
             profile=args.profile,
             timeout=args.timeout,
             silent=args.silent,
@@ -860,12 +919,13 @@ def main(argv: list[str] | None = None) -> int:
         with emulator:
             motors = ", ".join(f"{j}=id {m.id} {m.model}" for j, m in can_cfg.motors.items())
             log.info(
-                "emulating %s on %s:%s (%s replies to id %d): %s",
+                "emulating %s on %s:%s (%s replies to id %d, %s plant): %s",
                 robot_cfg.name,
                 interface,
                 channel,
                 emulator.profile.name,
                 can_cfg.master_id,
+                args.plant,
                 motors,
             )
             while not stop.wait(0.2):

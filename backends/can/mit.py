@@ -442,7 +442,8 @@ def encode_command_into(
     policy: LimitPolicy = "reject",
 ) -> None:
     """:func:`encode_command` into the first 8 bytes of a writable ``buffer`` (e.g. a reused
-    ``can.Message.data``), like ``struct.pack_into``: no new bytes object per frame."""
+    ``can.Message.data``), like ``struct.pack_into``: no new bytes object per frame.
+    """
     _WORD.pack_into(buffer, 0, _command_word(p, v, kp, kd, t, ranges, policy))
 
 

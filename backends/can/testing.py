@@ -31,6 +31,7 @@ class EmulatedCanConformance(BackendConformance):
 
     @contextlib.asynccontextmanager
     async def open_robot(self, **overrides: Any) -> AsyncIterator[Robot]:
+        """Connect a robot to emulated motors on a fresh python-can virtual bus (for the conformance kit)."""
         channel = f"agentsdk-conformance-{next(_channels)}"
         bus = can.Bus(interface="virtual", channel=channel)
         emulator = MotorEmulator.from_robot(self.robot, bus)

@@ -34,6 +34,8 @@ _POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.
 
 
 class MockOptions(BaseModel):
+    """Options of the mock backend (robot.yaml ``backends: mock:`` or ``connect(backend_options=...)``)."""
+
     model_config = ConfigDict(extra="forbid")
 
     #: first-order lag time constant (s); 0 = ideal tracking
@@ -52,6 +54,11 @@ class MockOptions(BaseModel):
 
 
 class MockController(Backend):
+    """A kinematic stand-in for fast tests.
+
+    Ideal or first-order tracking, effort integrated on a fixed inertia, fault injection.
+    """
+
     name = "mock"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True

@@ -57,6 +57,11 @@ class MujocoOptions(BaseModel):
 
 
 class MujocoController(Backend):
+    """MuJoCo simulation of the description, servo law applied as joint torques.
+
+    The model is built from the URDF/MJCF records with ``build_spec``.
+    """
+
     name = "mujoco"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True

@@ -94,6 +94,8 @@ class PybulletOptions(BaseModel):
 
 
 class PybulletController(Backend):
+    """PyBullet simulation of the description (DIRECT mode, headless), servo law applied as joint torques."""
+
     name = "pybullet"
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True

@@ -273,6 +273,10 @@ class ControlLoop:
         self.lock = asyncio.Lock()
         self.ticks = 0
         self.missed_deadlines = 0
+        #: lockstep only: wall time (s) a batch of ticks may run before the loop passes through the
+        #: event loop again (asyncio timers and I/O run between batches); 0 runs one tick per pass,
+        #: as before batching. Either way the ticks compute the same thing (see :meth:`_run_lockstep`).
+        self.batch_seconds = BATCH_SECONDS
 
     # ------------------------------------------------------------ views
     @property
@@ -446,7 +450,7 @@ class ControlLoop:
         another task runnable: a batch ends after the tick that wakes a sleeper
         (``clock.advance``), resolves a future someone awaits, schedules a callback or
         a task (the event loop's ready queue grew), leaves the loop idle, or after
-        ``_BATCH_SECONDS`` of wall time (asyncio timers and I/O, e.g. the stall
+        ``batch_seconds`` of wall time (asyncio timers and I/O, e.g. the stall
         watchdog's heartbeat, still run). Every tick runs every phase, so a batch is
         tick-for-tick what one tick per settle computes: nothing else could have run
         in between.
@@ -472,8 +476,11 @@ class ControlLoop:
                     clock.wakeup.clear()
                     await clock.wakeup.wait()
                     continue
-                n_ready = len(ready) if ready is not None else -1
-                end = perf_counter() + _BATCH_SECONDS
+                budget = self.batch_seconds
+                # without a ready queue to watch (uvloop), or with batching off: one tick per pass
+                single = ready is None or budget <= 0.0
+                n_ready = -1 if single else len(ready)
+                end = perf_counter() + budget
                 while True:
                     # one tick: _before_step, step, advance, _after_tick (inlined: this is the hot path)
                     t = self.stamp
@@ -500,7 +507,7 @@ class ControlLoop:
                     for fn in observe.fns:
                         fn(t, stv, spv)
                     # end the batch when this tick made another task runnable, or went idle
-                    if woke or ready is None or len(ready) != n_ready or perf_counter() >= end:
+                    if woke or single or len(ready) != n_ready or perf_counter() >= end:
                         break
                     if idle_after and not command.fns:
                         break
@@ -705,8 +712,9 @@ def _readonly(values: Any) -> FloatArray:
     return arr
 
 
-#: wall time a lockstep batch may run before the control loop passes through the event loop again (s)
-_BATCH_SECONDS = 0.001
+#: default :attr:`ControlLoop.batch_seconds`: wall time a lockstep batch may run before the
+#: control loop passes through the event loop again (s)
+BATCH_SECONDS = 0.001
 
 
 def _ready_queue(loop: asyncio.AbstractEventLoop) -> Any:

@@ -233,6 +233,18 @@ class _Exec:
     fb_progress: float = 0.0
     #: measured ``[position, velocity]`` of the joints at the latest tick (shape (2, joints))
     fb_state: np.ndarray = field(default_factory=lambda: np.zeros((2, 0)))
+    #: views made once: the rows of ``out`` and ``fb_state``; scratch of the tolerance checks
+    out_rows: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
+    out_qv: np.ndarray = field(default_factory=lambda: np.zeros((2, 0)))
+    fb_rows: tuple[np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
+    err: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    abs_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    over: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    #: the setpoint and state this executor's views below were made of (the loop's, fixed)
+    views_of: Any = None
+    #: views of the setpoint's mode, enabled, [position, velocity] rows, [effort, kp, kd] rows,
+    #: target and of the state's [position, velocity] rows at the joints (consecutive joints only)
+    sp_views: tuple[Any, ...] = ()
 
     def __post_init__(self) -> None:
         n = len(self.idx)
@@ -240,8 +252,26 @@ class _Exec:
         consecutive = n > 0 and bool(np.array_equal(self.idx, np.arange(start, start + n)))
         self.sel = slice(start, start + n) if consecutive else self.idx
         self.out = np.zeros((3, n))
+        self.out_rows = (self.out[0], self.out[1], self.out[2])
+        self.out_qv = self.out[0:2]
         self.fb_state = np.zeros((2, n))
+        self.fb_rows = (self.fb_state[0], self.fb_state[1])
+        self.err = np.zeros(n)
+        self.abs_err = np.zeros(n)
+        self.over = np.zeros(n, dtype=bool)
         self.check_path = bool(np.isfinite(self.path_tol).any())
+
+    def setpoint_views(self, st: StateView, sp: Setpoint) -> tuple[Any, ...]:
+        """The views of :attr:`sp_views` for ``st`` and ``sp``, made at the first tick (consecutive joints only)."""
+        if self.views_of is not sp:
+            sel = self.sel
+            if isinstance(sel, slice) and st.block is not None:
+                self.sp_views = (sp.mode[sel], sp.enabled[sel], sp.block[0:2, sel], sp.block[2:5, sel],
+                                 sp.target[sel], st.block[0:2, sel])
+            else:
+                self.sp_views = ()
+            self.views_of = sp
+        return self.sp_views
 
 
 class MotionManager:
@@ -476,23 +506,34 @@ class MotionManager:
         # block operations (a slice when the joints are consecutive), feedback is built on demand
         if ex.phase == "dead":
             return False
-        sel = ex.sel
         out = ex.sampler.sample_into(t, ex.out)
-        ex.des_q, ex.des_v, ex.des_a = out
-        q = out[0]
-        sp.mode[sel] = _POS
-        sp.enabled[sel] = True
-        block = sp.block
-        block[0:2, sel] = out[0:2]  # position, velocity
-        block[2:5, sel] = ex.fixed  # effort feed-forward 0, default kp, kd
-        sp.target[sel] = q
+        rows = ex.out_rows
+        ex.des_q, ex.des_v, ex.des_a = rows
+        q = rows[0]
         fb_state = ex.fb_state
-        if st.block is not None:
-            fb_state[:] = st.block[0:2, sel]
+        views = ex.setpoint_views(st, sp)
+        if views:  # consecutive joints: copies into views made once
+            mode, enabled, pos_vel, fixed, target, measured = views
+            mode.fill(_POS)
+            enabled.fill(True)
+            np.copyto(pos_vel, ex.out_qv)  # position, velocity
+            np.copyto(fixed, ex.fixed)  # effort feed-forward 0, default kp, kd
+            np.copyto(target, q)
+            np.copyto(fb_state, measured)
         else:
-            fb_state[0] = st.position[sel]
-            fb_state[1] = st.velocity[sel]
-        actual = fb_state[0]
+            sel = ex.sel
+            sp.mode[sel] = _POS
+            sp.enabled[sel] = True
+            block = sp.block
+            block[0:2, sel] = out[0:2]
+            block[2:5, sel] = ex.fixed
+            sp.target[sel] = q
+            if st.block is not None:
+                fb_state[:] = st.block[0:2, sel]
+            else:
+                fb_state[0] = st.position[sel]
+                fb_state[1] = st.velocity[sel]
+        actual = ex.fb_rows[0]
         ex.fb_time = t
         ex.fb_tick += 1
         m = ex.motion
@@ -503,9 +544,12 @@ class MotionManager:
             ex.fb_progress = min(1.0, elapsed / dur) if dur > 0 else 1.0
         if phase == "follow":
             if ex.check_path:
-                err = q - actual
-                over = np.abs(err) > ex.path_tol
-                if over.any():
+                err, over = ex.err, ex.over
+                np.subtract(q, actual, out=err)
+                abs_err = ex.abs_err
+                np.absolute(err, out=abs_err)
+                np.greater(abs_err, ex.path_tol, out=over)
+                if np.count_nonzero(over):
                     k = int(np.argmax(over))
                     self._begin_stop(ex, ResultCode.PATH_TOLERANCE_VIOLATED,
                                      f"path tolerance violated on joint {m.joint_names[k] if m else k!r}: "
@@ -514,8 +558,11 @@ class MotionManager:
             if elapsed >= dur:
                 ex.phase = "settle"
         if ex.phase == "settle":
-            gerr = np.abs(ex.goal - actual)
-            if (gerr <= ex.goal_tol).all():
+            gerr, inside = ex.abs_err, ex.over
+            np.subtract(ex.goal, actual, out=gerr)
+            np.absolute(gerr, out=gerr)
+            np.less_equal(gerr, ex.goal_tol, out=inside)
+            if np.count_nonzero(inside) == len(inside):
                 self._finish(ex, ResultCode.SUCCESSFUL, "")
                 self._hold_at(ex.idx, ex.goal)
                 return False

@@ -220,16 +220,18 @@ class MeasuredPositionCheck:
         self._all_armed = False
         n = len(joints)
         # allocation-free per tick: [q, -q] >= [lo, -hi] in one comparison (NaN compares False: outside)
-        self._sign = np.array([[1.0], [-1.0]])
         self._bounds = np.vstack([self._lo, -self._hi])
         self._pm_q = np.zeros((2, n))
+        self._pm_rows = (self._pm_q[0], self._pm_q[1])  # views made once (a broadcast ufunc allocates an iterator)
         self._ok = np.zeros((2, n), dtype=bool)
         self._n2 = 2 * n
 
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""
         q = state.position
-        np.multiply(q, self._sign, out=self._pm_q)
+        plus, minus = self._pm_rows
+        np.copyto(plus, q)
+        np.negative(q, out=minus)
         ok = self._ok
         np.greater_equal(self._pm_q, self._bounds, out=ok)
         if self._all_armed and np.count_nonzero(ok) == self._n2:
@@ -307,9 +309,17 @@ class SafetyLayer:
         #: scratch of the per-tick filter: the step window [written - step, written + step]
         self._window_lo = np.zeros(n)
         self._window_hi = np.zeros(n)
-        #: ``mode.tobytes()`` / ``enabled.tobytes()`` of a setpoint with every joint in position mode, torque on
-        self._all_position = np.full(n, _POS, dtype=np.int8).tobytes()
-        self._all_enabled = np.ones(n, dtype=bool).tobytes()
+        #: scratch masks of the per-tick paths (joints in position mode with torque on; streamed joints;
+        #: stale streams) and the command age per joint: no arrays allocated per tick
+        self._n = n
+        self._pos_on = np.zeros(n, dtype=bool)
+        self._pos_codes = np.full(n, _POS, dtype=np.int8)  # an array operand: a Python int would be converted per call
+        self._streamed = np.zeros(n, dtype=bool)
+        self._stale = np.zeros(n, dtype=bool)
+        self._age = np.zeros(n)
+        #: views of the loop's setpoint rows (made once per setpoint object, not per tick)
+        self._rows_of: object = None
+        self._rows: np.ndarray | None = None
         #: deceleration available to stop a velocity stream before a position limit
         self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
@@ -580,14 +590,13 @@ class SafetyLayer:
             self._enforce_latch()
         ramping = self._ramping
         np.greater(ramping, self.motions.owned_mask, out=ramping)  # ramping &= ~owned
-        if (
-            sp.mode.tobytes() == self._all_position
-            and sp.enabled.tobytes() == self._all_enabled
-            and not np.count_nonzero(ramping)
-        ):
+        if self._all_position_on(sp.mode, sp.enabled) and not np.count_nonzero(ramping):
             # position, velocity and effort (rows 0:3) into [lo, hi], +-max velocity, +-max effort at once
             # (ufunc input and out are the same array object: a second view would cost an overlap check)
-            rows = sp.block[0:3]
+            rows = self._rows
+            if self._rows_of is not sp or rows is None:
+                self._rows_of, self._rows = sp, sp.block[0:3]
+                rows = self._rows
             np.maximum(rows, self._rows_min, out=rows)
             np.minimum(rows, self._rows_max, out=rows)
             pos, written, step = sp.position, self._written, self._step
@@ -597,7 +606,7 @@ class SafetyLayer:
                 np.add(written, step, out=hi)
                 np.maximum(pos, lo, out=pos)
                 np.minimum(pos, hi, out=pos)
-            written[:] = pos
+            np.copyto(written, pos)
             return
         pos_mode = (sp.mode == _POS) & sp.enabled
         written = self._written
@@ -622,6 +631,13 @@ class SafetyLayer:
         if streamed.any():
             self._limit_streams(st.position, sp, streamed)
 
+    def _all_position_on(self, mode: np.ndarray, enabled: np.ndarray) -> bool:
+        """Every joint in position mode with torque on (the common case), without allocating."""
+        m = self._pos_on
+        np.equal(mode, self._pos_codes, out=m)
+        np.logical_and(m, enabled, out=m)
+        return np.count_nonzero(m) == self._n
+
     def _limit_streams(self, q: np.ndarray, sp: Setpoint, streamed: np.ndarray) -> None:
         """Keep velocity and effort streams from driving a joint through its position limits.
 
@@ -642,7 +658,7 @@ class SafetyLayer:
             sp.effort[eff & outward] = 0.0
 
     def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
-        all_position = sp.mode.tobytes() == self._all_position and sp.enabled.tobytes() == self._all_enabled
+        all_position = self._all_position_on(sp.mode, sp.enabled)
         if not all_position:
             # the ramp origin of joints outside position mode is their fresh measurement
             np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
@@ -660,12 +676,20 @@ class SafetyLayer:
         if all_position and not self._watch_position:
             return  # no joint is streamed: nothing for the command watchdog
         # in HOLD too: another joint's stream may go stale while the first one is held
-        streamed = self._watched[sp.mode] & sp.enabled & ~self._held
-        if not streamed.any():
+        # streamed = watched[mode] & enabled & ~held & ~owned, in place (a & ~b is a > b on bools)
+        streamed = self._streamed
+        np.take(self._watched, sp.mode, out=streamed)
+        np.logical_and(streamed, sp.enabled, out=streamed)
+        np.greater(streamed, self._held, out=streamed)
+        if not np.count_nonzero(streamed):
             return
-        streamed &= ~self.motions.owned_mask
-        stale = streamed & (t - self._fed > self.config.command_timeout)
-        if stale.any():
+        np.greater(streamed, self.motions.owned_mask, out=streamed)
+        # stale = streamed & (t - fed > command_timeout)
+        stale, age = self._stale, self._age
+        np.subtract(t, self._fed, out=age)
+        np.greater(age, self.config.command_timeout, out=stale)
+        np.logical_and(stale, streamed, out=stale)
+        if np.count_nonzero(stale):
             idx = np.flatnonzero(stale)
             self._hold(idx)
             self._held[idx] = True

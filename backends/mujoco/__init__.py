@@ -147,11 +147,10 @@ class MujocoController(Backend):
         codes = np.array([int(w) for w in _WARNINGS], dtype=np.intp)
         self._warn_view = _gather_view(d.warning.number, codes)
         self._warn_codes = codes
-        self._warn = np.zeros(len(_WARNINGS), dtype=np.int64)
-        self._warn_bytes = b""
-        self._all_enabled = np.ones(n, dtype=bool).tobytes()
-        #: kp and kd bytes the bias terms were last set from (None: set them at the next write)
-        self._gains: bytes | None = None
+        self._warn = np.zeros(len(_WARNINGS), dtype=d.warning.number.dtype)  # same dtype: no casting buffer
+        #: per-step scratch: which warning counters moved, |qacc|^2 (no objects allocated per step)
+        self._warn_moved = np.zeros(len(_WARNINGS), dtype=bool)
+        self._acc2 = np.zeros(())
         self._reset_state()
 
     def _urdf_spec(self) -> mujoco.MjSpec:
@@ -225,7 +224,6 @@ class MujocoController(Backend):
             d.qpos[follower] = multiplier * d.qpos[leader] + offset
         mujoco.mj_forward(m, d)
         self._warn[:] = [d.warning[w].number for w in _WARNINGS]
-        self._warn_bytes = self._warnings().tobytes()
 
     async def _close(self) -> None:
         # nothing to release: the model and data are freed with the object
@@ -240,15 +238,11 @@ class MujocoController(Backend):
         ctrl += tmp
         ctrl += sp.effort
         en = sp.enabled
-        if en.tobytes() != self._all_enabled:
-            self._gains = None
+        if np.count_nonzero(en) != self._n:
             ctrl[~en] = 0.0
             self._bias_kp[:] = np.where(en, -sp.kp, 0.0)
             self._bias_kd[:] = np.where(en, -sp.kd, 0.0)
-            return
-        gains = sp.kp.tobytes() + sp.kd.tobytes()
-        if gains != self._gains:  # the bias terms change only with the gains
-            self._gains = gains
+        else:
             np.negative(sp.kp, out=self._bias_kp)
             np.negative(sp.kd, out=self._bias_kd)
 
@@ -256,12 +250,14 @@ class MujocoController(Backend):
         d = self.data
         t0 = d.time
         mujoco.mj_step(self.model, d, nstep=self._nsub)
-        view = self._warn_view
-        if view is None or view.tobytes() != self._warn_bytes:
+        moved = self._warn_moved
+        np.not_equal(self._warnings(), self._warn, out=moved)
+        if np.count_nonzero(moved):
             self._check_warnings(t0)
         # |x|^2 is NaN or inf as soon as one element is (one BLAS call instead of isfinite + all)
-        qacc = self._qacc
-        if not math.isfinite(qacc.dot(qacc)) and not np.isfinite(qacc).all():
+        qacc, acc2 = self._qacc, self._acc2
+        np.dot(qacc, qacc, out=acc2)
+        if not math.isfinite(acc2.item()) and not np.isfinite(qacc).all():
             raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
 
     def _warnings(self) -> np.ndarray:
@@ -275,7 +271,6 @@ class MujocoController(Backend):
             n = w[code].number
             if n != self._warn[k]:
                 self._warn[k] = n
-                self._warn_bytes = self._warnings().tobytes()
                 # MuJoCo has already reset the state: report the time before this step
                 # and the dof it flagged (lastinfo), not the reset values
                 raise SimulationDiverged(
@@ -283,7 +278,7 @@ class MujocoController(Backend):
                     f"t={t0:.4f} s ({mujoco.mjtWarning(code).name} at dof {w[code].lastinfo}); "
                     "lower the gains or the timestep"
                 )
-        self._warn_bytes = self._warnings().tobytes()
+        self._warn[:] = self._warnings()
 
     def _read(self) -> JointReading:
         if self._gather:  # joints not consecutive in qpos / qvel (else _q, _v are views)
@@ -293,7 +288,6 @@ class MujocoController(Backend):
 
     def _emergency_stop(self, category: int) -> None:
         # thread-safe enough: plain stores into arrays the loop thread reads at its next step
-        self._gains = None  # the next write sets the bias terms again
         self._ctrl[:] = 0.0
         self._bias_kp[:] = 0.0
         self._bias_kd[:] = 0.0

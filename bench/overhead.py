@@ -10,9 +10,9 @@ in lockstep (one control tick per cycle: updaters -> safety filter -> ``_write``
 ``_step`` -> ``_read`` -> tick hooks). The raw loops do the same control without the
 SDK, on the same model built the same way:
 
-* raw MuJoCo: the model built body by body like the backend builds it (``build_spec``
-  with the robot's self-collision model) with the same general actuators
-  (gain 1, affine bias ``[0, -kp, -kd]``, force-limited), same options; per cycle:
+* raw MuJoCo: the backend's own compiled model (built from the description with
+  ``build_spec``, the robot's self-collision model, the same options and general
+  actuators: gain 1, affine bias ``[0, -kp, -kd]``, force-limited); per cycle:
   read ``qpos/qvel/actuator_force``, write ``ctrl = kp*q_des + kd*v_des + ff``,
   ``mj_step(nstep)``.
 * raw PyBullet: the URDF loaded with the same flags, motors off, damping removed;
@@ -40,6 +40,7 @@ import os
 import pstats
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -83,6 +84,27 @@ class _Robot:
     period: float
 
 
+def _backend_model(rb: _Robot) -> tuple[Any, Any, int]:
+    """(model, data at the initial state, substeps per control period) built by the MuJoCo backend itself."""
+    from agentsdk.registry import load_backend
+
+    ctl = load_backend("mujoco")(rb.config, rb.description, rb.joints, realtime=False)
+
+    async def build() -> tuple[Any, Any, int]:
+        await ctl.open()
+        try:
+            return ctl.model, ctl.data, round(rb.period / ctl.options.timestep)
+        finally:
+            await ctl.close()  # releases nothing MuJoCo owns: the model and data stay valid
+
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(build())
+    with ThreadPoolExecutor(1) as pool:  # called from a coroutine: build on a loop of its own
+        return pool.submit(asyncio.run, build()).result()
+
+
 def _load_robot(name: str) -> _Robot:
     from agentsdk.description import apply_overrides, resolve_robot
 
@@ -102,57 +124,21 @@ def _load_robot(name: str) -> _Robot:
 class RawMujoco:
     """The MuJoCo backend's model and servo law, without the SDK.
 
-    The model is built the way the backend builds it: body by body from the
-    description (``agentsdk.description.mjspec.build_spec``) with the robot's
-    self-collision model (``agentsdk.description.collision.for_robot``), the
-    same options and the same servo actuators, so both loops step the very same
-    model (their final states agree bit for bit).
+    The model is the backend's own compiled ``MjModel`` (built by the backend from the
+    description with ``agentsdk.description.mjspec.build_spec``, the robot's
+    self-collision model, the same options and servo actuators) and its ``MjData`` at
+    the initial state: the backend is opened once to build them and closed again,
+    then this loop steps that very model with ``mj_step`` (the final states of the
+    raw and the SDK loop agree bit for bit).
     """
 
     def __init__(self, rb: _Robot) -> None:
         import mujoco
 
-        from agentsdk.backends.mujoco import MujocoOptions
-        from agentsdk.description.collision import for_robot
-        from agentsdk.description.mjspec import build_spec
-
         self.mj = mujoco
-        opts = MujocoOptions(**rb.config.backend_options("mujoco"))
-        collision = for_robot(rb.description, rb.config, opts.self_collision)
-        spec = build_spec(rb.description, collision.shapes, shell=collision.shell).spec
-        if collision.mode == "false":
-            for geom in spec.geoms:
-                geom.contype, geom.conaffinity = 2, 1
-        else:
-            for a, b in sorted(collision.excluded):
-                spec.add_exclude(bodyname1=a, bodyname2=b)
-        if opts.floating_base:
-            tops = list(spec.worldbody.bodies)
-            tops[0].add_freejoint()
-        spec.option.timestep = opts.timestep
-        spec.option.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{opts.integrator.upper()}")
-        spec.option.gravity = list(opts.gravity)
-        for j in rb.joints:
-            sj = spec.joint(j.name)
-            damping = np.array(sj.damping, dtype=float)
-            damping[0] += opts.joint_damping
-            sj.damping = damping.tolist()
-            sj.armature = sj.armature + opts.armature
-            act = spec.add_actuator()
-            act.name = f"{j.name}_servo"
-            act.target = j.name
-            act.trntype = mujoco.mjtTrn.mjTRN_JOINT
-            act.gaintype = mujoco.mjtGain.mjGAIN_FIXED
-            act.biastype = mujoco.mjtBias.mjBIAS_AFFINE
-            act.gainprm[0] = 1.0
-            if np.isfinite(j.max_effort):
-                act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
-                act.forcerange = [-j.max_effort, j.max_effort]
-            else:
-                act.forcelimited = mujoco.mjtLimited.mjLIMITED_FALSE
-        m = self.model = spec.compile()
-        d = self.data = mujoco.MjData(m)
-        self.nsub = round(rb.period / opts.timestep)
+        m, d, nsub = _backend_model(rb)
+        self.model, self.data = m, d
+        self.nsub = nsub
         self.period = rb.period
         jids = [m.joint(j.name).id for j in rb.joints]
         self.qadr = np.array([m.jnt_qposadr[i] for i in jids])
@@ -160,11 +146,6 @@ class RawMujoco:
         self.kp, self.kd = rb.kp, rb.kd
         m.actuator_biasprm[:, 1] = -rb.kp
         m.actuator_biasprm[:, 2] = -rb.kd
-        mujoco.mj_resetData(m, d)
-        start = {**rb.description.default_positions, **rb.config.initial_positions}
-        for name, q in start.items():
-            if name in [j.name for j in rb.joints]:
-                d.qpos[m.jnt_qposadr[m.joint(name).id]] = q
         mujoco.mj_forward(m, d)
         self.ctrl = np.zeros(m.nu)
         self.zero = np.zeros(m.nu)

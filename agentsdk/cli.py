@@ -619,7 +619,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--rt-priority", type=int, metavar="N",
                    help="run with the SCHED_FIFO real-time policy at priority N (1..99; Linux, needs CAP_SYS_NICE "
                    "or an rtprio limit; a clear error says what to change where it is not permitted)")
-    r.add_argument("--cpus", metavar="LIST", help="pin the process to these CPUs, e.g. 2,3 (with or without --rt-priority)")
+    r.add_argument("--cpus", metavar="LIST",
+                   help="pin the process to these CPUs, e.g. 2,3 (with or without --rt-priority)")
     r.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
     r.add_argument("--quiet", "-q", action="store_true", help="no summary, no progress bar")
     r.add_argument("--debug", action="store_true", help="show tracebacks")

@@ -516,10 +516,10 @@ class MotionManager:
             mode, enabled, pos_vel, fixed, target, measured = views
             mode.fill(_POS)
             enabled.fill(True)
-            np.copyto(pos_vel, ex.out_qv)  # position, velocity
-            np.copyto(fixed, ex.fixed)  # effort feed-forward 0, default kp, kd
-            np.copyto(target, q)
-            np.copyto(fb_state, measured)
+            pos_vel[...] = ex.out_qv  # position, velocity
+            fixed[...] = ex.fixed  # effort feed-forward 0, default kp, kd
+            target[...] = q
+            fb_state[...] = measured
         else:
             sel = ex.sel
             sp.mode[sel] = _POS

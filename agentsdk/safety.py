@@ -224,7 +224,8 @@ class MeasuredPositionCheck:
         self._pm_q = np.zeros((2, n))
         self._pm_rows = (self._pm_q[0], self._pm_q[1])  # views made once (a broadcast ufunc allocates an iterator)
         self._ok = np.zeros((2, n), dtype=bool)
-        self._n2 = 2 * n
+        #: ``ok.tobytes()`` when every comparison holds (a bytes compare is ~5x cheaper than np.count_nonzero)
+        self._all_ok = np.ones((2, n), dtype=bool).tobytes()
 
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""
@@ -234,7 +235,7 @@ class MeasuredPositionCheck:
         np.negative(q, out=minus)
         ok = self._ok
         np.greater_equal(self._pm_q, self._bounds, out=ok)
-        if self._all_armed and np.count_nonzero(ok) == self._n2:
+        if self._all_armed and ok.tobytes() == self._all_ok:
             return None
         inside = ok[0] & ok[1]
         if not self._all_armed:
@@ -312,8 +313,11 @@ class SafetyLayer:
         #: scratch masks of the per-tick paths (joints in position mode with torque on; streamed joints;
         #: stale streams) and the command age per joint: no arrays allocated per tick
         self._n = n
-        self._pos_on = np.zeros(n, dtype=bool)
-        self._pos_codes = np.full(n, _POS, dtype=np.int8)  # an array operand: a Python int would be converted per call
+        #: ``tobytes()`` of a mode row with every joint in position mode, of an all-true / all-false mask:
+        #: the per-tick checks compare bytes (no array, ~5x cheaper than ufunc + np.count_nonzero)
+        self._all_position = np.full(n, _POS, dtype=np.int8).tobytes()
+        self._all_true = np.ones(n, dtype=bool).tobytes()
+        self._all_false = np.zeros(n, dtype=bool).tobytes()
         self._streamed = np.zeros(n, dtype=bool)
         self._stale = np.zeros(n, dtype=bool)
         self._age = np.zeros(n)
@@ -589,8 +593,10 @@ class SafetyLayer:
         if self._latched.is_set() and not self._latch_handled:
             self._enforce_latch()
         ramping = self._ramping
-        np.greater(ramping, self.motions.owned_mask, out=ramping)  # ramping &= ~owned
-        if self._all_position_on(sp.mode, sp.enabled) and not np.count_nonzero(ramping):
+        no_ramp = ramping.tobytes() == self._all_false
+        if not no_ramp:
+            np.greater(ramping, self.motions.owned_mask, out=ramping)  # ramping &= ~owned
+        if no_ramp and self._all_position_on(sp.mode, sp.enabled):
             # position, velocity and effort (rows 0:3) into [lo, hi], +-max velocity, +-max effort at once
             # (ufunc input and out are the same array object: a second view would cost an overlap check)
             rows = self._rows
@@ -606,7 +612,7 @@ class SafetyLayer:
                 np.add(written, step, out=hi)
                 np.maximum(pos, lo, out=pos)
                 np.minimum(pos, hi, out=pos)
-            np.copyto(written, pos)
+            written[...] = pos
             return
         pos_mode = (sp.mode == _POS) & sp.enabled
         written = self._written
@@ -632,11 +638,8 @@ class SafetyLayer:
             self._limit_streams(st.position, sp, streamed)
 
     def _all_position_on(self, mode: np.ndarray, enabled: np.ndarray) -> bool:
-        """Every joint in position mode with torque on (the common case), without allocating."""
-        m = self._pos_on
-        np.equal(mode, self._pos_codes, out=m)
-        np.logical_and(m, enabled, out=m)
-        return np.count_nonzero(m) == self._n
+        """Every joint in position mode with torque on (the common case)."""
+        return mode.tobytes() == self._all_position and enabled.tobytes() == self._all_true
 
     def _limit_streams(self, q: np.ndarray, sp: Setpoint, streamed: np.ndarray) -> None:
         """Keep velocity and effort streams from driving a joint through its position limits.
@@ -681,7 +684,7 @@ class SafetyLayer:
         np.take(self._watched, sp.mode, out=streamed)
         np.logical_and(streamed, sp.enabled, out=streamed)
         np.greater(streamed, self._held, out=streamed)
-        if not np.count_nonzero(streamed):
+        if streamed.tobytes() == self._all_false:
             return
         np.greater(streamed, self.motions.owned_mask, out=streamed)
         # stale = streamed & (t - fed > command_timeout)
@@ -689,7 +692,7 @@ class SafetyLayer:
         np.subtract(t, self._fed, out=age)
         np.greater(age, self.config.command_timeout, out=stale)
         np.logical_and(stale, streamed, out=stale)
-        if np.count_nonzero(stale):
+        if stale.tobytes() != self._all_false:
             idx = np.flatnonzero(stale)
             self._hold(idx)
             self._held[idx] = True

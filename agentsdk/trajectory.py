@@ -554,6 +554,7 @@ class TrajectorySampler:
         self._segs = segs
         self._nseg = len(segs)
         self._p = np.zeros(6)
+        self._p[0] = 1.0
         self._out: FloatArray | None = None
         self._out_flat: FloatArray | None = None
         self._end_state = np.vstack([P[-1], v_end, a_end])
@@ -594,8 +595,12 @@ class TrajectorySampler:
         tau = t - self._knots[i]
         t2 = tau * tau
         t3 = t2 * tau
-        p = self._p
-        p[:] = (1.0, tau, t2, t3, t3 * tau, t3 * t2)
+        p = self._p  # [1, tau, ..., tau^5], element by element (a tuple would be converted to an array)
+        p[1] = tau
+        p[2] = t2
+        p[3] = t3
+        p[4] = t3 * tau
+        p[5] = t3 * t2
         if out is not self._out:  # a new output array: check it once, keep its flat view
             self._out = out
             self._out_flat = out.reshape(-1) if out.flags.c_contiguous else None

@@ -53,7 +53,7 @@ async def test_deadline_timer_cancelled_sleep_leaves_the_others() -> None:
 
 @pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="no SCHED_FIFO on this platform")
 def test_set_realtime_priority_rejects_bad_priority_and_cpus() -> None:
-    with pytest.raises(ConfigurationError, match="priority must be an integer in 1..99"):
+    with pytest.raises(ConfigurationError, match=r"priority must be an integer in 1\.\.99"):
         set_realtime_priority(0)
     with pytest.raises(ConfigurationError, match="priority must be an integer"):
         set_realtime_priority(2.5)  # type: ignore[arg-type]

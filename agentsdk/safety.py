@@ -231,7 +231,7 @@ class MeasuredPositionCheck:
         """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""
         q = state.position
         plus, minus = self._pm_rows
-        np.copyto(plus, q)
+        plus[...] = q
         np.negative(q, out=minus)
         ok = self._ok
         np.greater_equal(self._pm_q, self._bounds, out=ok)

@@ -68,7 +68,10 @@ if TYPE_CHECKING:
     from .config import RobotConfig
     from .description import RobotDescription
 
-__all__ = ["Backend", "Capabilities", "JointReading", "ModeCode", "SetpointView"]
+__all__ = ["MAX_SUBSTEPS", "Backend", "Capabilities", "JointReading", "ModeCode", "SetpointView", "substeps"]
+
+#: most physics steps a simulator backend runs per control period
+MAX_SUBSTEPS = 1000
 
 
 class ModeCode(enum.IntEnum):
@@ -209,9 +212,10 @@ class Backend(ABC):
         self.index: dict[str, int] = {n: i for i, n in enumerate(self.names)}
         #: control period (s)
         self.period: float = config.control_period
-        merged = {**config.backend_options(self.name), **options}
+        from_file = config.backend_options(self.name)
+        merged = {**from_file, **options}
         #: the validated options (an instance of ``options_model``, or None)
-        self.options: Any = self._validate_options(merged)
+        self.options: Any = self._validate_options(merged, given=frozenset(options))
         self.lower = _readonly([j.lower for j in joints])
         self.upper = _readonly([j.upper for j in joints])
         self.max_velocity = _readonly([j.max_velocity for j in joints])
@@ -225,7 +229,12 @@ class Backend(ABC):
         self.initial_positions = _readonly(q0)
         self._backend_open = False
 
-    def _validate_options(self, options: dict[str, Any]) -> Any:
+    def _validate_options(self, options: dict[str, Any], given: frozenset[str] = frozenset()) -> Any:
+        """Validate the merged options with :attr:`options_model`; one error line per problem.
+
+        ``given`` names the options passed to ``connect()`` (or ``-o``); the others
+        came from the robot.yaml ``backends.<name>`` section, and the message says which.
+        """
         model = self.options_model
         if model is None:
             if options:
@@ -234,7 +243,16 @@ class Backend(ABC):
         try:
             return model(**options)
         except ValidationError as exc:
-            raise ConfigurationError(f"invalid options for backend {self.name!r}:\n{exc}") from exc
+            from .config import validation_problems
+
+            lines = []
+            for line in validation_problems(exc, model):
+                key = line.split(":", 1)[0].split(".", 1)[0]
+                if key in given:
+                    lines.append(f"backend {self.name!r} option {line.replace(': unknown key', ': unknown option', 1)}")
+                else:
+                    lines.append(f"{self.config.label}: backends.{self.name}.{line}")
+            raise ConfigurationError("\n".join(lines)) from None
 
     # ------------------------------------------------------------ public, final: what the loop calls
     @final
@@ -331,6 +349,26 @@ class Backend(ABC):
     async def _recover(self) -> None:
         """Optional: bring a faulted backend back to a usable state (simulators: reset the world)."""
         raise BackendFault(f"backend {self.name!r} cannot recover from a fault; close and reconnect")
+
+
+def substeps(period: float, timestep: float, simulator: str, source: str) -> int:
+    """Physics steps per control period; raises ConfigurationError unless a whole number in [1, MAX_SUBSTEPS].
+
+    For simulator backends: the control period (robot.yaml ``update_rate``) must be a
+    whole multiple of the physics ``timestep``.
+    """
+    nsub = round(period / timestep)
+    if nsub < 1 or abs(nsub * timestep - period) > 1e-9 * max(1.0, period):
+        raise ConfigurationError(
+            f"{source}: the control period {period:g} s (update_rate {1.0 / period:g} Hz) is not a whole multiple "
+            f"of the {simulator} timestep {timestep:g} s; change the backend's timestep or update_rate"
+        )
+    if nsub > MAX_SUBSTEPS:
+        raise ConfigurationError(
+            f"{source}: the {simulator} timestep {timestep:g} s needs {nsub} physics steps per control period "
+            f"{period:g} s (at most {MAX_SUBSTEPS}); raise the timestep or update_rate"
+        )
+    return nsub
 
 
 def _readonly(values: Any) -> FloatArray:

@@ -108,7 +108,7 @@ def plan_linear(
     for k in range(1, n + 1):
         pos = p0.position + s[k] * (target.position - p0.position)
         quat = target.orientation if (position_only or k == n) else _slerp(p0.orientation, target.orientation, s[k])
-        goal = Pose._trusted(pos, quat)
+        goal = Pose.from_trusted_arrays(pos, quat)
         q, perr, rerr, _ = yield from solver.solve(
             bid, link, goal, q_prev, position_only, IK_POSITION_TOLERANCE * 0.1, IK_ORIENTATION_TOLERANCE * 0.1,
             _SAMPLE_ITERATIONS,
@@ -262,5 +262,6 @@ def _desired_positions(robot: Robot) -> FloatArray:
     """Where the robot is being driven now (a motion continues from its desired state, not the measured one)."""
     q, _, _ = robot.desired_state()
     kin = robot.kinematics
-    return np.clip(np.asarray(q, dtype=float), kin.lower, kin.upper)
+    clipped: FloatArray = np.clip(np.asarray(q, dtype=float), kin.lower, kin.upper)
+    return clipped
 

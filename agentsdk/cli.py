@@ -118,6 +118,11 @@ class Interrupted(Exception):
         return 128 + self.signum
 
 
+
+async def _awaited(awaitable: Awaitable[Any]) -> Any:
+    """``await awaitable`` as a coroutine (``create_task`` takes coroutines, ``main`` may return any awaitable)."""
+    return await awaitable
+
 async def run_behavior(
     main_fn: Callable[[Any], Awaitable[Any]],
     *,
@@ -143,7 +148,7 @@ async def run_behavior(
         if on_robot is not None:
             on_robot(bot)
         aloop = asyncio.get_running_loop()
-        task = aloop.create_task(main_fn(bot), name="agentsdk-behavior")
+        task: asyncio.Task[Any] = aloop.create_task(_awaited(main_fn(bot)), name="agentsdk-behavior")
         stop_task: asyncio.Task[None] | None = None
         signals: list[int] = []
 
@@ -694,8 +699,14 @@ def main(argv: list[str] | None = None) -> int:
     except AgentSDKError as exc:
         if debug:
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        _print_error(exc)
         return EXIT_USER_ERROR
+
+
+def _print_error(exc: BaseException) -> None:
+    """``error: ...`` on stderr, one line per problem (indented continuation lines stay as they are)."""
+    for line in str(exc).splitlines() or [type(exc).__name__]:
+        print(line if line[:1].isspace() else f"error: {line}", file=sys.stderr)
 
 
 if __name__ == "__main__":

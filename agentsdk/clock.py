@@ -32,17 +32,42 @@ from .realtime import DeadlineTimer, timerfd_available
 __all__ = ["Clock", "LockstepClock", "RealtimeClock"]
 
 def _check_duration(dt: float) -> float:
-    dt = float(dt)
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise InvalidValueError(f"sleep duration must be a number of seconds, got {dt!r}") from None
     if math.isnan(dt) or dt < 0.0:
-        raise InvalidValueError(f"sleep duration must be a finite number >= 0, got {dt!r}")
+        raise InvalidValueError(f"sleep duration must be a number >= 0 (seconds), got {dt}")
     return dt
 
 
+def _check_deadline(deadline: float) -> float:
+    try:
+        deadline = float(deadline)
+    except (TypeError, ValueError):
+        raise InvalidValueError(f"deadline must be a robot time in seconds, got {deadline!r}") from None
+    if math.isnan(deadline):
+        raise InvalidValueError("deadline must be a robot time in seconds, got nan")
+    return deadline
+
+
 class Clock(ABC):
-    """Time as the robot sees it, in seconds."""
+    """Time as the robot sees it, in seconds.
+
+    Once the robot is closed (or its control loop died) every ``sleep`` and
+    ``sleep_until``, pending or new, raises the reason (:class:`RobotClosedError`,
+    or the fault) instead of waiting for time that will never come. ``inf``
+    sleeps until cancelled; NaN raises :class:`InvalidValueError`.
+    """
 
     #: True when time is simulated and only advances in control ticks
     lockstep: bool = False
+
+    def __init__(self) -> None:
+        self._error: BaseException | None = None
+        self._final = False
+        #: futures of sleepers that no deadline will wake (``inf``) or that wait on a timer
+        self._parked: set[asyncio.Future[None]] = set()
 
     @abstractmethod
     def now(self) -> float:
@@ -54,12 +79,60 @@ class Clock(ABC):
 
     async def sleep(self, dt: float) -> None:
         """Wait ``dt`` seconds of robot time."""
-        await self.sleep_until(self.now() + _check_duration(dt))
+        dt = _check_duration(dt)
+        self._check_running()
+        await self.sleep_until(self.now() + dt)
+
+    @property
+    def stopped(self) -> BaseException | None:
+        """Why sleeping is impossible (robot closed, control loop faulted), or None while time runs."""
+        return self._error
+
+    def _check_running(self) -> None:
+        if self._error is not None:
+            raise _fresh(self._error)
+
+    def fail(self, exc: BaseException, *, final: bool = False) -> None:
+        """Wake every sleeper with ``exc``; later sleeps raise it too, until :meth:`resume` (not after ``final``).
+
+        Used by the control loop: ``final=True`` when the robot closes, else when
+        the loop faults (a recovered loop calls :meth:`resume`).
+        """
+        if self._final:
+            return
+        self._error = exc
+        self._final = final
+        self._fail_pending(exc)
+
+    def resume(self) -> None:
+        """Time runs again (the control loop was restarted after a fault)."""
+        if not self._final:
+            self._error = None
+
+    def _fail_pending(self, exc: BaseException) -> None:
+        parked, self._parked = self._parked, set()
+        for fut in parked:
+            if not fut.done():
+                fut.set_exception(_fresh(exc))
+
+    async def _park(self, delay: float | None) -> None:
+        """Wait ``delay`` seconds of wall time (None: until cancelled), or until :meth:`fail`."""
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[None] = loop.create_future()
+        handle = None if delay is None else loop.call_later(delay, _set_done, fut)
+        self._parked.add(fut)
+        try:
+            await fut
+        finally:
+            self._parked.discard(fut)
+            if handle is not None:
+                handle.cancel()
 
     @asynccontextmanager
     async def timeout(self, dt: float) -> AsyncIterator[None]:
         """Like ``asyncio.timeout`` but in robot time; raises :class:`AgentTimeoutError`."""
         dt = _check_duration(dt)
+        self._check_running()
         task = asyncio.current_task()
         assert task is not None
         expired = False
@@ -82,12 +155,28 @@ class Clock(ABC):
             await asyncio.gather(watcher, return_exceptions=True)
 
 
+def _set_done(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+def _fresh(exc: BaseException) -> BaseException:
+    """A new exception like ``exc`` (one instance raised in many tasks would collect their tracebacks)."""
+    try:
+        new = type(exc)(*exc.args)
+    except Exception:
+        return exc
+    new.__cause__ = exc.__cause__
+    return new
+
+
 class RealtimeClock(Clock):
     """Wall-clock time (``time.monotonic``) since the clock was created."""
 
     lockstep = False
 
     def __init__(self) -> None:
+        super().__init__()
         self._t0 = time.monotonic()
         self._timer: DeadlineTimer | None = None
         self._timer_failed = False
@@ -97,18 +186,29 @@ class RealtimeClock(Clock):
         return time.monotonic() - self._t0
 
     async def sleep_until(self, deadline: float) -> None:
-        """Sleep until ``deadline`` (clock seconds): an asyncio sleep, then a short cooperative spin for precision."""
+        """Sleep until ``deadline`` (clock seconds) on the timerfd, no spin (else ``asyncio.sleep`` precision)."""
+        deadline = _check_deadline(deadline)
+        self._check_running()
         remaining = deadline - self.now()
         if remaining <= 0.0:
             await asyncio.sleep(0)
+            self._check_running()
+            return
+        if math.isinf(remaining):
+            await self._park(None)  # until cancelled, or until the clock fails
             return
         timer = self._timer
         if timer is None or timer.closed or timer.loop is not asyncio.get_running_loop():
             timer = self._precise_timer()
         if timer is None:
-            await asyncio.sleep(remaining)  # no timerfd: the event loop's timer precision
+            await self._park(remaining)  # no timerfd: the event loop's timer precision
             return
-        await timer.sleep_until(self._t0 + deadline)
+        fut = timer.sleep_until(self._t0 + deadline)
+        self._parked.add(fut)  # fail() (robot closed, loop faulted) wakes it with the reason
+        try:
+            await fut
+        finally:
+            self._parked.discard(fut)
 
     def _precise_timer(self) -> DeadlineTimer | None:
         if self._timer_failed or not timerfd_available():
@@ -134,6 +234,7 @@ class LockstepClock(Clock):
     lockstep = True
 
     def __init__(self, period: float) -> None:
+        super().__init__()
         self.period = period
         self._tick = 0
         self._heap: list[tuple[float, int, asyncio.Future[None]]] = []
@@ -153,8 +254,14 @@ class LockstepClock(Clock):
 
     async def sleep_until(self, deadline: float) -> None:
         """Resume once the control loop has advanced simulated time to ``deadline``."""
+        deadline = _check_deadline(deadline)
+        self._check_running()
         if deadline <= self.now():
             await asyncio.sleep(0)
+            return
+        if math.isinf(deadline):
+            # no tick ever reaches it: wait (without driving simulated time) until cancelled or closed
+            await self._park(None)
             return
         fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         heapq.heappush(self._heap, (deadline, next(self._seq), fut))
@@ -181,9 +288,9 @@ class LockstepClock(Clock):
                 woke += 1
         return woke
 
-    def cancel_all(self, exc: BaseException) -> None:
-        """Fail every pending sleeper (used when the robot closes or faults)."""
+    def _fail_pending(self, exc: BaseException) -> None:
+        super()._fail_pending(exc)
         for _, _, fut in self._heap:
             if not fut.done():
-                fut.set_exception(exc)
+                fut.set_exception(_fresh(exc))
         self._heap.clear()

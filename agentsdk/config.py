@@ -23,42 +23,69 @@ Example::
 
 from __future__ import annotations
 
+import difflib
+import math
+import types
+import typing
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from .errors import ConfigurationError
 
-__all__ = ["Gains", "JointLimitsOverride", "RobotConfig", "load_robot_config"]
+__all__ = [
+    "MAX_GAIN",
+    "MAX_UPDATE_RATE",
+    "MIN_UPDATE_RATE",
+    "Gains",
+    "JointLimitsOverride",
+    "RobotConfig",
+    "did_you_mean",
+    "format_value",
+    "load_robot_config",
+    "validation_problems",
+]
+
+#: highest accepted control rate (Hz); ros2_control robots run at 1 kHz, a few at 4-8 kHz
+MAX_UPDATE_RATE = 10_000.0
+#: lowest accepted control rate (Hz): below it the command watchdog and stops cannot act in time
+MIN_UPDATE_RATE = 1.0
+#: largest accepted servo gain (N·m/rad, N·m·s/rad or N/m, N·s/m): beyond any real joint servo
+MAX_GAIN = 1e9
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # every number must be finite: a NaN or inf setting has no meaning (NaN compares false
+    # with every bound, so it would silently disable the check it configures)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Gains(_Strict):
     """Joint servo gains: ``effort = p*(q_des - q) + d*(v_des - v) + effort_ff``."""
 
-    p: float = Field(ge=0.0)
-    d: float = Field(ge=0.0)
+    p: float = Field(ge=0.0, le=MAX_GAIN)
+    d: float = Field(ge=0.0, le=MAX_GAIN)
     #: velocity-mode gain (``effort = v*(v_des - v)``); defaults to ``d``
-    v: float | None = Field(default=None, ge=0.0)
+    v: float | None = Field(default=None, ge=0.0, le=MAX_GAIN)
 
 
 class JointLimitsOverride(_Strict):
     """Per-joint limit overrides; unset fields keep the URDF value.
 
-    Names follow ros2_control's joint_limits.yaml.
+    Names follow ros2_control's joint_limits.yaml. Every value is finite; position,
+    velocity and effort limits can only narrow the URDF's (see
+    :func:`agentsdk.description.apply_overrides`).
     """
 
     min_position: float | None = None
     max_position: float | None = None
-    max_velocity: PositiveFloat | None = None
-    max_acceleration: PositiveFloat | None = None
-    max_jerk: PositiveFloat | None = None
-    max_effort: PositiveFloat | None = None
+    max_velocity: float | None = Field(default=None, gt=0.0)
+    max_acceleration: float | None = Field(default=None, gt=0.0)
+    max_jerk: float | None = Field(default=None, gt=0.0)
+    max_effort: float | None = Field(default=None, gt=0.0)
 
 
 class RobotConfig(_Strict):
@@ -67,7 +94,8 @@ class RobotConfig(_Strict):
     name: str = ""
     description: str
     xacro_args: dict[str, str] = Field(default_factory=dict)
-    update_rate: PositiveFloat = 500.0
+    #: control rate (Hz), like controller_manager.update_rate
+    update_rate: float = Field(default=500.0, ge=MIN_UPDATE_RATE, le=MAX_UPDATE_RATE)
     gains: dict[str, Gains] = Field(default_factory=lambda: {"default": Gains(p=100.0, d=5.0)})
     joint_limits: dict[str, JointLimitsOverride] = Field(default_factory=dict)
     initial_positions: dict[str, float] = Field(default_factory=dict)
@@ -83,6 +111,8 @@ class RobotConfig(_Strict):
     srdf: str | None = None
     #: directory the relative ``description`` path is resolved against
     base_dir: Path = Field(default=Path("."), exclude=True)
+    #: the robot.yaml this was read from (None for a bare description); named in error messages
+    source: Path | None = Field(default=None, exclude=True)
 
     @field_validator("xacro_args", mode="before")
     @classmethod
@@ -106,13 +136,18 @@ class RobotConfig(_Strict):
         """Seconds per control tick (``1 / update_rate``)."""
         return 1.0 / self.update_rate
 
+    @property
+    def label(self) -> str:
+        """How error messages name this configuration: the robot.yaml path, else the robot."""
+        return str(self.source) if self.source is not None else f"robot {self.name!r}"
+
     def gains_for(self, joint: str) -> Gains:
-        """The gains configured for ``joint`` (its own entry, else ``default``, else p=100, d=5)."""
+        """The servo gains of ``joint`` (its own entry, else ``default``)."""
         g = self.gains.get(joint) or self.gains.get("default")
         return g if g is not None else Gains(p=100.0, d=5.0)
 
     def backend_options(self, backend: str) -> dict[str, Any]:
-        """A copy of the robot.yaml options for ``backend`` (empty when none)."""
+        """The robot.yaml ``backends.<backend>`` section (a copy; empty when absent)."""
         return dict(self.backends.get(backend, {}))
 
 
@@ -128,7 +163,193 @@ def load_robot_config(path: str | Path) -> RobotConfig:
     if not isinstance(raw, dict):
         raise ConfigurationError(f"{path}: expected a mapping at the top level")
     raw.setdefault("name", path.parent.name)
+    bad = [str(k) for k in raw if not isinstance(k, str)]
+    if bad:
+        raise ConfigurationError(f"{path}: top-level keys must be names, got {', '.join(bad)}")
+    for key in ("base_dir", "source"):
+        if key in raw:  # set by the loader, not in the file
+            raise ConfigurationError(f"{path}: {key}: unknown key{did_you_mean(key, _file_keys())}")
     try:
-        return RobotConfig(**raw, base_dir=path.parent)
+        return RobotConfig(**raw, base_dir=path.parent, source=path)
     except ValidationError as exc:
-        raise ConfigurationError(f"{path}: invalid robot config:\n{exc}") from exc
+        raise ConfigurationError("\n".join(validation_problems(exc, RobotConfig, source=str(path)))) from None
+
+
+def _file_keys() -> list[str]:
+    return [k for k in RobotConfig.model_fields if k not in ("base_dir", "source")]
+
+
+# ------------------------------------------------------------------ error messages
+def format_value(value: Any) -> str:
+    """A value as a user wrote it: ``nan``, ``inf``, ``0.5``, ``'text'`` (never ``np.float64(nan)``)."""
+    if isinstance(value, bool) or value is None:
+        return {True: "true", False: "false", None: "null"}[value]
+    if isinstance(value, str):
+        return repr(value)
+    try:
+        import numpy as np
+
+        if isinstance(value, np.generic):
+            value = value.item()
+    except ImportError:  # pragma: no cover - numpy is a dependency
+        pass
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return f"{value:g}" if abs(value) >= 1e-4 or value == 0 else repr(value)
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, Mapping):
+        return "{" + ", ".join(f"{k}: {format_value(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(format_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """``"; did you mean 'x'?"`` for the closest of ``choices``, else ``"; expected one of: ..."``."""
+    options = sorted({str(c) for c in choices})
+    close = difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
+    if close:
+        return f"; did you mean {close[0]!r}?"
+    if options:
+        return f"; expected one of: {', '.join(options)}"
+    return ""
+
+
+_OPS = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<", "less_than_equal": "<="}
+
+
+def _expected(err: Mapping[str, Any]) -> str:
+    kind = err["type"]
+    ctx = err.get("ctx") or {}
+    if kind in _OPS:
+        bound = next(iter(ctx.values()), "?")
+        return f"expected a number {_OPS[kind]} {format_value(bound)}"
+    simple = {
+        "finite_number": "expected a finite number",
+        "float_parsing": "expected a number",
+        "float_type": "expected a number",
+        "int_parsing": "expected an integer",
+        "int_type": "expected an integer",
+        "int_from_float": "expected an integer",
+        "bool_parsing": "expected true or false",
+        "bool_type": "expected true or false",
+        "string_type": "expected a string",
+        "dict_type": "expected a mapping",
+        "model_type": "expected a mapping",
+        "model_attributes_type": "expected a mapping",
+        "tuple_type": "expected a list",
+        "list_type": "expected a list",
+        "missing": "required but missing",
+    }
+    if kind in simple:
+        return simple[kind]
+    if kind == "literal_error":
+        return f"expected {ctx.get('expected', '?')}"
+    msg = str(err.get("msg", kind))
+    for prefix in ("Value error, ", "Assertion failed, "):
+        if msg.startswith(prefix):
+            return msg[len(prefix):]
+    if msg.startswith("Input should be "):
+        return "expected " + msg[len("Input should be "):]
+    return msg[:1].lower() + msg[1:]
+
+
+def _unwrap(tp: Any) -> Any:
+    while typing.get_origin(tp) is Annotated:
+        tp = typing.get_args(tp)[0]
+    return tp
+
+
+def _bounds(field: Any) -> str:
+    """The numeric bounds declared on a pydantic field, as text (``>= 1 and <= 10000``)."""
+    parts = []
+    for meta in getattr(field, "metadata", ()):
+        for attr, op in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
+            bound = getattr(meta, attr, None)
+            if bound is not None:
+                parts.append(f"{op} {format_value(bound)}")
+    return " and ".join(parts)
+
+
+def _walk(model: Any, loc: tuple[Any, ...]) -> tuple[list[str], Any, bool, Any]:
+    """Follow a pydantic error location through the model's types.
+
+    Returns ``(path, owner, extra, field)``: the user's key path (union member
+    tags removed), the model the last key belongs to (for "did you mean"),
+    whether the last key is an unknown key of that model, and the pydantic field
+    of the last model key on the way (for its bounds).
+    """
+    path: list[str] = []
+    tp: Any = model
+    parent: Any = None
+    last_field: Any = None
+    for elem in loc:
+        tp = _unwrap(tp)
+        origin = typing.get_origin(tp)
+        if origin in (Union, types.UnionType):
+            members = [a for a in typing.get_args(tp) if a is not type(None)]
+            if len(members) > 1:
+                tp = None  # pydantic names the union member it tried: not a key of the user's
+                continue
+            tp = _unwrap(members[0])
+            origin = typing.get_origin(tp)
+        path.append(str(elem))
+        if isinstance(tp, type) and issubclass(tp, BaseModel):
+            parent = tp
+            field = tp.model_fields.get(str(elem))
+            if field is None:
+                return path, parent, True, None
+            tp = field.annotation
+            last_field = field
+        elif origin in (dict, Mapping):
+            parent, tp = None, typing.get_args(tp)[1] if typing.get_args(tp) else None
+        elif origin in (list, tuple):
+            args = [a for a in typing.get_args(tp) if a is not Ellipsis]
+            parent, tp = None, (args[0] if len(set(args)) == 1 else None)
+        else:
+            parent, tp = None, None
+    return path, parent, False, last_field
+
+
+def validation_problems(
+    exc: ValidationError,
+    model: type[BaseModel],
+    *,
+    source: str = "",
+    prefix: str = "",
+) -> list[str]:
+    """One line per problem of a pydantic ``ValidationError``: ``source: key.path: expected ..., got ...``.
+
+    ``prefix`` is prepended to every key path (``backends.mujoco``); an unknown
+    key gets a "did you mean ...?" from the keys the model accepts there.
+    Errors on one key (e.g. each member of ``float | "auto"``) share one line.
+    """
+    lines: dict[str, tuple[list[str], str]] = {}
+    for err in exc.errors():
+        path, owner, extra, field = _walk(model, tuple(err["loc"]))
+        key = ".".join([prefix, *path] if prefix else path) or "(top level)"
+        if err["type"] == "extra_forbidden" or extra:
+            known = list(owner.model_fields) if owner is not None else []
+            known = [k for k in known if not (owner is RobotConfig and k in ("base_dir", "source"))]
+            text = f"unknown key{did_you_mean(path[-1] if path else '', known)}"
+            got = ""
+        else:
+            text = _expected(err)
+            bounds = _bounds(field) if err["type"] in ("finite_number", *_OPS) else ""
+            if bounds:
+                kind = "an integer" if _unwrap(getattr(field, "annotation", None)) is int else "a finite number"
+                text = f"expected {kind} {bounds}"
+            got = "" if err["type"] == "missing" else f", got {format_value(err.get('input'))}"
+        expected, _ = lines.setdefault(key, ([], got))
+        if text not in expected:
+            expected.append(text)
+    where = f"{source}: " if source else ""
+    out = []
+    for key, (expected, got) in lines.items():
+        merged = " or ".join([expected[0], *(e.removeprefix("expected ") for e in expected[1:])])
+        out.append(f"{where}{key}: {merged}{got}")
+    return out

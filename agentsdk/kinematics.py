@@ -210,7 +210,7 @@ class _Coupling:
     offset: float
 
 
-def _is_mjcf(description: Any) -> Path | None:
+def mjcf_source(description: Any) -> Path | None:
     """The MJCF file behind a description, or None for a URDF description."""
     for attr in ("mjcf_path", "mjcf_file"):
         path = getattr(description, attr, None)
@@ -232,7 +232,7 @@ def _compile(description: Any) -> tuple[mujoco.MjModel, list[str]]:
     links kept, the description's repaired inertials, mimic joints as equality
     constraints), so link frames and g(q) are the simulators' own. No collision geometry.
     """
-    mjcf = _is_mjcf(description)
+    mjcf = mjcf_source(description)
     try:
         if mjcf is not None:
             spec = mujoco.MjSpec.from_file(str(mjcf))
@@ -435,7 +435,7 @@ class Kinematics:
                         parents[child] = parent
                         queue.append(child)
             return ordered, parents, root
-        if names and _is_mjcf(self.description) is None:
+        if names and mjcf_source(self.description) is None:
             missing = next(n for n in names if n not in links)
             raise DescriptionError(f"link {missing!r} of {self.name!r} is missing from the kinematic model")
 
@@ -532,7 +532,7 @@ class Kinematics:
 
     # ------------------------------------------------------------ forward kinematics
     def _pose(self, d: mujoco.MjData, bid: int) -> Pose:
-        return Pose._trusted(d.xpos[bid].copy(), _wxyz_to_xyzw(d.xquat[bid]))
+        return Pose.from_trusted_arrays(d.xpos[bid].copy(), _wxyz_to_xyzw(d.xquat[bid]))
 
     def fk(self, link: str, positions: Positions | None = None, reference: str | None = None) -> Pose:
         """Pose of ``link`` in the root frame (or in ``reference``'s frame) at ``positions``."""
@@ -605,7 +605,7 @@ class Kinematics:
                 bias = d.qfrc_bias.copy()
             finally:
                 m.opt.gravity[:] = saved
-        tau = bias[self._dadr].copy()
+        tau: FloatArray = bias[self._dadr].copy()
         for c in self._couplings:
             tau[c.leader] += c.multiplier * bias[c.dadr]
         return tau
@@ -641,7 +641,8 @@ class Kinematics:
         gen = self._ik_gen(None, link, pose, seed, position_only, position_tolerance, orientation_tolerance,
                            max_iterations, restarts, random_seed)
         with self._lock:
-            return run_sync(gen)
+            result: IKResult = run_sync(gen)
+            return result
 
     async def ik_async(
         self,
@@ -664,7 +665,8 @@ class Kinematics:
         """
         gen = self._ik_gen(IKSolver(self), link, pose, seed, position_only, position_tolerance,
                            orientation_tolerance, max_iterations, restarts, random_seed)
-        return await run_async(gen)
+        result: IKResult = await run_async(gen)
+        return result
 
     def _ik_gen(
         self,
@@ -736,6 +738,11 @@ class Kinematics:
         moving = {k for k, d in enumerate(self._dadr.tolist()) if d in dofs}
         moving |= {c.leader for c in self._couplings if c.dadr in dofs}
         return tuple(self.joint_names[k] for k in sorted(moving))
+
+    def prepare_ik(self) -> None:
+        """Build the IK solver now (imports mink); ``ik`` otherwise builds it on first use."""
+        with self._lock:
+            self._solver()
 
     def _solver(self) -> IKSolver:
         if self._ik is None:

@@ -364,10 +364,9 @@ class ControlLoop:
                 await asyncio.shield(asyncio.gather(task, return_exceptions=True))
             except asyncio.CancelledError:
                 cancelled = True
-        if isinstance(self.clock, LockstepClock):
-            self.clock.cancel_all(RobotClosedError("robot closed"))
-        elif isinstance(self.clock, RealtimeClock):
-            self.clock.release()
+        self.clock.fail(RobotClosedError(f"robot on backend {self.backend.name!r} is closed"), final=True)
+        if isinstance(self.clock, RealtimeClock):
+            self.clock.release()  # its timerfd (after fail: the pending sleepers got the reason)
         self._hooks[Phase.COMMAND].clear()
         try:
             await asyncio.shield(self.backend.close())
@@ -396,6 +395,7 @@ class ControlLoop:
             return
         await self.backend.recover()
         self._fault = None
+        self.clock.resume()
         self._read()
         self.hold_current()
         with self._torque_lock:
@@ -555,8 +555,7 @@ class ControlLoop:
                 listener(fault)
             except Exception:
                 log.exception("fault listener failed")
-        if isinstance(self.clock, LockstepClock):
-            self.clock.cancel_all(fault)
+        self.clock.fail(fault)
 
     # ------------------------------------------------------------ setpoint writers
     def hold_current(self, joints: np.ndarray | None = None) -> None:

@@ -1,30 +1,45 @@
 """Trajectory execution: the :class:`Motion` handle and the executor that runs inside the control tick.
 
-Modelled on ros2_controllers' JointTrajectoryController and the
+Modelled on ros2_controllers' JointTrajectoryController (JTC) and the
 FollowJointTrajectory action:
 
 * ``robot.follow(traj)`` returns a :class:`Motion` at once; ``await motion``
   gives a :class:`MotionResult` whose code is named after FollowJointTrajectory
   (plus CANCELED, PREEMPTED, ABORTED).
+* Validation like JTC, and on the whole motion: joint names, positions, velocities,
+  accelerations of every point against the joints' limits; a last point at rest
+  (unless ``allow_nonzero_velocity_at_end``); and the *interpolated* motion, including the
+  segment from the current state, within the position, velocity and acceleration limits
+  (or, with ``stretch_to_limits=True``, slowed down uniformly until it is).
 * The executor samples the trajectory every control tick (no asyncio timers in
   the loop), so tracking is identical in lockstep and in real time.
-* ``motion.cancel()`` — or cancelling the task awaiting the motion, e.g. via
-  ``asyncio.timeout`` — decelerates every joint to rest within its deceleration
+* ``start_time`` schedules the start on the robot clock (JTC's ``header.stamp``); a
+  start in the past skips the points that have elapsed.
+* Speed scaling (:meth:`MotionManager.set_speed_scaling`, JTC's speed scaling, a UR
+  teach pendant's speed slider): every running trajectory advances its own time at the
+  factor, which each motion follows with a bounded rate, so velocities never jump.
+* ``motion.cancel()`` -- or cancelling the task awaiting the motion, e.g. via
+  ``asyncio.timeout`` -- decelerates every joint to rest within its deceleration
   limit (a jerk-limited ruckig profile from the current desired state), then
   holds position. Not an instant freeze, not a runaway.
+* An *abort* (path or goal tolerance violated, a safety stop) drops the reference at once:
+  every joint decelerates from its *measured* position and velocity (ruckig stop profile)
+  and holds where it stopped. A joint whose servo tracks its setpoint within
+  :data:`TRACKING_BAND` starts the stop from its setpoint instead: the same state up to
+  servo accuracy, and a setpoint that neither jumps nor stalls.
 * A new ``follow`` on overlapping joints preempts the running motion (PREEMPTED)
   and starts from its *desired* position, velocity and acceleration, so the
   desired velocity is continuous at the switch.
-* Path, goal and goal-time tolerances per joint; a violation aborts with the
-  matching code, decelerates and holds.
+* ``continuous`` joints take the shortest angle from the current state (the trajectory is
+  moved by whole turns) and their errors wrap around (tolerances, feedback, results).
 """
 
 from __future__ import annotations
 
 import asyncio
 import enum
-import functools
-from collections.abc import AsyncIterator, Generator, Mapping
+import math
+from collections.abc import AsyncIterator, Callable, Generator, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -32,16 +47,37 @@ import numpy as np
 
 from . import scope
 from .backend import ModeCode
-from .errors import InvalidValueError, UnknownJointError
+from .errors import CommandRejected, InvalidValueError, LimitViolation, UnknownJointError
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
-from .trajectory import Trajectory, TrajectorySampler, plan_point_to_point, plan_stop
+from .trajectory import (
+    MAX_TIME_FROM_START,
+    Trajectory,
+    TrajectorySampler,
+    check_motion_limits,
+    plan_point_to_point,
+    plan_stop,
+    time_scale_for_limits,
+)
 
 if TYPE_CHECKING:
     from .safety import PositionBounds
 
-__all__ = ["Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
+__all__ = ["TRACKING_BAND", "Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
 
-_POS = int(ModeCode.POSITION)  # a plain int: numpy handles an IntEnum member slowly
+_POS = int(ModeCode.POSITION)  # a plain int: numpy compares arrays with an IntEnum member slowly
+_TWO_PI = 2.0 * math.pi
+
+#: (position rad or m, velocity rad/s or m/s): a joint whose measured state is this close to its
+#: setpoint (plus the servo's lag kd/kp * |v| at speed) is tracking it; an abort then starts its
+#: stop from the setpoint (the same state up to servo accuracy, no jump), else from the measured state
+TRACKING_BAND = (0.02, 0.2)
+#: relative slack of the per-tick step check (float noise of trajectories planned at the limits)
+_STEP_RTOL = 1e-5
+#: fraction of max_acceleration the speed-scaling ramp may add to a trajectory's own acceleration
+_SCALE_ACC_MARGIN = 0.95
+_MAX_STRETCH_ITERATIONS = 12
+#: a planned position beyond the bounds by more than this is not float noise (rad or m)
+_BOUND_TOL = 2e-6
 
 
 class ResultCode(enum.IntEnum):
@@ -56,7 +92,8 @@ class ResultCode(enum.IntEnum):
     CANCELED = -10
     #: replaced by a newer follow() on overlapping joints
     PREEMPTED = -11
-    #: stopped by the safety layer (e-stop, fault) or the robot closing
+    #: stopped by the safety layer (e-stop, fault), the robot closing, or a setpoint step the
+    #: position-step limiter would have had to clip
     ABORTED = -12
 
 
@@ -68,7 +105,7 @@ class MotionResult:
     """
 
     code: ResultCode
-    #: final position error per joint (desired goal - actual), rad or m
+    #: final position error per joint (desired goal - actual, wrapped for continuous joints), rad or m
     error: Mapping[str, float]
     message: str = ""
     #: robot time when the motion ended
@@ -80,18 +117,51 @@ class MotionResult:
         return self.code is ResultCode.SUCCESSFUL
 
 
+def _check_tolerance_value(value: object, what: str) -> float:
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise InvalidValueError(f"{what} tolerance must be a number, got {value!r}") from None
+    if not v > 0.0:  # NaN, zero and negatives
+        raise InvalidValueError(f"{what} tolerance must be > 0 (math.inf: not checked), got {value!r}")
+    return v
+
+
 @dataclass(frozen=True, slots=True)
 class Tolerances:
-    """Per-joint tolerances (a float for all joints, or ``{joint: value}``).
+    """Per-joint tolerances (a float for all joints, or ``{joint: value}``), rad or m.
 
     ``path``: max ``|desired - actual|`` position error while moving (None: not checked).
-    ``goal``: max ``|goal - actual|`` position error at the end.
-    ``goal_time``: how long after the trajectory's end the goal tolerance may take to be met.
+    ``goal``: max ``|goal - actual|`` position error at the end (None: not checked).
+    ``goal_time``: how long after the trajectory's end (in trajectory time, which speed
+    scaling slows down) the goal tolerance may take to be met; 0 means no slack
+    (``math.inf``: wait indefinitely). Values must be > 0 (``math.inf`` = not checked);
+    NaN, zero or negative values raise :class:`InvalidValueError` here.
+    Errors of ``continuous`` joints wrap around (shortest angle).
     """
 
     path: float | Mapping[str, float] | None = None
-    goal: float | Mapping[str, float] = 0.02
+    goal: float | Mapping[str, float] | None = 0.02
     goal_time: float = 1.0
+
+    def __post_init__(self) -> None:
+        for what in ("path", "goal"):
+            value = getattr(self, what)
+            if value is None:
+                continue
+            if isinstance(value, Mapping):
+                for name, v in value.items():
+                    if not isinstance(name, str):
+                        raise InvalidValueError(f"{what} tolerance: joint names must be strings, got {name!r}")
+                    _check_tolerance_value(v, f"{what} ({name!r})")
+            else:
+                _check_tolerance_value(value, what)
+        try:
+            gt = float(self.goal_time)
+        except (TypeError, ValueError):
+            raise InvalidValueError(f"goal_time must be a number of seconds, got {self.goal_time!r}") from None
+        if not gt >= 0.0:
+            raise InvalidValueError(f"goal_time must be >= 0 s (math.inf: wait indefinitely), got {self.goal_time!r}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,8 +174,9 @@ class Feedback:
     desired_velocities: np.ndarray
     actual_positions: np.ndarray
     actual_velocities: np.ndarray
+    #: desired - actual position (wrapped for continuous joints)
     error: np.ndarray
-    #: 0.0 at the start, 1.0 at the end of the trajectory
+    #: 0.0 at the start, 1.0 at the end of the trajectory (in trajectory time)
     progress: float
 
 
@@ -116,25 +187,43 @@ def _per_joint(value: float | Mapping[str, float] | None, names: tuple[str, ...]
         unknown = set(value) - set(names)
         if unknown:
             raise UnknownJointError(f"{what} tolerance for joints not in the trajectory: {sorted(unknown)}")
-        return np.array([float(value.get(n, np.inf)) for n in names])
-    v = float(value)
-    if not v > 0:
-        raise InvalidValueError(f"{what} tolerance must be > 0, got {value!r}")
-    return np.full(len(names), v)
+        return np.array([_check_tolerance_value(value[n], f"{what} ({n!r})") if n in value else np.inf
+                         for n in names])
+    return np.full(len(names), _check_tolerance_value(value, what))
+
+
+def _wrap_angle(x: np.ndarray) -> np.ndarray:
+    """``x`` wrapped into [-pi, pi) (shortest angular distance)."""
+    return np.remainder(x + math.pi, _TWO_PI) - math.pi
+
+
+def _turns_to(current: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Whole turns (multiples of 2*pi) to add to ``target`` so it is the nearest equivalent of ``current``.
+
+    Like JTC's ``wraparound_joint`` (angles::shortest_angular_distance): at exactly half a turn
+    the joint turns in the direction of the target's raw value.
+    """
+    dist = _wrap_angle(target - current)
+    half = np.abs(np.abs(dist) - math.pi) < 1e-9
+    dist = np.where(half, np.where(target > current, np.abs(dist), -np.abs(dist)), dist)
+    return np.round(((current + dist) - target) / _TWO_PI) * _TWO_PI
 
 
 class Motion:
-    """Handle of a running trajectory. Awaitable; ``cancel()``; ``feedback()``."""
+    """Handle of a running (or scheduled) trajectory. Awaitable; ``cancel()``; ``feedback()``."""
 
-    def __init__(self, manager: MotionManager, idx: np.ndarray, names: tuple[str, ...]) -> None:
+    def __init__(self, manager: MotionManager, idx: np.ndarray, names: tuple[str, ...],
+                 trajectory: Trajectory, start_time: float) -> None:
         self._mgr = manager
         self.idx = idx
         self.joint_names = names
+        #: the trajectory as executed: points already elapsed at a past ``start_time`` dropped,
+        #: continuous joints moved by whole turns, stretched if ``stretch_to_limits`` slowed it
+        self.trajectory = trajectory
+        #: robot time at which the trajectory starts (``time_from_start`` is relative to it)
+        self.start_time = start_time
         self._future: asyncio.Future[MotionResult] = asyncio.get_running_loop().create_future()
-        #: the executor driving this motion (its per-tick buffers hold the latest feedback)
-        self._exec: _Exec | None = None
-        self._fb_cache: Feedback | None = None
-        self._fb_cache_tick = 0
+        self._feedback: Feedback | None = None
         self._cancel_requested = False
 
     # awaitable ------------------------------------------------------------
@@ -158,21 +247,26 @@ class Motion:
         return self._future.result()
 
     def cancel(self) -> None:
-        """Decelerate to rest within the joints' limits, then hold. Result: CANCELED."""
-        if not self._future.done() and not self._cancel_requested:
-            self._cancel_requested = True
-            self._mgr._request_stop(self, ResultCode.CANCELED, "canceled")
+        """Decelerate to rest within the joints' limits, then hold. Result: CANCELED.
+
+        A motion whose scheduled start has not come yet ends at once (nothing moved).
+        Idempotent; never raises.
+        """
+        if self._future.done() or self._cancel_requested:
+            return
+        self._cancel_requested = True
+        self._mgr._request_stop(self, ResultCode.CANCELED, "canceled")
 
     async def feedback(self, rate: float = 50.0) -> AsyncIterator[Feedback]:
         """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included)."""
-        if not rate > 0:
-            raise InvalidValueError(f"feedback rate must be > 0, got {rate!r}")
+        if not (rate > 0 and math.isfinite(rate)):
+            raise InvalidValueError(f"feedback rate must be a positive number, got {rate!r}")
         clock = self._mgr.loop.clock
         period = 1.0 / rate
         next_t = clock.now()
         last: Feedback | None = None
         while True:
-            fb = self._latest_feedback()
+            fb = self._feedback
             if fb is not None and fb is not last:
                 last = fb
                 yield fb
@@ -181,97 +275,50 @@ class Motion:
             next_t += period
             await clock.sleep_until(next_t)
 
-    def _latest_feedback(self) -> Feedback | None:
-        """The feedback of the latest tick the executor ran, built when asked (not every tick)."""
-        ex = self._exec
-        if ex is None or ex.fb_tick == 0:
-            return None
-        if self._fb_cache is None or self._fb_cache_tick != ex.fb_tick:
-            q, v = ex.out[0].copy(), ex.out[1].copy()
-            actual, actual_v = ex.fb_state.copy()
-            self._fb_cache = Feedback(ex.fb_time, self.joint_names, q, v, actual, actual_v, q - actual,
-                                      ex.fb_progress)
-            self._fb_cache_tick = ex.fb_tick
-        return self._fb_cache
-
     def __repr__(self) -> str:
         state = self._future.result().code.name if self._future.done() else "running"
         return f"<Motion {list(self.joint_names)} {state}>"
 
 
-@dataclass(eq=False, slots=True)
+@dataclass(eq=False)
 class _Exec:
-    """Executor state of one motion (lives in the control tick)."""
+    """Executor state of one motion or stop ramp (lives in the control tick)."""
 
     motion: Motion | None
     idx: np.ndarray
     sampler: Any
+    #: robot time the trajectory (or stop ramp) starts
     t0: float
     path_tol: np.ndarray
     goal_tol: np.ndarray
     goal_time: float
     goal: np.ndarray
-    phase: str = "follow"  # follow | settle | stopping
+    phase: str = "follow"  # pending | follow | settle | stopping | dead
     stop_code: ResultCode | None = None
     stop_msg: str = ""
     des_q: np.ndarray = field(default_factory=lambda: np.zeros(0))
     des_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
     des_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
     on_done: Any = None
-    # per-tick buffers (allocated once in __post_init__; the tick writes them in place)
-    #: the joints as a slice when they are consecutive (cheaper indexing), else ``idx``
-    sel: Any = None
-    #: the sampler's output ``[q, v, a]`` of the latest tick (shape (3, joints))
-    out: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))
-    #: setpoint rows effort, kp, kd written every tick (0, the default gains)
-    fixed: np.ndarray = field(default_factory=lambda: np.zeros((3, 0)))
-    #: True when a path tolerance is finite (else the path check is skipped)
-    check_path: bool = False
-    #: the latest tick's time, measured position/velocity and progress (read by Motion feedback)
-    fb_tick: int = 0
-    fb_time: float = 0.0
-    fb_progress: float = 0.0
-    #: measured ``[position, velocity]`` of the joints at the latest tick (shape (2, joints))
-    fb_state: np.ndarray = field(default_factory=lambda: np.zeros((2, 0)))
-    #: views made once: the rows of ``out`` and ``fb_state``; scratch of the tolerance checks
-    out_rows: tuple[np.ndarray, np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
-    out_qv: np.ndarray = field(default_factory=lambda: np.zeros((2, 0)))
-    fb_rows: tuple[np.ndarray, np.ndarray] = ()  # type: ignore[assignment]
-    err: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    abs_err: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    over: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
-    #: the setpoint and state this executor's views below were made of (the loop's, fixed)
-    views_of: Any = None
-    #: views of the setpoint's mode, enabled, [position, velocity] rows, [effort, kp, kd] rows,
-    #: target and of the state's [position, velocity] rows at the joints (consecutive joints only)
-    sp_views: tuple[Any, ...] = ()
-
-    def __post_init__(self) -> None:
-        n = len(self.idx)
-        start = int(self.idx[0]) if n else 0
-        consecutive = n > 0 and bool(np.array_equal(self.idx, np.arange(start, start + n)))
-        self.sel = slice(start, start + n) if consecutive else self.idx
-        self.out = np.zeros((3, n))
-        self.out_rows = (self.out[0], self.out[1], self.out[2])
-        self.out_qv = self.out[0:2]
-        self.fb_state = np.zeros((2, n))
-        self.fb_rows = (self.fb_state[0], self.fb_state[1])
-        self.err = np.zeros(n)
-        self.abs_err = np.zeros(n)
-        self.over = np.zeros(n, dtype=bool)
-        self.check_path = bool(np.isfinite(self.path_tol).any())
-
-    def setpoint_views(self, st: StateView, sp: Setpoint) -> tuple[Any, ...]:
-        """The views of :attr:`sp_views` for ``st`` and ``sp``, made at the first tick (consecutive joints only)."""
-        if self.views_of is not sp:
-            sel = self.sel
-            if isinstance(sel, slice) and st.block is not None:
-                self.sp_views = (sp.mode[sel], sp.enabled[sel], sp.block[0:2, sel], sp.block[2:5, sel],
-                                 sp.target[sel], st.block[0:2, sel])
-            else:
-                self.sp_views = ()
-            self.views_of = sp
-        return self.sp_views
+    #: sample time of the trajectory (advances at the speed scaling factor), and the last tick's time
+    tau: float = 0.0
+    t_last: float = 0.0
+    #: speed scaling actually applied, and its rate (1/s)
+    s: float = 1.0
+    sdot: float = 0.0
+    #: trajectory-time velocity and acceleration at ``tau`` (for the scaling ramp's bound)
+    vt: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    at: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: continuous joints of this motion (errors wrap around), or None
+    wrap: np.ndarray | None = None
+    #: the trajectory to start at ``t0`` (pending motions), its tolerance options
+    pending_traj: Trajectory | None = None
+    stretch: bool = False
+    #: the trajectory ends moving (allow_nonzero_velocity_at_end): decelerate after the end
+    end_moving: bool = False
+    reported_clip: bool = False
+    #: (lower, upper, max step) of its joints, cached on the first tick
+    limits: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
 
 
 class MotionManager:
@@ -285,23 +332,79 @@ class MotionManager:
         self.decel_scale = decel_scale
         n = len(loop.joints)
         self._owner: list[_Exec | None] = [None] * n
+        #: motions scheduled to start later (``start_time`` in the future)
+        self._pending: list[_Exec] = []
         #: joints currently driven by a motion or a stop ramp (read-only for other modules)
         self.owned_mask = np.zeros(n, dtype=bool)
+        joints = loop.joints
+        self._vmax = np.array([j.max_velocity for j in joints], dtype=np.float64)
+        self._amax = np.array([j.max_acceleration for j in joints], dtype=np.float64)
+        #: continuous joints: shortest-angle start, wrapped errors
+        self._continuous = np.array([j.type == "continuous" for j in joints], dtype=bool)
+        kp, kd = loop.gain_p, loop.gain_d
+        self._lag_per_speed = np.where(kp > 0.0, kd / np.where(kp > 0.0, kp, 1.0), 0.0)
+        self._speed = 1.0
+        # the position-step limiter the setpoints pass through (attach_limiter), so that a
+        # planned step it would clip is caught here and reported, never clipped silently
+        self._step_origin: np.ndarray | None = None
+        self._step: np.ndarray | None = None
+        self._rebase: Callable[[np.ndarray, np.ndarray], None] | None = None
+        self._report: Callable[[str, str, str | None], Any] | None = None
+
+    # ------------------------------------------------------------ wiring
+    def attach_limiter(
+        self,
+        origin: np.ndarray,
+        step: np.ndarray | None,
+        rebase: Callable[[np.ndarray, np.ndarray], None],
+        report: Callable[[str, str, str | None], Any],
+    ) -> None:
+        """Called by the safety layer: where its position-step limiter measures steps from (a live
+        read-only array), the step per tick (None: off), ``rebase(idx, q)`` to tell it that the
+        reference of joints ``idx`` was reset to their measured position ``q`` (an abort), and
+        ``report(kind, detail, joint)`` to record a safety event.
+        """
+        self._step_origin = origin
+        self._step = step
+        self._rebase = rebase
+        self._report = report
+
+    # ------------------------------------------------------------ speed scaling
+    @property
+    def speed_scaling(self) -> float:
+        """The speed scaling factor every trajectory follows (1.0: as timed, 0.0: paused)."""
+        return self._speed
+
+    def set_speed_scaling(self, factor: float) -> None:
+        """Set the speed scaling factor in [0, 1]; running trajectories follow it smoothly."""
+        try:
+            f = float(factor)
+        except (TypeError, ValueError):
+            raise InvalidValueError(f"speed scaling must be a number in [0, 1], got {factor!r}") from None
+        if not 0.0 <= f <= 1.0:
+            raise InvalidValueError(f"speed scaling must be in [0, 1] (0 pauses, 1 is full speed), got {factor!r}")
+        self._speed = f
 
     # ------------------------------------------------------------ queries
     def owner_of(self, idx: np.ndarray) -> tuple[int, Motion | None] | None:
+        """The first of joints ``idx`` driven (or reserved by a scheduled motion), with its motion."""
         for j in idx.tolist():
             ex = self._owner[j]
             if ex is not None:
                 return j, ex.motion
+        for ex in self._pending:
+            hit = np.intersect1d(ex.idx, idx)
+            if len(hit):
+                return int(hit[0]), ex.motion
         return None
 
     def desired(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Current desired (q, v, a) for joints: from their executor, else the setpoint/state."""
         loop = self.loop
         sp, st = loop.setpoint, loop.state
-        q = np.where(sp.mode[idx] == _POS, sp.position[idx], st.position[idx])
-        v = np.where(sp.mode[idx] == _POS, sp.velocity[idx], st.velocity[idx])
+        pos = sp.mode[idx] == _POS
+        q = np.where(pos, sp.position[idx], st.position[idx])
+        v = np.where(pos, sp.velocity[idx], st.velocity[idx])
         a = np.zeros(len(idx))
         for k, j in enumerate(idx.tolist()):
             ex = self._owner[j]
@@ -318,39 +421,170 @@ class MotionManager:
         desired motion continues seamlessly; starting it from the last tick's state would
         repeat that position for one tick (a stall of v*dt while the desired velocity says v).
         """
-        return ex.sampler.sample(self.loop.stamp)
+        tau, s, sdot = self._advance(ex, self.loop.stamp)
+        q, vt, at = ex.sampler.sample(tau)
+        if ex.phase == "stopping" or (s == 1.0 and sdot == 0.0):
+            return q, vt, at
+        return q, vt * s, at * (s * s) + vt * sdot
 
     # ------------------------------------------------------------- start
-    def follow(self, traj: Trajectory, tolerances: Tolerances | None) -> Motion:
-        """Start executing ``traj`` (validated against the joints); returns its :class:`Motion` handle."""
+    def follow(
+        self,
+        traj: Trajectory,
+        tolerances: Tolerances | None,
+        *,
+        start_time: float | None = None,
+        allow_nonzero_velocity_at_end: bool = False,
+        stretch_to_limits: bool = False,
+    ) -> Motion:
+        """Start executing ``traj`` (validated against the joints and limits); returns its :class:`Motion`.
+
+        ``start_time`` (robot clock) schedules the start; in the past, the points that have
+        elapsed are skipped. See :meth:`agentsdk.Robot.follow`.
+        """
         ctl = self.loop
         if not isinstance(traj, Trajectory):
             raise InvalidValueError(f"expected a Trajectory, got {type(traj).__name__}")
-        traj.validate(ctl.joints)
+        traj.validate(ctl.joints, allow_nonzero_velocity_at_end=bool(allow_nonzero_velocity_at_end))
         names = tuple(traj.joint_names)
         idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
-        for p in traj.points:
-            self.bounds.check(np.asarray(p.positions, dtype=float), idx)
-        tol = tolerances or Tolerances()
+        for k, p in enumerate(traj.points):
+            try:
+                self.bounds.check(np.asarray(p.positions, dtype=float), idx)
+            except LimitViolation as exc:
+                raise LimitViolation(f"point {k}: {exc}") from None
+        tol = tolerances if tolerances is not None else Tolerances()
+        if not isinstance(tol, Tolerances):
+            raise InvalidValueError(f"tolerances must be a Tolerances, got {type(tol).__name__}")
         path_tol = _per_joint(tol.path, names, "path")
         goal_tol = _per_joint(tol.goal, names, "goal")
-        if not tol.goal_time >= 0:
-            raise InvalidValueError(f"goal_time must be >= 0, got {tol.goal_time!r}")
+        goal_time = float(tol.goal_time)
+        now = ctl.stamp
+        if start_time is None:
+            t_start = now
+        else:
+            try:
+                t_start = float(start_time)
+            except (TypeError, ValueError):
+                raise InvalidValueError(f"start_time must be a robot time in seconds, got {start_time!r}") from None
+            if not math.isfinite(t_start):
+                raise InvalidValueError(f"start_time must be a finite robot time in seconds, got {start_time!r}")
+        if t_start < now:  # JTC: a start in the past skips what has elapsed
+            traj = traj.after(now - t_start)
+            t_start = now
+        ex = _Exec(None, idx, None, t_start, path_tol, goal_tol, goal_time,
+                   goal=np.asarray(traj.positions[-1], dtype=float).copy())
+        ex.stretch = bool(stretch_to_limits)
+        ex.end_moving = traj.velocities is not None and bool(np.any(traj.velocities[-1] != 0.0))
+        wrap = self._continuous[idx]
+        ex.wrap = wrap if wrap.any() else None
+        if t_start > now:
+            # scheduled: validated now against the state predicted for its start, again when it starts
+            q0, v0, a0 = self._predicted(idx, t_start)
+            traj, _ = self._prepare(ex, traj, q0, v0, a0, t_start)
+            ex.pending_traj = traj
+            ex.phase = "pending"
+            motion = Motion(self, idx, names, traj, t_start)
+            ex.motion = motion
+            self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
+            self._pending.append(ex)
+            self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+            scope.register(motion)
+            return motion
         q0, v0, a0 = self.desired(idx)
+        traj, sampler = self._prepare(ex, traj, q0, v0, a0, t_start)
+        motion = Motion(self, idx, names, traj, t_start)
+        ex.motion = motion
         self._preempt(idx)
-        t0 = ctl.stamp
-        sampler = TrajectorySampler(traj, start_time=t0, start_positions=q0, start_velocities=v0,
-                                    start_accelerations=a0)
-        motion = Motion(self, idx, names)
-        ex = _Exec(motion, idx, sampler, t0, path_tol, goal_tol, tol.goal_time,
-                   goal=np.asarray(traj.points[-1].positions, dtype=float))
-        ex.des_q, ex.des_v, ex.des_a = q0.copy(), v0.copy(), a0.copy()
+        self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
+        self._begin(ex, sampler, q0, v0, a0, t_start)
         self._install(ex)
         scope.register(motion)
         return motion
 
+    def _prepare(
+        self, ex: _Exec, traj: Trajectory, q0: np.ndarray, v0: np.ndarray, a0: np.ndarray, t0: float
+    ) -> tuple[Trajectory, TrajectorySampler]:
+        """Wrap continuous joints to the shortest angle from ``q0``, build the sampler from the start
+        state and check the whole motion against the limits (stretching it if asked). Raises
+        :class:`LimitViolation` naming the segment and joint.
+        """
+        idx = ex.idx
+        if ex.wrap is not None:
+            offsets = np.where(ex.wrap, _turns_to(q0, traj.positions[0]), 0.0)
+            if offsets.any():
+                traj = traj.shifted(offsets)
+                ex.goal = np.asarray(traj.positions[-1], dtype=float).copy()
+        lo, hi = self.bounds.lo[idx], self.bounds.hi[idx]
+        vmax, amax = self._vmax[idx], self._amax[idx]
+        if traj.velocities is not None and traj.points[0].time_from_start == 0.0:
+            # a first point at time 0 is output at once (JTC): its velocity must continue the current one
+            step = np.abs(traj.velocities[0] - v0)
+            bad = ~(step <= amax * self.loop.period * (1.0 + _STEP_RTOL) + 1e-9)
+            if bad.any():
+                k = int(np.argmax(bad))
+                raise LimitViolation(
+                    f"point 0: joint {traj.joint_names[k]!r} velocity {traj.velocities[0, k]:.6g} at time_from_start "
+                    f"0 is a step from its current velocity {v0[k]:.6g}, beyond max_acceleration {amax[k]:.6g}; "
+                    "give point 0 a time_from_start > 0 (the motion then starts from the current state)"
+                )
+        sampler = TrajectorySampler(traj, start_time=t0, start_positions=q0, start_velocities=v0,
+                                    start_accelerations=a0)
+        hint = ("; slow the trajectory down (later time_from_start), or pass stretch_to_limits=True to "
+                "let follow() stretch its timing")
+        if not ex.stretch:
+            check_motion_limits(sampler, lo, hi, vmax, amax, hint=hint)
+            return traj, sampler
+        scaled = traj
+        factor = 1.0
+        for _ in range(_MAX_STRETCH_ITERATIONS):
+            try:
+                check_motion_limits(sampler, lo, hi, vmax, amax)
+                return scaled, sampler
+            except LimitViolation:
+                k = time_scale_for_limits(sampler, vmax, amax)
+                # k == 1: velocities and accelerations fit, the position limits do not: no stretching helps
+                if not math.isfinite(k) or k <= 1.0 + 1e-9 or traj.duration * factor * k > MAX_TIME_FROM_START:
+                    break
+                factor *= max(k, 1.01)
+                scaled = traj.time_scaled(factor)
+                sampler = TrajectorySampler(scaled, start_time=t0, start_positions=q0, start_velocities=v0,
+                                            start_accelerations=a0)
+        check_motion_limits(sampler, lo, hi, vmax, amax,
+                            hint=f" even stretched {factor:.3g} times slower (stretch_to_limits)")
+        return scaled, sampler
+
+    def _predicted(self, idx: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Desired (q, v, a) of joints ``idx`` at robot time ``t``, if nothing changes meanwhile."""
+        q, v, a = self.desired(idx)
+        for k, j in enumerate(idx.tolist()):
+            ex = self._owner[j]
+            if ex is not None and ex.sampler is not None:
+                m = int(np.flatnonzero(ex.idx == j)[0])
+                tau = t if ex.phase == "stopping" else ex.tau + ex.s * (t - ex.t_last)
+                eq, ev, ea = ex.sampler.sample(tau)
+                s = 1.0 if ex.phase == "stopping" else ex.s
+                q[k], v[k], a[k] = eq[m], ev[m] * s, ea[m] * s * s
+        return q, v, a
+
+    def _begin(self, ex: _Exec, sampler: TrajectorySampler, q0: np.ndarray, v0: np.ndarray, a0: np.ndarray,
+               t0: float) -> None:
+        """Make ``ex`` follow ``sampler`` from time ``t0`` (the desired state there is (q0, v0, a0))."""
+        ex.sampler = sampler
+        ex.t0 = ex.tau = ex.t_last = t0
+        ex.phase = "follow"
+        # the trajectory's velocities are in its own time: start at full speed when the start state
+        # moves (no velocity jump), else directly at the current scaling (a paused robot stays put)
+        ex.s = 1.0 if np.any(np.abs(v0) > 1e-9) else self._speed
+        ex.sdot = 0.0
+        ex.des_q, ex.des_v, ex.des_a = q0.copy(), v0.copy(), a0.copy()
+        ex.vt, ex.at = v0.copy(), a0.copy()
+
     def move_to(self, positions: Mapping[str, float], duration: float | None, tol: Tolerances | None) -> Motion:
-        """Plan a jerk-limited move from the current desired state to ``positions`` and follow it."""
+        """Plan a jerk-limited move from the current desired state to ``positions`` and follow it.
+
+        Continuous joints take the shortest angle to the target.
+        """
         ctl = self.loop
         if not isinstance(positions, Mapping) or not positions:
             raise InvalidValueError("move_to expects a non-empty {joint name: position} mapping")
@@ -359,11 +593,22 @@ class MotionManager:
             raise UnknownJointError(f"unknown joint {unknown[0]!r}; this robot's joints are: {', '.join(ctl.names)}")
         names = tuple(positions)
         idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
-        goal = np.array([float(positions[n]) for n in names])
+        try:
+            goal = np.array([float(positions[n]) for n in names])
+        except (TypeError, ValueError):
+            raise InvalidValueError(f"move_to: targets must be numbers, got {dict(positions)!r}") from None
         if not np.isfinite(goal).all():
             raise InvalidValueError(f"move_to: non-finite target in {dict(positions)!r}")
+        if duration is not None:
+            try:
+                duration = float(duration)
+            except (TypeError, ValueError):
+                raise InvalidValueError(f"move_to: duration must be a number of seconds, got {duration!r}") from None
         self.bounds.check(goal, idx)
         q0, v0, a0 = self.desired(idx)
+        wrap = self._continuous[idx]
+        if wrap.any():
+            goal = goal + np.where(wrap, _turns_to(q0, goal), 0.0)
         joints = [ctl.joints[i] for i in idx.tolist()]
         traj = plan_point_to_point((q0, v0, a0), goal, joints, duration=duration)
         return self.follow(traj, tol)
@@ -372,17 +617,20 @@ class MotionManager:
         for j in ex.idx.tolist():
             self._owner[j] = ex
         self.owned_mask[ex.idx] = True
-        loop = self.loop
-        ex.fixed = np.vstack([np.zeros(len(ex.idx)), loop.gain_p[ex.idx], loop.gain_d[ex.idx]])
-        if ex.motion is not None:
-            ex.motion._exec = ex
-        self.loop.add_hook(Phase.COMMAND, functools.partial(self._update, ex))
+        self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+
+    def _own(self, ex: _Exec) -> None:
+        for j in ex.idx.tolist():
+            self._owner[j] = ex
+        self.owned_mask[ex.idx] = True
 
     def _release(self, ex: _Exec) -> None:
         for j in ex.idx.tolist():
             if self._owner[j] is ex:
                 self._owner[j] = None
                 self.owned_mask[j] = False
+        if ex in self._pending:
+            self._pending.remove(ex)
 
     def _preempt(self, idx: np.ndarray) -> None:
         seen: list[_Exec] = []
@@ -390,44 +638,109 @@ class MotionManager:
             ex = self._owner[j]
             if ex is not None and ex not in seen:
                 seen.append(ex)
+        taken = set(idx.tolist())
         for ex in seen:
-            rest = np.array([j for j in ex.idx.tolist() if j not in set(idx.tolist())], dtype=np.intp)
+            rest = np.array([j for j in ex.idx.tolist() if j not in taken], dtype=np.intp)
             q, v, a = self.desired(rest) if len(rest) else (None, None, None)
             self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
             if len(rest):
                 # joints the new trajectory does not cover come to rest smoothly
                 self._start_ramp(rest, q, v, a, None, "")
 
+    def _drop_pending(self, idx: np.ndarray, code: ResultCode, msg: str) -> None:
+        for ex in list(self._pending):
+            if np.intersect1d(ex.idx, idx).size:
+                self._finish(ex, code, msg)
+
     # ----------------------------------------------------------- stopping
     def _request_stop(self, motion: Motion, code: ResultCode, msg: str) -> None:
+        for ex in list(self._pending):
+            if ex.motion is motion:
+                self._finish(ex, code, f"{msg} before its scheduled start")
+                return
         for ex in set(self._owner):
             if ex is not None and ex.motion is motion:
-                self._begin_stop(ex, code, msg)
+                # cancel: from the current desired state (the robot tracks it; a smooth stop)
+                q, v, a = self._desired_next(ex)
+                self._begin_stop(ex, code, msg, self.loop.stamp, q, v, a, measured=None)
                 return
 
-    def _begin_stop(self, ex: _Exec, code: ResultCode, msg: str) -> None:
-        if ex.phase == "stopping":
+    def _stop_start(
+        self, idx: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray, force: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Where an abort's stop starts: (q0, v0, a0, from_measured) for joints ``idx``.
+
+        From the measured position and velocity (the reference is dropped), except for joints
+        that track their desired state ``(q, v, a)`` within :data:`TRACKING_BAND` and are not in
+        ``force``: those start from it (the same state up to servo accuracy, and smooth). The
+        start is made consistent with the limits: positions inside the bounds, |v| <= max_velocity.
+        """
+        st = self.loop.state
+        qm = st.position[idx]
+        vm = st.velocity[idx]
+        dq = q - qm
+        wrap = self._continuous[idx]
+        if wrap.any():
+            dq = np.where(wrap, _wrap_angle(dq), dq)
+        band_q, band_v = TRACKING_BAND
+        # a PD servo following a reference that moves at v lags it by kd/kp * v (no feed-forward)
+        band = band_q + self._lag_per_speed[idx] * np.abs(v)
+        tracking = (np.abs(dq) <= band) & (np.abs(v - vm) <= band_v)
+        if force is not None:
+            tracking &= ~force
+        # a measurement that is not finite (a failing sensor) cannot be a stop's start
+        meas = ~tracking & np.isfinite(qm) & np.isfinite(vm)
+        if not meas.any():
+            return q, v, a, meas
+        vmax = self._vmax[idx]
+        q0 = np.where(meas, np.clip(q - dq, self.bounds.lo[idx], self.bounds.hi[idx]), q)
+        v0 = np.where(meas, np.clip(vm, -vmax, vmax), v)
+        a0 = np.where(meas, 0.0, a)
+        return q0, v0, a0, meas
+
+    def _plan_stop_sampler(self, idx: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray,
+                           t0: float) -> TrajectorySampler:
+        joints = [self.loop.joints[i] for i in idx.tolist()]
+        try:
+            stop = plan_stop(q, v, a, joints, decel_scale=self.decel_scale)
+        except CommandRejected:
+            # (cannot happen from a finite state) hold where the setpoint is rather than fail the stop
+            q = np.where(np.isfinite(q), q, self.loop.setpoint.position[idx])
+            z = np.zeros(len(idx))
+            stop = plan_stop(q, z, z, joints, decel_scale=self.decel_scale)
+            v, a = z, z
+        return TrajectorySampler(stop, start_time=t0, start_positions=q, start_velocities=v, start_accelerations=a)
+
+    def _begin_stop(self, ex: _Exec, code: ResultCode | None, msg: str, t0: float, q: np.ndarray, v: np.ndarray,
+                    a: np.ndarray, measured: np.ndarray | None) -> None:
+        """Replace ``ex``'s reference by a stop ramp from (q, v, a) at ``t0``; ``measured`` marks the joints
+        whose reference was reset to their measured state (the limiter is told).
+        """
+        if ex.phase in ("stopping", "dead"):
             return
-        q, v, a = self._desired_next(ex)
-        joints = [self.loop.joints[i] for i in ex.idx.tolist()]
-        stop = plan_stop(q, v, a, joints, decel_scale=self.decel_scale)
-        ex.sampler = TrajectorySampler(stop, start_time=self.loop.stamp, start_positions=q, start_velocities=v,
-                                       start_accelerations=a)
-        ex.t0 = self.loop.stamp
+        if measured is not None and measured.any() and self._rebase is not None:
+            self._rebase(ex.idx[measured], q[measured])
+        ex.sampler = self._plan_stop_sampler(ex.idx, q, v, a, t0)
+        ex.t0 = ex.tau = ex.t_last = t0
+        ex.s, ex.sdot = 1.0, 0.0
         ex.phase = "stopping"
         ex.stop_code = code
         ex.stop_msg = msg
 
+    def _abort(self, ex: _Exec, code: ResultCode, msg: str, t: float, q: np.ndarray, v: np.ndarray,
+               a: np.ndarray, force: np.ndarray | None) -> None:
+        """Abort ``ex`` in the tick at ``t``: drop its reference, stop from the measured state, hold."""
+        q0, v0, a0, meas = self._stop_start(ex.idx, q, v, a, force)
+        self._begin_stop(ex, code, msg, t, q0, v0, a0, meas)
+
     def _start_ramp(self, idx: np.ndarray, q: Any, v: Any, a: Any, code: ResultCode | None, msg: str,
                     on_done: Any = None) -> _Exec:
-        joints = [self.loop.joints[i] for i in idx.tolist()]
-        stop = plan_stop(q, v, a, joints, decel_scale=self.decel_scale)
         t0 = self.loop.stamp
-        sampler = TrajectorySampler(stop, start_time=t0, start_positions=q, start_velocities=v,
-                                    start_accelerations=a)
+        sampler = self._plan_stop_sampler(idx, q, v, a, t0)
         n = len(idx)
         ex = _Exec(None, idx, sampler, t0, np.full(n, np.inf), np.full(n, np.inf), 0.0, goal=q.copy(),
                    phase="stopping", stop_code=code, stop_msg=msg, on_done=on_done)
+        ex.tau = ex.t_last = t0
         ex.des_q, ex.des_v, ex.des_a = q.copy(), v.copy(), a.copy()
         self._install(ex)
         return ex
@@ -435,6 +748,9 @@ class MotionManager:
     async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0) -> None:
         """Decelerate every joint to rest (e-stop categories 1 and 2); returns when at rest.
 
+        Running motions end ABORTED at once (their reference is dropped) and every joint
+        stops from its measured state (or, where it tracks its setpoint within
+        :data:`TRACKING_BAND`, from that setpoint), within its deceleration limit.
         ``damp_only`` (backends without position control): velocity mode at zero
         velocity with gain ``damping`` until every joint is still.
         """
@@ -443,6 +759,7 @@ class MotionManager:
         idx = np.arange(len(loop.joints))
         handle: HookHandle | None = None
         if damp_only:
+            self.abort_all("stopped by the safety layer")
             loop.damp(idx, damping)
 
             def _until_still(t: float, st: StateView, sp: Setpoint) -> bool:
@@ -453,10 +770,13 @@ class MotionManager:
             handle = loop.add_hook(Phase.COMMAND, _until_still)
         else:
             q, v, a = self.desired(idx)
-            for ex in set(self._owner):
+            q0, v0, a0, meas = self._stop_start(idx, q, v, a, None)
+            for ex in [*set(self._owner), *self._pending]:
                 if ex is not None:
                     self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
-            self._start_ramp(idx, q, v, a, None, "", on_done=lambda: done.done() or done.set_result(None))
+            if meas.any() and self._rebase is not None:
+                self._rebase(idx[meas], q0[meas])
+            self._start_ramp(idx, q0, v0, a0, None, "", on_done=lambda: done.done() or done.set_result(None))
         try:
             await done
         finally:
@@ -465,7 +785,7 @@ class MotionManager:
 
     def abort_all(self, reason: str = "robot closed") -> None:
         """Resolve every motion ABORTED (no ramp: the caller takes over the joints)."""
-        for ex in set(self._owner):
+        for ex in [*set(self._owner), *self._pending]:
             if ex is not None and ex.motion is not None:
                 self._finish(ex, ResultCode.ABORTED, f"aborted: {reason}")
 
@@ -474,13 +794,13 @@ class MotionManager:
 
         Used by ``reset()``: nothing may keep driving the joints over time afterwards.
         """
-        for ex in set(self._owner):
+        for ex in [*set(self._owner), *self._pending]:
             if ex is not None:
                 self._finish(ex, ResultCode.ABORTED if ex.motion is not None else None, f"aborted: {reason}")
 
     def fail_all(self, exc: BaseException) -> None:
         """Fail every motion with ``exc`` (the control loop died)."""
-        for ex in set(self._owner):
+        for ex in [*set(self._owner), *self._pending]:
             if ex is None:
                 continue
             self._release(ex)
@@ -489,98 +809,270 @@ class MotionManager:
                 ex.motion._future.exception()  # mark retrieved: the awaiting side re-raises it
             ex.phase = "dead"
 
+    def limiter_clipped(self, idx: np.ndarray, detail: str) -> None:
+        """The safety layer's limiter had to clip the setpoint of joints ``idx`` that a motion drives.
+
+        A planned motion is never clipped silently: the motion aborts (ABORTED) and stops from
+        the measured state; a stop ramp that reaches a joint's bounds is reported once.
+        """
+        for j in idx.tolist():
+            ex = self._owner[j]
+            if ex is None or ex.reported_clip:
+                continue
+            ex.reported_clip = True
+            if self._report is not None:
+                self._report("clip", detail, self.loop.names[j])
+            if ex.phase in ("follow", "settle"):
+                q, v, a = ex.des_q, ex.des_v, ex.des_a
+                self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", self.loop.stamp, q, v, a, None)
+
     def _finish(self, ex: _Exec, code: ResultCode | None, msg: str) -> None:
         self._release(ex)
         ex.phase = "dead"
-        if ex.motion is not None and code is not None and not ex.motion._future.done():
-            st = self.loop.state
-            err = ex.goal - st.position[ex.idx]
-            res = MotionResult(code, dict(zip(ex.motion.joint_names, err.tolist(), strict=True)), msg, self.loop.stamp)
-            ex.motion._future.set_result(res)
+        self._resolve(ex, code, msg)
         if ex.on_done is not None:
             ex.on_done()
 
+    def _resolve(self, ex: _Exec, code: ResultCode | None, msg: str) -> None:
+        """Set the motion's result (once): ``code``, the goal error per joint, the robot time."""
+        if ex.motion is not None and code is not None and not ex.motion._future.done():
+            st = self.loop.state
+            err = ex.goal - st.position[ex.idx]
+            if ex.wrap is not None:
+                err = np.where(ex.wrap, _wrap_angle(err), err)
+            res = MotionResult(code, dict(zip(ex.motion.joint_names, err.tolist(), strict=True)), msg, self.loop.stamp)
+            ex.motion._future.set_result(res)
+
     # --------------------------------------------------------- every tick
+    def _advance(self, ex: _Exec, t: float) -> tuple[float, float, float]:
+        """(tau, s, sdot) of ``ex`` at tick time ``t``, without committing them.
+
+        Trajectory time advances by at most one control period per tick (a late realtime tick
+        slows the trajectory instead of making it jump), times the speed scaling ``s``. ``s``
+        follows the factor at a rate bounded so that the acceleration it adds (``v(tau) * ds/dt``)
+        keeps every joint within its acceleration limit: velocities stay continuous.
+        """
+        dt = t - ex.t_last
+        if dt <= 0.0:
+            return ex.tau, ex.s, ex.sdot
+        if dt > self.loop.period:
+            dt = self.loop.period
+        if ex.phase == "stopping":
+            return ex.tau + dt, 1.0, 0.0
+        s = ex.s
+        f = self._speed
+        if s == f:
+            return ex.tau + s * dt, s, 0.0
+        d = f - s
+        idx = ex.idx
+        amax = self._amax[idx] * _SCALE_ACC_MARGIN
+        vmax = self._vmax[idx]
+        vt, at = ex.vt, ex.at
+        speed = np.abs(vt)
+        # the ramp alone reaches the acceleration limit at full speed in 1/rate seconds ...
+        rate = float(np.min(amax / vmax))
+        # ... and never pushes a joint's total acceleration a = a(tau) s^2 + v(tau) ds/dt past its limit
+        moving = speed > 1e-12
+        if moving.any():
+            room = amax[moving] - np.sign(vt[moving] * d) * at[moving] * (s * s)
+            rate = min(rate, max(0.0, float(np.min(room / speed[moving]))))
+        step = rate * dt
+        s_new = s + (d if abs(d) <= step else math.copysign(step, d))
+        return ex.tau + 0.5 * (s + s_new) * dt, s_new, (s_new - s) / dt
+
     def _update(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
-        # allocation-free: the sample goes into ex.out, the setpoint rows are written in a few
-        # block operations (a slice when the joints are consecutive), feedback is built on demand
         if ex.phase == "dead":
             return False
-        out = ex.sampler.sample_into(t, ex.out)
-        rows = ex.out_rows
-        ex.des_q, ex.des_v, ex.des_a = rows
-        q = rows[0]
-        fb_state = ex.fb_state
-        views = ex.setpoint_views(st, sp)
-        if views:  # consecutive joints: copies into views made once
-            mode, enabled, pos_vel, fixed, target, measured = views
-            mode.fill(_POS)
-            enabled.fill(True)
-            pos_vel[...] = ex.out_qv  # position, velocity
-            fixed[...] = ex.fixed  # effort feed-forward 0, default kp, kd
-            target[...] = q
-            fb_state[...] = measured
+        if ex.phase == "pending":
+            if t < ex.t0 - 1e-9:
+                return True
+            if not self._activate(ex, t):
+                return False
+        idx = ex.idx
+        tau, s, sdot = self._advance(ex, t)
+        ex.tau, ex.s, ex.sdot, ex.t_last = tau, s, sdot, t
+        q, vt, at = ex.sampler.sample(tau)
+        stopping = ex.phase == "stopping"
+        if stopping or (s == 1.0 and sdot == 0.0):
+            v, a = vt, at
         else:
-            sel = ex.sel
-            sp.mode[sel] = _POS
-            sp.enabled[sel] = True
-            block = sp.block
-            block[0:2, sel] = out[0:2]
-            block[2:5, sel] = ex.fixed
-            sp.target[sel] = q
-            if st.block is not None:
-                fb_state[:] = st.block[0:2, sel]
-            else:
-                fb_state[0] = st.position[sel]
-                fb_state[1] = st.velocity[sel]
-        actual = ex.fb_rows[0]
-        ex.fb_time = t
-        ex.fb_tick += 1
+            v, a = vt * s, at * (s * s) + vt * sdot
+        ex.vt, ex.at = vt, at
+        actual = st.position[idx]
+        err = q - actual
+        if ex.wrap is not None:
+            err = np.where(ex.wrap, _wrap_angle(err), err)
         m = ex.motion
-        elapsed = t - ex.t0
-        dur = ex.sampler.duration
-        phase = ex.phase
-        if phase != "stopping":  # the stop ramp is not progress along the trajectory: keep the last value
-            ex.fb_progress = min(1.0, elapsed / dur) if dur > 0 else 1.0
-        if phase == "follow":
-            if ex.check_path:
-                err, over = ex.err, ex.over
-                np.subtract(q, actual, out=err)
-                abs_err = ex.abs_err
-                np.absolute(err, out=abs_err)
-                np.greater(abs_err, ex.path_tol, out=over)
-                if np.count_nonzero(over):
-                    k = int(np.argmax(over))
-                    self._begin_stop(ex, ResultCode.PATH_TOLERANCE_VIOLATED,
-                                     f"path tolerance violated on joint {m.joint_names[k] if m else k!r}: "
-                                     f"error {err[k]:.4f} > {ex.path_tol[k]:.4f}")
-                    return True
-            if elapsed >= dur:
+        elapsed = tau - ex.t0
+        if ex.phase == "follow":
+            over = ~(np.abs(err) <= ex.path_tol)
+            if over.any():
+                k = int(np.argmax(over))
+                name = m.joint_names[k] if m else str(k)
+                self._abort(ex, ResultCode.PATH_TOLERANCE_VIOLATED,
+                            f"path tolerance violated on joint {name!r}: error {err[k]:.4f} > {ex.path_tol[k]:.4f}",
+                            t, q, v, a, over)
+                return self._write_stop(ex, t, st, sp)
+            if elapsed >= ex.sampler.duration:
+                if ex.end_moving:  # ends moving (allow_nonzero_velocity_at_end): decelerate, then hold
+                    self._begin_stop(ex, ResultCode.SUCCESSFUL, "ended moving; decelerated to rest", t, q, v, a,
+                                     None)
+                    return self._write_stop(ex, t, st, sp)
                 ex.phase = "settle"
+        qc = self._limited(ex, q, v, a)
+        if qc is None:  # a step the limiter would have clipped: aborted
+            return self._write_stop(ex, t, st, sp)
         if ex.phase == "settle":
-            gerr, inside = ex.abs_err, ex.over
-            np.subtract(ex.goal, actual, out=gerr)
-            np.absolute(gerr, out=gerr)
-            np.less_equal(gerr, ex.goal_tol, out=inside)
-            if np.count_nonzero(inside) == len(inside):
+            gerr = np.abs(ex.goal - actual)
+            if ex.wrap is not None:
+                gerr = np.where(ex.wrap, np.abs(_wrap_angle(ex.goal - actual)), gerr)
+            if (gerr <= ex.goal_tol).all():
+                self._write(ex, t, st, sp, qc, v, a, err)
                 self._finish(ex, ResultCode.SUCCESSFUL, "")
-                self._hold_at(ex.idx, ex.goal)
+                self.loop.hold_at(idx, qc)
                 return False
             if elapsed >= ex.sampler.duration + ex.goal_time:
+                bad = ~(gerr <= ex.goal_tol)
                 k = int(np.argmax(gerr - ex.goal_tol))
                 name = m.joint_names[k] if m else str(k)
-                self._finish(ex, ResultCode.GOAL_TOLERANCE_VIOLATED,
-                             f"goal tolerance violated on joint {name!r}: error {gerr[k]:.4f} > {ex.goal_tol[k]:.4f}")
-                self._hold_at(ex.idx, ex.goal)
-                return False
-        elif ex.phase == "stopping" and elapsed >= ex.sampler.duration:
-            final = ex.des_q.copy()
+                msg = f"goal tolerance violated on joint {name!r}: error {gerr[k]:.4f} > {ex.goal_tol[k]:.4f}"
+                self._abort(ex, ResultCode.GOAL_TOLERANCE_VIOLATED, msg, t, q, v, a, bad)
+                # like JTC the result is known now; the stop from the measured state carries on
+                self._resolve(ex, ResultCode.GOAL_TOLERANCE_VIOLATED, msg)
+                ex.motion = None
+                return self._write_stop(ex, t, st, sp)
+        elif stopping and elapsed >= ex.sampler.duration:
+            self._write(ex, t, st, sp, qc, v, a, err)
             self._finish(ex, ex.stop_code, ex.stop_msg)
-            self._hold_at(ex.idx, final)
+            self.loop.hold_at(idx, qc)
+            return False
+        self._write(ex, t, st, sp, qc, v, a, err)
+        return True
+
+    def _write_stop(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
+        """The reference was just replaced by a stop starting at ``t``: write its first sample."""
+        q, v, a = ex.sampler.sample(t)
+        ex.vt, ex.at = v, a
+        err = q - st.position[ex.idx]
+        if ex.wrap is not None:
+            err = np.where(ex.wrap, _wrap_angle(err), err)
+        qc = self._limited(ex, q, v, a)
+        self._write(ex, t, st, sp, qc, v, a, err)
+        if ex.sampler.duration <= 0.0:
+            self._finish(ex, ex.stop_code, ex.stop_msg)
+            self.loop.hold_at(ex.idx, qc)
             return False
         return True
 
-    def _hold_at(self, idx: np.ndarray, q: np.ndarray) -> None:
-        self.loop.hold_at(idx, q)
+    def _limited(self, ex: _Exec, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray | None:
+        """``q`` inside the position bounds and the limiter's step window, computed exactly as the limiter does.
 
+        For a validated motion this only removes float noise (a plan exactly at the limits), so the
+        limiter never clips what a motion writes. A planned step beyond it (e.g. a first point at
+        time 0 away from the robot) aborts the motion before anything is written (None is returned:
+        the caller writes the stop instead); a stop ramp limited by more than noise (stopping a
+        joint that moves towards its limit) is reported once. Never silent.
+        """
+        lo, hi, step, step_tol = ex.limits if ex.limits is not None else self._exec_limits(ex)
+        out = np.maximum(q, lo)
+        np.minimum(out, hi, out=out)
+        what = ""
+        if (out != q).any() and float(np.max(np.abs(out - q))) > _BOUND_TOL:
+            what = "bounds"
+        origin = self._step_origin
+        if step is not None and step_tol is not None and origin is not None:
+            o = origin[ex.idx]
+            dev = np.abs(out - o)
+            if (dev > step).any():  # beyond the limiter's window: float noise is clamped, more aborts
+                if not what and (dev > step_tol).any():
+                    what = "step"
+                np.maximum(out, o - step, out=out)
+                np.minimum(out, o + step, out=out)
+        if not what:
+            return out
+        idx = ex.idx
+        k = int(np.argmax(np.abs(out - q)))
+        name = self.loop.names[int(idx[k])]
+        if ex.phase == "follow":
+            if what == "step":
+                assert step is not None and origin is not None
+                detail = (f"the planned setpoint of joint {name!r} steps {abs(q[k] - origin[idx[k]]):.4g} in one "
+                          f"control period, more than max_position_step {step[k]:.4g}: the motion does not continue "
+                          "from the current reference (e.g. a first point at time_from_start 0 away from the "
+                          "robot); aborted, not clipped")
+            else:
+                detail = (f"the planned setpoint of joint {name!r} ({q[k]:.6g}) leaves its bounds "
+                          f"[{lo[k]:.6g}, {hi[k]:.6g}]; aborted, not clipped")
+            if self._report is not None:
+                self._report(what, detail, name)
+            bad = np.abs(out - q) > 0.0
+            # the joints that would step stop from their measured state, the others from this sample
+            self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", ex.t_last, q, v, a, bad)
+            return None
+        if not ex.reported_clip:
+            ex.reported_clip = True
+            if self._report is not None:
+                self._report("clip", f"the {'stop ramp' if ex.phase == 'stopping' else 'motion'} of joint {name!r} "
+                             f"was limited by {abs(out[k] - q[k]):.4g} ({what}: position bounds or "
+                             "max_position_step)", name)
+        return out
 
+    def _exec_limits(
+        self, ex: _Exec
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        idx = ex.idx
+        step = None if self._step is None else self._step[idx]
+        step_tol = None if step is None else step * (1.0 + _STEP_RTOL) + 1e-12
+        ex.limits = (self.bounds.lo[idx], self.bounds.hi[idx], step, step_tol)
+        return ex.limits
+
+    def _write(self, ex: _Exec, t: float, st: StateView, sp: Setpoint, qc: np.ndarray, v: np.ndarray,
+               a: np.ndarray, err: np.ndarray) -> None:
+        """Write the (already limited) reference ``qc``/``v`` of ``ex``'s joints; publish its feedback."""
+        idx = ex.idx
+        loop = self.loop
+        ex.des_q, ex.des_v, ex.des_a = qc, v, a
+        sp.mode[idx] = _POS
+        sp.enabled[idx] = True
+        sp.position[idx] = qc
+        sp.velocity[idx] = v
+        sp.effort[idx] = 0.0
+        sp.kp[idx] = loop.gain_p[idx]
+        sp.kd[idx] = loop.gain_d[idx]
+        sp.target[idx] = qc
+        m = ex.motion
+        if m is not None:
+            dur = ex.sampler.duration
+            if ex.phase == "stopping":  # the stop ramp is not progress along the trajectory: keep the last value
+                progress = m._feedback.progress if m._feedback is not None else 0.0
+            else:
+                progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
+            m._feedback = Feedback(t, m.joint_names, qc, v, st.position[idx].copy(), st.velocity[idx].copy(), err,
+                                   progress)
+
+    def _activate(self, ex: _Exec, t: float) -> bool:
+        """A scheduled motion's start time has come: take over its joints from whatever drives them."""
+        if ex in self._pending:
+            self._pending.remove(ex)
+        idx = ex.idx
+        q0, v0, a0 = self.desired(idx)
+        traj = ex.pending_traj
+        assert traj is not None
+        try:
+            late = t - ex.t0
+            if late > 1e-9:  # the start fell between two ticks: what elapsed since is skipped
+                traj = traj.after(late)
+            traj, sampler = self._prepare(ex, traj, q0, v0, a0, t)
+        except CommandRejected as exc:
+            ex.phase = "dead"
+            if ex.motion is not None and not ex.motion._future.done():
+                ex.motion._future.set_result(
+                    MotionResult(ResultCode.INVALID_GOAL, {n: 0.0 for n in ex.motion.joint_names},
+                                 f"invalid at its scheduled start: {exc}", t))
+            return False
+        if ex.motion is not None:
+            ex.motion.trajectory = traj
+        self._preempt(idx)
+        self._own(ex)
+        self._begin(ex, sampler, q0, v0, a0, t)
+        return True

@@ -89,7 +89,8 @@ def matrix_to_quat(r: FloatArray) -> FloatArray:
         q = np.array([(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s, (r[1, 0] - r[0, 1]) / s])
     if q[3] < 0.0:
         q = -q
-    return q / np.linalg.norm(q)
+    unit: FloatArray = q / np.linalg.norm(q)
+    return unit
 
 
 def rotation_vector(q: FloatArray) -> FloatArray:
@@ -108,7 +109,8 @@ def quat_from_rotation_vector(v: FloatArray) -> FloatArray:
     angle = float(np.linalg.norm(v))
     if angle < 1e-12:
         q = np.array([0.5 * v[0], 0.5 * v[1], 0.5 * v[2], 1.0])
-        return q / np.linalg.norm(q)
+        unit: FloatArray = q / np.linalg.norm(q)
+        return unit
     s = math.sin(0.5 * angle) / angle
     return np.array([v[0] * s, v[1] * s, v[2] * s, math.cos(0.5 * angle)])
 
@@ -142,6 +144,7 @@ class Pose:
 
     position: FloatArray
     orientation: FloatArray
+    _matrix: FloatArray | None
 
     def __init__(
         self,
@@ -160,8 +163,12 @@ class Pose:
         object.__setattr__(self, "_matrix", None)
 
     @classmethod
-    def _trusted(cls, position: FloatArray, orientation: FloatArray) -> Pose:
-        """Build from already valid arrays (private copies) without re-validating."""
+    def from_trusted_arrays(cls, position: FloatArray, orientation: FloatArray) -> Pose:
+        """Build from arrays already known valid (a (3,) position, a unit (x, y, z, w) quaternion) without checks.
+
+        The arrays are taken over (made read-only), not copied: pass private copies. For
+        hot paths such as FK; everything else should use the validating constructor.
+        """
         self = object.__new__(cls)
         object.__setattr__(self, "position", _frozen(position))
         object.__setattr__(self, "orientation", _frozen(orientation))
@@ -175,7 +182,7 @@ class Pose:
     @classmethod
     def identity(cls) -> Pose:
         """The identity transform."""
-        return cls._trusted(np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
+        return cls.from_trusted_arrays(np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]))
 
     @classmethod
     def from_matrix(cls, matrix: npt.ArrayLike) -> Pose:
@@ -202,14 +209,14 @@ class Pose:
                 "Pose.from_matrix: the rotation block is not a rotation "
                 f"(max |R^T R - I| = {ortho:.3g}, det = {det:.6g})"
             )
-        return cls._trusted(m[:3, 3].copy(), matrix_to_quat(r))
+        return cls.from_trusted_arrays(m[:3, 3].copy(), matrix_to_quat(r))
 
     @classmethod
     def from_xyz_rpy(cls, xyz: Sequence[float] | npt.ArrayLike, rpy: Sequence[float] | npt.ArrayLike) -> Pose:
         """From a position and URDF/ROS roll-pitch-yaw angles (fixed axes X, Y, Z; radians)."""
         p = _vector(xyz, 3, "Pose position")
         r = _vector(rpy, 3, "Pose roll-pitch-yaw")
-        return cls._trusted(p, quat_from_rpy(*r.tolist()))
+        return cls.from_trusted_arrays(p, quat_from_rpy(*r.tolist()))
 
     # ------------------------------------------------------------ views
     @property
@@ -248,7 +255,7 @@ class Pose:
             return NotImplemented
         rot = quat_to_matrix(self.orientation)
         q = quat_multiply(self.orientation, other.orientation)
-        return Pose._trusted(self.position + rot @ other.position, q / np.linalg.norm(q))
+        return Pose.from_trusted_arrays(self.position + rot @ other.position, q / np.linalg.norm(q))
 
     __mul__ = __matmul__
 
@@ -256,7 +263,7 @@ class Pose:
         """The inverse transform: ``p @ p.inverse()`` is the identity."""
         x, y, z, w = self.orientation
         qi = np.array([-x, -y, -z, w])
-        return Pose._trusted(-(quat_to_matrix(qi) @ self.position), qi)
+        return Pose.from_trusted_arrays(-(quat_to_matrix(qi) @ self.position), qi)
 
     def apply(self, points: npt.ArrayLike) -> FloatArray:
         """Transform a point (3,) or points (n, 3) from this pose's frame to its parent frame."""

@@ -103,7 +103,8 @@ def probe(
     except Exception as exc:  # a non-SDK exception is a bug the caller must see, with its type
         out = {"ok": False, "loaded": False, "error_type": type(exc).__name__, "error": str(exc), "unexpected": True}
     out["seconds"] = time.perf_counter() - t0
-    return _jsonable(out)
+    report: dict[str, Any] = _jsonable(out)
+    return report
 
 
 def _worker_main() -> int:

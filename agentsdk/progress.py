@@ -105,12 +105,12 @@ class RunProgress:
             )
         )
         progress = Progress(*columns, console=self._console, transient=True, auto_refresh=False)
-        task = progress.add_task(self._label, total=self._total or None, **self.fields())
+        task = progress.add_task(self._label, total=self._total or None, **self.fields())  # type: ignore[arg-type]
         progress.start()
         try:
             while True:
                 f = self.fields()
-                progress.update(task, completed=f["sim"] if self._total else None, **f)
+                progress.update(task, completed=f["sim"] if self._total else None, **f)  # type: ignore[arg-type]
                 progress.refresh()
                 self.displayed.set()
                 if self._stop.wait(self._interval):

@@ -27,6 +27,7 @@ from .errors import AgentSDKError, BackendStartError, CommandRejected
 from .loop import ControlLoop, HookHandle, Phase
 from .registry import load_backend
 from .safety import PositionBounds, SafetyConfig, SafetyLayer
+from .threads import run_blocking
 from .types import AppliedCommand, FloatArray, JointCommand, JointInfo, JointState
 
 if TYPE_CHECKING:
@@ -56,6 +57,7 @@ class Robot:
         self.safety = safety
         self._motions = motions
         self._kinematics: Kinematics | None = None
+        self._kinematics_error: Exception | None = None
 
     # ------------------------------------------------------------ metadata
     @property
@@ -191,10 +193,30 @@ class Robot:
         ``positions=None`` means the latest measured state; see :mod:`agentsdk.kinematics`.
         """
         if self._kinematics is None:
-            from .kinematics import Kinematics
-
-            self._kinematics = Kinematics.for_robot(self)
+            if self._kinematics_error is not None:
+                raise self._kinematics_error
+            self._kinematics = self._build_kinematics()
         return self._kinematics
+
+    def _build_kinematics(self) -> Kinematics:
+        from .kinematics import Kinematics
+
+        kin = Kinematics.for_robot(self)
+        kin.prepare_ik()
+        return kin
+
+    async def _prepare_kinematics(self) -> None:
+        """Compile the kinematic model and import the IK solver off the event loop.
+
+        Both take from milliseconds to a second (a large mesh robot, the first ``import
+        mink``); done lazily on first use they would stall the loop, which the stall
+        watchdog rightly treats as an e-stop. A description the kinematics cannot model
+        fails later, at ``robot.kinematics``, not at connect.
+        """
+        try:
+            self._kinematics = await run_blocking(self._build_kinematics, name="agentsdk-kinematics")
+        except Exception as exc:  # reported at first use of robot.kinematics
+            self._kinematics_error = exc
 
     @property
     def link_names(self) -> tuple[str, ...]:
@@ -227,8 +249,8 @@ class Robot:
             owner = self._motions.owner_of(idx)
             if owner is not None:
                 raise CommandRejected(
-                    f"joint {loop.names[owner[0]]!r} is driven by a running trajectory; "
-                    "cancel it (motion.cancel()) before sending direct commands"
+                    f"joint {loop.names[owner[0]]!r} is driven by a running trajectory (or reserved by a "
+                    "scheduled one); cancel it (motion.cancel()) before sending direct commands"
                 )
             values = self.safety.limit_command(cmd.mode, idx, values)
             vel, eff = self.safety.limit_feedforward(idx, vel, eff)
@@ -243,15 +265,54 @@ class Robot:
             )
 
     # ---------------------------------------------------------- trajectory
-    def follow(self, trajectory: Trajectory, tolerances: Tolerances | None = None) -> Motion:
+    def follow(
+        self,
+        trajectory: Trajectory,
+        tolerances: Tolerances | None = None,
+        *,
+        start_time: float | None = None,
+        allow_nonzero_velocity_at_end: bool = False,
+        stretch_to_limits: bool = False,
+    ) -> Motion:
         """Start following ``trajectory``; returns an awaitable :class:`Motion` handle at once.
 
-        A running trajectory on overlapping joints is preempted (its result is
-        PREEMPTED) and the new one starts from its current desired state.
+        The trajectory is validated like ros2_controllers' JointTrajectoryController and on
+        its whole interpolated motion (from the current desired state): a
+        :class:`CommandRejected` subclass naming the point or segment and the joint is raised,
+        nothing starts. ``stretch_to_limits=True`` slows a trajectory whose motion is too fast
+        or accelerates too hard down uniformly (times stretched) instead of rejecting it.
+        A last point with a non-zero velocity needs ``allow_nonzero_velocity_at_end=True``
+        (the motion then decelerates to rest after it).
+
+        ``start_time`` (robot clock, :attr:`clock`) schedules the start, like JTC's
+        ``header.stamp``: until then whatever drives the joints continues; a start in the past
+        skips the points that have elapsed. A running trajectory on overlapping joints is
+        preempted (its result is PREEMPTED) when the new one starts, which then starts from
+        its current desired state. Trajectories run at :attr:`speed_scaling`.
         """
         self._loop.check_open()
         self.safety.check_motion_allowed()
-        return self._motions.follow(trajectory, tolerances)
+        return self._motions.follow(trajectory, tolerances, start_time=start_time,
+                                    allow_nonzero_velocity_at_end=allow_nonzero_velocity_at_end,
+                                    stretch_to_limits=stretch_to_limits)
+
+    @property
+    def speed_scaling(self) -> float:
+        """The speed scaling factor trajectories run at: 1.0 as timed, 0.5 half speed, 0.0 paused."""
+        return self._motions.speed_scaling
+
+    def set_speed_scaling(self, factor: float) -> None:
+        """Slow every running and future trajectory down to ``factor`` in [0, 1] (0 pauses, 1 resumes).
+
+        Like JTC's speed scaling and an industrial pendant's speed slider: trajectory time advances
+        at ``factor`` times robot time. The change is smooth (each motion ramps to the new factor
+        within its joints' acceleration limits, velocities never jump). Path tolerances keep
+        being checked against the slowed reference and ``goal_time`` counts trajectory time, so
+        a paused motion neither times out nor fails. Stops (cancel, aborts, e-stops) are never
+        slowed. Callable from any task or state; raises :class:`InvalidValueError` outside [0, 1].
+        """
+        self._loop.check_open()
+        self._motions.set_speed_scaling(factor)
 
     async def move_to(
         self,
@@ -363,12 +424,17 @@ async def _open_robot(
 ) -> Robot:
     from .motion import MotionManager
 
-    cls = load_backend(backend)
-    config, description = resolve_robot(robot, strict=strict)
-    joints = apply_overrides(description, config)
-    safety_cfg = SafetyConfig.from_sources(config.safety, safety)
-    bounds = PositionBounds(joints, safety_cfg.position_margin)
-    backend_obj = cls(config, description, joints, realtime=realtime, **options)
+    def prepare() -> tuple[Backend, SafetyConfig, PositionBounds]:
+        # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
+        # so that other robots on this event loop keep their deadlines while this one loads
+        cls = load_backend(backend)
+        config, description = resolve_robot(robot, strict=strict)
+        joints = apply_overrides(description, config)
+        safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
+        bounds = PositionBounds(joints, safety_cfg.position_margin)
+        return cls(config, description, joints, realtime=realtime, **options), safety_cfg, bounds
+
+    backend_obj, safety_cfg, bounds = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
     loop = ControlLoop(backend_obj)
     motions = MotionManager(loop, bounds, safety_cfg.stop_deceleration_scale)
     layer = SafetyLayer(loop, safety_cfg, bounds, motions)
@@ -381,8 +447,14 @@ async def _open_robot(
         layer.shutdown_now()
         raise BackendStartError(f"backend {backend!r} failed to start: {exc}") from exc
     layer.start()
-    log.debug("connected %s on %s (%d joints)", description.name, backend, len(joints))
-    return Robot(loop, layer, motions)
+    log.debug("connected %s on %s (%d joints)", backend_obj.description.name, backend, len(backend_obj.joints))
+    robot_obj = Robot(loop, layer, motions)
+    try:
+        await robot_obj._prepare_kinematics()
+    except BaseException:
+        await robot_obj.close()
+        raise
+    return robot_obj
 
 
 class _Connection:

@@ -38,12 +38,13 @@ import traceback
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .backend import ModeCode, SetpointView
+from .config import MAX_GAIN
 from .errors import (
     ConfigurationError,
     EStopActive,
@@ -72,28 +73,37 @@ __all__ = [
 
 log = logging.getLogger("agentsdk.safety")
 
+#: shortest accepted stall_timeout (s): the heartbeat runs every stall_timeout / 10
+MIN_STALL_TIMEOUT = 0.01
+
 
 class SafetyConfig(BaseModel):
-    """Safety settings (robot.yaml ``safety:``, overridable in ``connect(safety=...)``)."""
+    """Safety settings (robot.yaml ``safety:``, overridable in ``connect(safety=...)``).
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    Every number must be finite and within its range: a NaN compares false with
+    every bound (it would silently disable the check it configures), a negative
+    step would make the ramp itself drive the robot.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     #: what to do with an out-of-limit command: clamp it (and record) or reject it
     limit_policy: Literal["clamp", "reject"] = "clamp"
     #: soft margin inside the URDF position limits (rad or m)
     position_margin: float = Field(default=0.0, ge=0.0)
-    #: max change of a position setpoint per control cycle; "auto" = max_velocity * period; None = off
-    max_position_step: float | Literal["auto"] | None = "auto"
+    #: max change of a position setpoint per control cycle (rad or m, > 0); "auto" = max_velocity * period;
+    #: None = off
+    max_position_step: Annotated[float, Field(gt=0.0)] | Literal["auto"] | None = "auto"
     #: a streamed command older than this puts its joints in HOLD (robot time, s)
     command_timeout: float = Field(default=0.25, gt=0.0)
     #: command modes the command watchdog applies to (position targets hold by themselves)
     watchdog_modes: tuple[CommandMode, ...] = ("velocity", "effort")
     #: HOLD keeps position ("position") or only damps ("damping")
     hold: Literal["position", "damping"] = "position"
-    #: event-loop stall watchdog (wall-clock seconds); None disables the thread
-    stall_timeout: float | None = Field(default=0.25, gt=0.0)
+    #: event-loop stall watchdog (wall-clock seconds, at least 10 ms); None disables the thread
+    stall_timeout: Annotated[float, Field(ge=MIN_STALL_TIMEOUT)] | None = 0.25
     #: damping gain used by category 1 where position control is absent (N·m·s/rad)
-    stop_damping: float = Field(default=5.0, ge=0.0)
+    stop_damping: float = Field(default=5.0, ge=0.0, le=MAX_GAIN)
     #: scale of the joints' max_acceleration used when decelerating to a stop
     stop_deceleration_scale: float = Field(default=1.0, gt=0.0, le=1.0)
     #: minimum seconds between two identical clamp warnings in the log
@@ -103,27 +113,45 @@ class SafetyConfig(BaseModel):
     #: ... waiting at most this long (robot s) after the deceleration ramp ended
     rest_timeout: float = Field(default=1.0, ge=0.0)
     #: a measured position this far (rad or m) beyond a joint's limits is a protective stop; None = off
-    position_limit_tolerance: float | None = Field(default=0.1, gt=0.0)
+    position_limit_tolerance: Annotated[float, Field(gt=0.0)] | None = 0.1
     #: stop category of that protective stop (IEC 60204-1)
     position_limit_stop: Literal[0, 1, 2] = 2
 
     @classmethod
     def from_sources(
-        cls, yaml_section: Mapping[str, Any] | None, override: SafetyConfig | Mapping[str, Any] | None
+        cls,
+        yaml_section: Mapping[str, Any] | None,
+        override: SafetyConfig | Mapping[str, Any] | None,
+        *,
+        source: str = "robot.yaml",
     ) -> SafetyConfig:
-        """Merge the robot.yaml ``safety`` section with a ``connect(safety=...)`` override.
+        """The robot.yaml ``safety`` section with ``connect(safety=...)`` on top, validated.
 
-        The override wins key by key; the result is validated.
+        Raises :class:`ConfigurationError` with one line per problem, naming where
+        the value came from (``source``: the robot.yaml, or ``connect(safety=...)``).
         """
         data = dict(yaml_section or {})
+        given: dict[str, Any] = {}
         if isinstance(override, SafetyConfig):
-            data.update(override.model_dump(exclude_unset=True))
+            given = override.model_dump(exclude_unset=True)
         elif override:
-            data.update(override)
+            if not isinstance(override, Mapping):
+                raise ConfigurationError(
+                    f"connect(safety=...) expects a mapping or a SafetyConfig, got {type(override).__name__}"
+                )
+            given = dict(override)
+        data.update(given)
         try:
             return cls(**data)
         except ValidationError as exc:
-            raise ConfigurationError(f"invalid safety configuration:\n{exc}") from exc
+            from .config import validation_problems
+
+            lines = []
+            for line in validation_problems(exc, cls):
+                key = line.split(":", 1)[0].split(".", 1)[0]
+                where = "connect(safety=...)" if key in given else f"{source}: safety"
+                lines.append(f"{where}.{line}" if where.endswith("safety") else f"{where}: {line}")
+            raise ConfigurationError("\n".join(lines)) from None
 
 
 class SafetyState(enum.Enum):
@@ -289,6 +317,7 @@ class SafetyLayer:
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
         self._watch_position = "position" in config.watchdog_modes
         self._fed = np.zeros(n)  # robot time of the last command per joint
+        #: the limiter's origin: the position setpoint written last tick (always updated in place)
         self._written = loop.state.position.copy()
         #: goal of a direct position command being ramped (max_position_step), per joint
         self._goal = loop.setpoint.position.copy()
@@ -348,6 +377,11 @@ class SafetyLayer:
             loop.add_hook(Phase.OBSERVE, self._on_tick, order=SAFETY_OBSERVE_ORDER),
             loop.add_fault_listener(self._on_fault),
         ]
+        origin = self._written.view()
+        origin.flags.writeable = False
+        # trajectories check their steps against this limiter before writing: a planned motion is
+        # never clipped silently; an abort that resets a reference to the measured state says so
+        motions.attach_limiter(origin, self._step, self._rebase_reference, self.record)
         if config.position_limit_tolerance is not None:
             self.add_check(
                 MeasuredPositionCheck(loop.joints, config.position_limit_tolerance, config.position_limit_stop)
@@ -358,7 +392,7 @@ class SafetyLayer:
         """Start the heartbeat and the stall watchdog thread (called by connect once the loop runs)."""
         self._aloop = asyncio.get_running_loop()
         self._loop_thread_id = threading.get_ident()
-        self._written = self.loop.setpoint.position.copy()
+        np.copyto(self._written, self.loop.setpoint.position)
         self._goal = self._written.copy()
         if self.config.stall_timeout is not None:
             self._beat = time.monotonic()
@@ -555,6 +589,13 @@ class SafetyLayer:
             out.append(arr)
         return out[0], out[1]
 
+    def _rebase_reference(self, idx: np.ndarray, positions: np.ndarray) -> None:
+        """An abort reset the reference of joints ``idx`` to their measured ``positions``: the
+        position-step limiter measures the next step from there (a jump back to where the
+        joint is reduces the servo effort; it is not a step to limit).
+        """
+        self._written[idx] = positions
+
     def ramp_start(self, mode: CommandMode, idx: np.ndarray) -> np.ndarray | None:
         """Where a direct position command's setpoint starts this tick (the ramp's current position)."""
         return self._written[idx] if mode == "position" else None
@@ -627,6 +668,18 @@ class SafetyLayer:
             np.minimum(out, written + self._step, out=out)
         else:
             out = target
+        owned = self.motions.owned_mask
+        if owned.any():
+            # a planned motion is never clipped silently (the motions check their steps first, so
+            # this only fires for a writer that did not): report it, the motion aborts
+            clipped = (out != sp.position) & owned & pos_mode
+            if clipped.any():
+                j = int(np.argmax(clipped))
+                self.motions.limiter_clipped(
+                    np.flatnonzero(clipped),
+                    f"the limiter clipped the setpoint of joint {self.loop.names[j]!r} from {sp.position[j]:.6g} "
+                    f"to {out[j]:.6g} (position bounds or max_position_step)",
+                )
         np.copyto(sp.position, out, where=pos_mode)
         ramping &= out != target
         np.copyto(written, out, where=pos_mode)
@@ -951,7 +1004,7 @@ class SafetyLayer:
         self.check_fault()
         loop = self.loop
         await loop.enable()
-        self._written = loop.state.position.copy()
+        np.copyto(self._written, loop.state.position)
         self._goal = self._written.copy()
         self._ramping[:] = False
         self._held[:] = False

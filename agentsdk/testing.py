@@ -89,7 +89,7 @@ class BackendConformance:
 
     def capabilities(self) -> Capabilities:
         """The capabilities the backend declares for this configuration (read from an instance)."""
-        cached = type(self).__dict__.get("_caps")
+        cached: Capabilities | None = type(self).__dict__.get("_caps")
         if cached is not None:
             return cached
         config, desc = resolve_robot(self.robot)
@@ -230,8 +230,8 @@ class BackendConformance:
         leaked = [t for t in set(threading.enumerate()) - threads_before if t.is_alive()]
         for t in leaked:
             t.join(timeout=1.0)
-        leaked = [t.name for t in leaked if t.is_alive()]
-        assert not leaked, f"threads left running after close(): {leaked}"
+        alive = [t.name for t in leaked if t.is_alive()]
+        assert not alive, f"threads left running after close(): {alive}"
 
     # ----------------------------------------------------- concurrency
     async def test_concurrent_commands_are_serialized(self) -> None:

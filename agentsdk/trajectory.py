@@ -55,14 +55,19 @@ from .errors import CommandRejected, ConfigurationError, InvalidValueError, Limi
 from .types import FloatArray, JointInfo
 
 __all__ = [
+    "MAX_TIME_FROM_START",
+    "MIN_SEGMENT_DURATION",
     "Interpolation",
+    "MotionPeaks",
     "StartState",
     "Trajectory",
     "TrajectoryPoint",
     "TrajectorySampler",
+    "check_motion_limits",
     "plan",
     "plan_point_to_point",
     "plan_stop",
+    "time_scale_for_limits",
 ]
 
 Interpolation = Literal["linear", "spline"]
@@ -73,6 +78,16 @@ StartState: TypeAlias = tuple[Values, Values | None, Values | None]
 _POS_TOL = 1e-6  # rad or m, position limit tolerance of Trajectory.validate
 _PLAN_POS_TOL = 1e-7  # rad or m, ruckig reaches its targets within ~1e-8
 _VEL_RTOL = 1e-6  # relative tolerance of the velocity limit check
+_ACC_RTOL = 1e-6  # relative tolerance of the acceleration limit check
+#: |velocity| below which the last point counts as at rest (JTC: float epsilon)
+_END_VEL_EPS = float(np.finfo(np.float32).eps)
+#: longest ``time_from_start`` accepted (s, ~11.6 days): beyond it the polynomial coefficients lose
+#: their precision (and at ~1e60 s overflow to NaN setpoints)
+MAX_TIME_FROM_START = 1e6
+#: shortest time between two points (and from the start to a first point at a time > 0), s
+MIN_SEGMENT_DURATION = 1e-9
+#: ruckig (Community) refuses profiles longer than this (its ErrorTrajectoryDuration, -101)
+_RUCKIG_MAX_DURATION = 7.6e3
 _MIN_GAP = 1e-6  # s, breakpoints closer than this are merged
 _INF_JERK_RAMP = 0.002  # s, acceleration ramp time used for joints with max_jerk = inf
 
@@ -181,10 +196,19 @@ class Trajectory:
                 raise InvalidValueError(f"point {k}: time_from_start {t} is not finite")
             if t < 0.0:
                 raise InvalidValueError(f"point {k}: time_from_start {t} s is negative")
+            if t > MAX_TIME_FROM_START:
+                raise InvalidValueError(
+                    f"point {k}: time_from_start {t:g} s is beyond the supported {MAX_TIME_FROM_START:g} s"
+                )
             if t <= prev_t:
                 raise InvalidValueError(
                     f"point {k}: time_from_start {t} s is not after point {k - 1}'s {prev_t} s "
                     "(times must strictly increase)"
+                )
+            if t - max(prev_t, 0.0) < MIN_SEGMENT_DURATION and (k > 0 or t > 0.0):
+                raise InvalidValueError(
+                    f"point {k}: time_from_start {t:g} s is less than {MIN_SEGMENT_DURATION:g} s after "
+                    f"{'the start' if k == 0 else f'point {k - 1}'}: a segment too short to interpolate"
                 )
             prev_t = t
             if (p.velocities is not None) != has_vel:
@@ -229,12 +253,15 @@ class Trajectory:
         """``time_from_start`` of the last point (s)."""
         return self.points[-1].time_from_start
 
-    def validate(self, joints: Sequence[JointInfo]) -> None:
-        """Check joint names against ``joints`` and every point against their limits.
+    def validate(self, joints: Sequence[JointInfo], *, allow_nonzero_velocity_at_end: bool = False) -> None:
+        """Check joint names against ``joints`` and every point against their limits, like JTC.
 
-        Raises :class:`UnknownJointError` for a joint not in ``joints`` and
-        :class:`LimitViolation` for a position outside ``[lower, upper]`` or a
-        velocity above ``max_velocity``. Accelerations are not checked (JTC does not).
+        Raises :class:`UnknownJointError` for a joint not in ``joints``; :class:`LimitViolation`
+        for a position outside ``[lower, upper]``, a velocity above ``max_velocity`` or an
+        acceleration above ``max_acceleration``; :class:`InvalidValueError` for a last point with a
+        non-zero velocity unless ``allow_nonzero_velocity_at_end`` (JTC's
+        ``allow_nonzero_velocity_at_trajectory_end``). The motion *between* the points is checked
+        by :func:`check_motion_limits` on a :class:`TrajectorySampler`.
         """
         by_name = {j.name: j for j in joints}
         infos: list[JointInfo] = []
@@ -246,7 +273,8 @@ class Trajectory:
         lower = np.array([j.lower for j in infos])
         upper = np.array([j.upper for j in infos])
         vmax = np.array([j.max_velocity for j in infos])
-        bad = (self.positions < lower - _POS_TOL) | (self.positions > upper + _POS_TOL)
+        amax = np.array([j.max_acceleration for j in infos])
+        bad = ~((self.positions >= lower - _POS_TOL) & (self.positions <= upper + _POS_TOL))
         if bad.any():
             k, j = (int(i) for i in np.argwhere(bad)[0])
             val = self.positions[k, j]
@@ -255,13 +283,86 @@ class Trajectory:
                 f"[{lower[j]:.6g}, {upper[j]:.6g}]"
             )
         if self.velocities is not None:
-            bad = np.abs(self.velocities) > vmax * (1.0 + _VEL_RTOL)
+            bad = ~(np.abs(self.velocities) <= vmax * (1.0 + _VEL_RTOL))
             if bad.any():
                 k, j = (int(i) for i in np.argwhere(bad)[0])
                 val = self.velocities[k, j]
                 raise LimitViolation(
                     f"point {k}: joint {self.joint_names[j]!r} velocity {val:.6g} exceeds max_velocity {vmax[j]:.6g}"
                 )
+            if not allow_nonzero_velocity_at_end:
+                moving = np.abs(self.velocities[-1]) > _END_VEL_EPS
+                if moving.any():
+                    j = int(np.argmax(moving))
+                    raise InvalidValueError(
+                        f"point {len(self.points) - 1} (the last): joint {self.joint_names[j]!r} velocity "
+                        f"{self.velocities[-1, j]:.6g} is not zero; a trajectory ends at rest unless "
+                        "allow_nonzero_velocity_at_end=True (JTC's allow_nonzero_velocity_at_trajectory_end)"
+                    )
+        if self.accelerations is not None:
+            bad = ~(np.abs(self.accelerations) <= amax * (1.0 + _ACC_RTOL))
+            if bad.any():
+                k, j = (int(i) for i in np.argwhere(bad)[0])
+                val = self.accelerations[k, j]
+                raise LimitViolation(
+                    f"point {k}: joint {self.joint_names[j]!r} acceleration {val:.6g} exceeds max_acceleration "
+                    f"{amax[j]:.6g}"
+                )
+
+    def time_scaled(self, factor: float) -> Trajectory:
+        """This trajectory ``factor`` times slower: times x factor, velocities / factor, accelerations / factor^2.
+
+        The path (every point's positions) is unchanged; ``factor`` must be finite and > 0.
+        """
+        if not (math.isfinite(factor) and factor > 0.0):
+            raise InvalidValueError(f"time scale factor must be a positive number, got {factor!r}")
+        k2 = factor * factor
+        return Trajectory(
+            self.joint_names,
+            [
+                TrajectoryPoint(
+                    p.time_from_start * factor,
+                    p.positions,
+                    None if p.velocities is None else [v / factor for v in p.velocities],
+                    None if p.accelerations is None else [a / k2 for a in p.accelerations],
+                )
+                for p in self.points
+            ],
+        )
+
+    def shifted(self, offsets: Sequence[float] | npt.ArrayLike) -> Trajectory:
+        """The same motion with every position of joint ``j`` moved by ``offsets[j]`` (e.g. 2*pi turns)."""
+        off = np.asarray(offsets, dtype=np.float64)
+        if off.shape != (len(self.joint_names),) or not np.isfinite(off).all():
+            raise InvalidValueError(f"offsets: expected {len(self.joint_names)} finite values, got {offsets!r}")
+        if not off.any():
+            return self
+        return Trajectory(
+            self.joint_names,
+            [
+                TrajectoryPoint(p.time_from_start, np.asarray(p.positions) + off, p.velocities, p.accelerations)
+                for p in self.points
+            ],
+        )
+
+    def after(self, elapsed: float) -> Trajectory:
+        """What is left ``elapsed`` seconds after the start: the points after it, times relative to then.
+
+        Points at or before ``elapsed`` are dropped (a scheduled start in the past skips what
+        has elapsed, as JTC does); raises :class:`InvalidValueError` if none is left.
+        """
+        if elapsed <= 0.0:
+            return self
+        keep = [p for p in self.points if p.time_from_start > elapsed]
+        if not keep:
+            raise InvalidValueError(
+                f"the trajectory ended {elapsed - self.duration:.6g} s ago (its start time is {elapsed:.6g} s in "
+                f"the past and it lasts {self.duration:.6g} s)"
+            )
+        return Trajectory(
+            self.joint_names,
+            [TrajectoryPoint(p.time_from_start - elapsed, p.positions, p.velocities, p.accelerations) for p in keep],
+        )
 
 
 # --------------------------------------------------------------------------- interpolation
@@ -296,16 +397,21 @@ def _vector(values: Values | None, names: Sequence[str], what: str, default: flo
 def _quintic(
     q0: FloatArray, v0: FloatArray, a0: FloatArray, q1: FloatArray, v1: FloatArray, a1: FloatArray, T: FloatArray
 ) -> FloatArray:
-    """Coefficients (segments, 6, joints) of quintic Hermite polynomials in local time."""
+    """Coefficients (segments, 6, joints) of quintic Hermite polynomials in local time.
+
+    Durations too short or too long to represent give non-finite coefficients (no warning), which
+    :func:`check_motion_limits` refuses.
+    """
     T = T[:, None]
     h = q1 - q0
     c = np.empty((len(T), 6, q0.shape[1]))
     c[:, 0] = q0
     c[:, 1] = v0
     c[:, 2] = 0.5 * a0
-    c[:, 3] = (20.0 * h - (8.0 * v1 + 12.0 * v0) * T - (3.0 * a0 - a1) * T**2) / (2.0 * T**3)
-    c[:, 4] = (-30.0 * h + (14.0 * v1 + 16.0 * v0) * T + (3.0 * a0 - 2.0 * a1) * T**2) / (2.0 * T**4)
-    c[:, 5] = (12.0 * h - 6.0 * (v1 + v0) * T + (a1 - a0) * T**2) / (2.0 * T**5)
+    with np.errstate(all="ignore"):
+        c[:, 3] = (20.0 * h - (8.0 * v1 + 12.0 * v0) * T - (3.0 * a0 - a1) * T**2) / (2.0 * T**3)
+        c[:, 4] = (-30.0 * h + (14.0 * v1 + 16.0 * v0) * T + (3.0 * a0 - 2.0 * a1) * T**2) / (2.0 * T**4)
+        c[:, 5] = (12.0 * h - 6.0 * (v1 + v0) * T + (a1 - a0) * T**2) / (2.0 * T**5)
     return c
 
 
@@ -315,15 +421,17 @@ def _cubic(q0: FloatArray, v0: FloatArray, q1: FloatArray, v1: FloatArray, T: Fl
     c = np.zeros((len(T), 6, q0.shape[1]))
     c[:, 0] = q0
     c[:, 1] = v0
-    c[:, 2] = (3.0 * h - (2.0 * v0 + v1) * T) / T**2
-    c[:, 3] = (-2.0 * h + (v0 + v1) * T) / T**3
+    with np.errstate(all="ignore"):
+        c[:, 2] = (3.0 * h - (2.0 * v0 + v1) * T) / T**2
+        c[:, 3] = (-2.0 * h + (v0 + v1) * T) / T**3
     return c
 
 
 def _linear(q0: FloatArray, q1: FloatArray, T: FloatArray) -> FloatArray:
     c = np.zeros((len(T), 6, q0.shape[1]))
     c[:, 0] = q0
-    c[:, 1] = (q1 - q0) / T[:, None]
+    with np.errstate(all="ignore"):
+        c[:, 1] = (q1 - q0) / T[:, None]
     return c
 
 
@@ -388,15 +496,12 @@ class TrajectorySampler:
     """
 
     __slots__ = (
+        "_B",
         "_c",
         "_end_state",
+        "_has_start",
         "_knots",
         "_n",
-        "_nseg",
-        "_out",
-        "_out_flat",
-        "_p",
-        "_segs",
         "_start_state",
         "end_time",
         "indices",
@@ -540,23 +645,8 @@ class TrajectorySampler:
             seg_coeffs.append(body)
         self._c = np.concatenate(seg_coeffs, axis=0) if seg_coeffs else np.zeros((0, 6, n))
         self._knots = knots
-        # per segment, the coefficients of q, qd and qdd side by side (6, 3 * joints): one sample is
-        # one vector-matrix product with the powers of the local time [1, tau, ..., tau^5]
-        d1 = np.arange(1.0, 6.0)[:, None]
-        d2 = np.array([2.0, 6.0, 12.0, 20.0])[:, None]
-        segs = []
-        for c in self._c:
-            three = np.zeros((6, 3, n))
-            three[:, 0] = c
-            three[:5, 1] = d1 * c[1:]
-            three[:4, 2] = d2 * c[2:]
-            segs.append(three.reshape(6, 3 * n))
-        self._segs = segs
-        self._nseg = len(segs)
-        self._p = np.zeros(6)
-        self._p[0] = 1.0
-        self._out: FloatArray | None = None
-        self._out_flat: FloatArray | None = None
+        self._has_start = has_start
+        self._B = np.zeros((3, 6))
         self._end_state = np.vstack([P[-1], v_end, a_end])
         if len(self._c):  # the state at the start of the first segment
             c0 = self._c[0]
@@ -581,40 +671,275 @@ class TrajectorySampler:
         return t >= self.end_time
 
     def sample_into(self, t: float, out: FloatArray) -> FloatArray:
-        """Write ``[q, qd, qdd]`` at absolute time ``t`` into ``out`` (shape (3, joints)) and return it.
-
-        Allocation-free for a C-contiguous ``out`` (the control tick calls it every period).
-        """
-        i = bisect_right(self._knots, t) - 1
-        if i >= self._nseg:
+        """Write ``[q, qd, qdd]`` at absolute time ``t`` into ``out`` (shape (3, joints)) and return it."""
+        knots = self._knots
+        i = bisect_right(knots, t) - 1
+        if i >= len(self._c):
             out[...] = self._end_state
             return out
         if i < 0:
             out[...] = self._start_state
             return out
-        tau = t - self._knots[i]
+        tau = t - knots[i]
         t2 = tau * tau
         t3 = t2 * tau
-        p = self._p  # [1, tau, ..., tau^5], element by element (a tuple would be converted to an array)
-        p[1] = tau
-        p[2] = t2
-        p[3] = t3
-        p[4] = t3 * tau
-        p[5] = t3 * t2
-        if out is not self._out:  # a new output array: check it once, keep its flat view
-            self._out = out
-            self._out_flat = out.reshape(-1) if out.flags.c_contiguous else None
-        flat = self._out_flat
-        if flat is not None:
-            np.dot(p, self._segs[i], out=flat)
-        else:
-            out[...] = np.dot(p, self._segs[i]).reshape(3, -1)
+        B = self._B
+        B[0] = (1.0, tau, t2, t3, t3 * tau, t3 * t2)
+        B[1, 1:] = (1.0, 2.0 * tau, 3.0 * t2, 4.0 * t3, 5.0 * t3 * tau)
+        B[2, 2:] = (2.0, 6.0 * tau, 12.0 * t2, 20.0 * t3)
+        np.dot(B, self._c[i], out=out)
         return out
 
     def sample(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """``(q, qd, qdd)`` at absolute time ``t``, in the trajectory's joint order (fresh arrays)."""
         out = self.sample_into(t, np.empty((3, self._n)))
         return out[0], out[1], out[2]
+
+    def segment_label(self, i: int) -> str:
+        """Human name of segment ``i``: ``"start state -> point 0"`` or ``"point k -> point k+1"``."""
+        if self._has_start:
+            return "start state -> point 0" if i == 0 else f"point {i - 1} -> point {i}"
+        return f"point {i} -> point {i + 1}"
+
+    def peaks(self) -> MotionPeaks:
+        """Exact extremes of the interpolated motion, per segment and joint (see :class:`MotionPeaks`).
+
+        Every segment is a polynomial of degree <= 5 per joint; the extremes are its values at
+        the segment ends and at the roots of its derivative inside the segment (sign changes on a
+        16-cell grid bisected to machine precision, plus the companion-matrix roots, which also
+        find two extrema inside one cell). Velocity steps at the points of a
+        positions-only (linear) trajectory are not motion inside a segment and are not counted.
+        """
+        c = self._c
+        n_seg = len(c)
+        n = self._n
+        if n_seg == 0:
+            empty = np.zeros((0, n))
+            return MotionPeaks(np.array(self._knots[:1] or [self.start_time]), empty, empty, empty, empty, empty, empty)
+        T = np.diff(np.array(self._knots, dtype=np.float64))
+        with np.errstate(all="ignore"):
+            kk = np.arange(6, dtype=np.float64)
+            cq = c
+            cv = c[:, 1:] * kk[1:, None]  # degree 4
+            ca = cv[:, 1:] * kk[1:5, None]  # degree 3 (2*c2, 6*c3, ...)
+            cj = ca[:, 1:] * np.arange(1.0, 4.0)[:, None]  # degree 2
+            q_lo, q_hi, _ = _poly_range(cq, cv, T)
+            v_lo, v_hi, v_at = _poly_range(cv, ca, T)
+            a_lo, a_hi, a_at = _poly_range(ca, cj, T)
+        v_abs = np.maximum(np.abs(v_lo), np.abs(v_hi))
+        a_abs = np.maximum(np.abs(a_lo), np.abs(a_hi))
+        v_t = np.where(np.abs(v_hi) >= np.abs(v_lo), v_at[1], v_at[0])
+        a_t = np.where(np.abs(a_hi) >= np.abs(a_lo), a_at[1], a_at[0])
+        knots = np.array(self._knots, dtype=np.float64)
+        return MotionPeaks(knots, q_lo, q_hi, v_abs, a_abs, knots[:-1, None] + v_t, knots[:-1, None] + a_t)
+
+
+@dataclass(frozen=True, slots=True)
+class MotionPeaks:
+    """Extremes of a sampler's interpolated motion, arrays of shape (segments, joints).
+
+    ``knots`` (segments + 1,) are the segments' absolute start/end times; ``q_min``/``q_max``
+    the position range, ``v_peak``/``a_peak`` the largest |velocity| and |acceleration| inside
+    each segment, reached at ``v_time``/``a_time`` (absolute). NaN marks a segment whose
+    polynomial is not finite (a duration too short or too long to represent).
+    """
+
+    knots: FloatArray
+    q_min: FloatArray
+    q_max: FloatArray
+    v_peak: FloatArray
+    a_peak: FloatArray
+    v_time: FloatArray
+    a_time: FloatArray
+
+
+_GRID = 16  # cells per segment where derivative roots are bracketed
+_BISECT = 52  # bisection steps: a cell shrinks to machine precision
+
+
+def _polyval(c: FloatArray, tau: FloatArray) -> FloatArray:
+    """Evaluate ascending coefficients ``c`` (S, d+1, N) at local times ``tau`` (S, G) -> (S, G, N)."""
+    out = np.broadcast_to(c[:, -1][:, None, :], (c.shape[0], tau.shape[1], c.shape[2])).copy()
+    t = tau[:, :, None]
+    for k in range(c.shape[1] - 2, -1, -1):
+        out *= t
+        out += c[:, k][:, None, :]
+    return out
+
+
+def _polyval_per_joint(c: FloatArray, tau: FloatArray) -> FloatArray:
+    """Evaluate ascending coefficients ``c`` (S, d+1, N) at per-joint local times ``tau`` (S, R, N)."""
+    out = np.broadcast_to(c[:, -1][:, None, :], tau.shape).copy()
+    for k in range(c.shape[1] - 2, -1, -1):
+        out *= tau
+        out += c[:, k][:, None, :]
+    return out
+
+
+def _root_candidates(dc: FloatArray, T: FloatArray) -> FloatArray:
+    """Real parts of the roots of each polynomial ``dc`` (S, d+1, N), clipped into [0, T]: (S, d, N).
+
+    Eigenvalues of the companion matrices, all at once. A vanishing leading coefficient (a lower
+    degree) is replaced by a tiny one of the same scale: the root it adds lies far outside [0, T]
+    (clipped to an end, which is a candidate anyway) and the others move by rounding only.
+    """
+    S, d1, N = dc.shape
+    d = d1 - 1
+    if d < 1 or S == 0:
+        return np.zeros((S, 0, N))
+    p = np.moveaxis(dc, 2, 1).reshape(S * N, d1)  # (K, d+1) ascending
+    ok = np.isfinite(p).all(axis=1)
+    p = np.where(ok[:, None], p, 0.0)
+    scale = np.abs(p).max(axis=1)
+    lead = p[:, -1]
+    tiny = np.maximum(scale, 1.0) * 1e-13
+    lead = np.where(np.abs(lead) < tiny, np.where(lead < 0.0, -tiny, tiny), lead)
+    comp = np.zeros((len(p), d, d))
+    if d > 1:
+        comp[:, np.arange(1, d), np.arange(d - 1)] = 1.0
+    comp[:, :, -1] = -p[:, :d] / lead[:, None]
+    roots = np.linalg.eigvals(comp).real  # (K, d)
+    roots = np.where(np.isfinite(roots), roots, 0.0)
+    roots = roots.reshape(S, N, d).transpose(0, 2, 1)  # (S, d, N)
+    return np.clip(roots, 0.0, T[:, None, None])
+
+
+def _poly_range(c: FloatArray, dc: FloatArray, T: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(min, max, (t_min, t_max)) over [0, T] of each joint's polynomial ``c`` whose derivative is ``dc``."""
+    grid = np.linspace(0.0, 1.0, _GRID + 1)[None, :] * T[:, None]  # (S, G+1)
+    f = _polyval(c, grid)  # (S, G+1, N)
+    g = _polyval(dc, grid)
+    # cells where the derivative changes sign hold an extremum: bisect them all at once
+    sign_change = (g[:, :-1, :] * g[:, 1:, :]) < 0.0
+    s_idx, c_idx, j_idx = np.nonzero(sign_change)
+    if len(s_idx):
+        lo = grid[s_idx, c_idx].copy()
+        hi = grid[s_idx, c_idx + 1].copy()
+        g_lo = g[s_idx, c_idx, j_idx]
+        coeffs = dc[s_idx, :, j_idx]  # (K, d+1)
+        for _ in range(_BISECT):
+            mid = 0.5 * (lo + hi)
+            gm = coeffs[:, -1].copy()
+            for k in range(coeffs.shape[1] - 2, -1, -1):
+                gm = gm * mid + coeffs[:, k]
+            same = (gm * g_lo) > 0.0
+            lo = np.where(same, mid, lo)
+            hi = np.where(same, hi, mid)
+            g_lo = np.where(same, gm, g_lo)
+        root = 0.5 * (lo + hi)
+        cf = c[s_idx, :, j_idx]
+        fr = cf[:, -1].copy()
+        for k in range(cf.shape[1] - 2, -1, -1):
+            fr = fr * root + cf[:, k]
+    # a cell can hold two roots (no sign change: an extremum pair the bisection cannot see): the
+    # derivative's roots from its companion matrix are candidates too. Any point of [0, T] is a
+    # true value of the polynomial, so spurious candidates (complex roots' real parts) are harmless.
+    cand = _root_candidates(dc, T)  # (S, R, N)
+    if cand.shape[1]:
+        fc = _polyval_per_joint(c, cand)
+        grid_n = np.broadcast_to(grid[:, :, None], f.shape)
+        f = np.concatenate([f, fc], axis=1)
+        tt = np.concatenate([grid_n, cand], axis=1)
+    else:
+        tt = np.broadcast_to(grid[:, :, None], f.shape)
+    f_min = f.min(axis=1)
+    f_max = f.max(axis=1)
+    t_min = np.take_along_axis(tt, f.argmin(axis=1)[:, None, :], 1)[:, 0]
+    t_max = np.take_along_axis(tt, f.argmax(axis=1)[:, None, :], 1)[:, 0]
+    if len(s_idx):
+        np.minimum.at(f_min, (s_idx, j_idx), fr)
+        np.maximum.at(f_max, (s_idx, j_idx), fr)
+        hit = fr <= f_min[s_idx, j_idx]
+        t_min[s_idx[hit], j_idx[hit]] = root[hit]
+        hit = fr >= f_max[s_idx, j_idx]
+        t_max[s_idx[hit], j_idx[hit]] = root[hit]
+    # a non-finite polynomial (overflowing coefficients) is reported as NaN, never as in range
+    bad = ~np.isfinite(c).all(axis=1)
+    if bad.any():
+        f_min[bad] = np.nan
+        f_max[bad] = np.nan
+    return f_min, f_max, np.stack([t_min, t_max])
+
+
+def check_motion_limits(
+    sampler: TrajectorySampler,
+    lower: npt.ArrayLike,
+    upper: npt.ArrayLike,
+    max_velocity: npt.ArrayLike,
+    max_acceleration: npt.ArrayLike,
+    *,
+    hint: str = "",
+) -> None:
+    """Raise :class:`LimitViolation` where the interpolated motion of ``sampler`` leaves a limit.
+
+    Limits are per trajectory joint (in ``sampler.joint_names`` order). The whole motion is
+    checked, not only the points: the segment from the start state, and between the points the
+    exact extremes of position, velocity and acceleration (:meth:`TrajectorySampler.peaks`).
+    The message names the segment, the joint, the value, the limit and when it is reached;
+    ``hint`` is appended to it. A motion that cannot be represented (non-finite) is rejected too.
+    """
+    pk = sampler.peaks()
+    if pk.q_min.size == 0:
+        return
+    lo = np.asarray(lower, dtype=np.float64)
+    hi = np.asarray(upper, dtype=np.float64)
+    vmax = np.asarray(max_velocity, dtype=np.float64)
+    amax = np.asarray(max_acceleration, dtype=np.float64)
+    checks = (
+        ("position", ~((pk.q_min >= lo - _POS_TOL) & (pk.q_max <= hi + _POS_TOL))),
+        ("velocity", ~(pk.v_peak <= vmax * (1.0 + _VEL_RTOL) + 1e-9)),
+        ("acceleration", ~(pk.a_peak <= amax * (1.0 + _ACC_RTOL) + 1e-9)),
+    )
+    first: tuple[int, int, str] | None = None
+    for what, bad in checks:
+        if bad.any():
+            seg, j = (int(i) for i in np.argwhere(bad)[0])
+            if first is None or seg < first[0]:
+                first = (seg, j, what)
+    if first is None:
+        return
+    seg, j, what = first
+    name = sampler.joint_names[j]
+    t0 = sampler.start_time
+    span = f"{pk.knots[seg] - t0:.6g}-{pk.knots[seg + 1] - t0:.6g} s"
+    where = f"segment {sampler.segment_label(seg)} ({span}): joint {name!r}"
+    if not (np.isfinite(pk.q_min[seg, j]) and np.isfinite(pk.v_peak[seg, j]) and np.isfinite(pk.a_peak[seg, j])):
+        msg = f"{where}: the interpolated motion is not finite (a segment too short or too long to represent)"
+    elif what == "position":
+        msg = (
+            f"{where} position reaches [{pk.q_min[seg, j]:.6g}, {pk.q_max[seg, j]:.6g}] between the points, "
+            f"outside its limits [{lo[j]:.6g}, {hi[j]:.6g}]"
+        )
+    elif what == "velocity":
+        msg = (
+            f"{where} velocity reaches {pk.v_peak[seg, j]:.6g} at {pk.v_time[seg, j] - t0:.6g} s, above "
+            f"max_velocity {vmax[j]:.6g}"
+        )
+    else:
+        msg = (
+            f"{where} acceleration reaches {pk.a_peak[seg, j]:.6g} at {pk.a_time[seg, j] - t0:.6g} s, above "
+            f"max_acceleration {amax[j]:.6g}"
+        )
+    raise LimitViolation(msg + hint)
+
+
+def time_scale_for_limits(
+    sampler: TrajectorySampler, max_velocity: npt.ArrayLike, max_acceleration: npt.ArrayLike
+) -> float:
+    """Smallest uniform slow-down factor (>= 1) that brings the peak velocities and accelerations within the limits.
+
+    Exact for the segments between the points (velocities scale with 1/k, accelerations with
+    1/k^2); the segment from a moving start state changes shape when stretched, so callers
+    re-check and iterate. ``inf`` if the motion is not finite.
+    """
+    pk = sampler.peaks()
+    if pk.v_peak.size == 0:
+        return 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kv = np.max(pk.v_peak / np.asarray(max_velocity, dtype=np.float64))
+        ka = math.sqrt(float(np.max(pk.a_peak / np.asarray(max_acceleration, dtype=np.float64))))
+    k = max(1.0, float(kv), ka)
+    return k if math.isfinite(k) else math.inf
 
 
 # --------------------------------------------------------------------------- planning
@@ -714,6 +1039,10 @@ class _Ruckig:
             res = self.otg.calculate(inp, self.traj)
         except RuntimeError as exc:  # ruckig raises for invalid input
             raise CommandRejected(f"trajectory generation failed: {exc}") from exc
+        except ValueError as exc:  # a result code its Python enum does not know, e.g. -101
+            code = str(exc).split()[0] if str(exc) else "?"
+            detail = " (the motion would last longer than ruckig's limit of 7600 s)" if code == "-101" else ""
+            raise CommandRejected(f"trajectory generation failed: ruckig error {code}{detail}") from exc
         if res != Result.Working:
             raise CommandRejected(f"trajectory generation failed: ruckig returned {res.name}")
         return self.traj
@@ -1054,6 +1383,8 @@ def plan_point_to_point(
     _check_start_velocity(v0, infos)
     if duration is not None and not (math.isfinite(duration) and duration > 0.0):
         raise InvalidValueError(f"duration must be a positive number of seconds, got {duration}")
+    if duration is not None and duration > _RUCKIG_MAX_DURATION:
+        raise InvalidValueError(f"duration {duration:g} s is longer than the supported {_RUCKIG_MAX_DURATION:g} s")
     rk = _Ruckig(lim)
     zero = np.zeros(len(names))
     tr = rk.solve(q0, v0, a0, q1, zero, duration)

@@ -188,9 +188,9 @@ def _visual_mujoco_model(description: Any) -> Any:
     """The description compiled by MuJoCo with its meshes (as the mujoco backend does), for drawing."""
     import mujoco
 
-    from .kinematics import _is_mjcf
+    from .kinematics import mjcf_source
 
-    mjcf = _is_mjcf(description)
+    mjcf = mjcf_source(description)
     if mjcf is not None:
         return mujoco.MjModel.from_xml_path(str(mjcf))
     spec = mujoco.MjSpec.from_string(description.urdf_xml)
@@ -205,10 +205,8 @@ def _visual_mujoco_model(description: Any) -> Any:
     spec.compiler.boundinertia = 1e-12
     try:
         return spec.compile()
-    except Exception:  # invalid inertias do not matter for drawing: reuse the kinematic repair
-        from .kinematics import _repair_inertias
-
-        _repair_inertias(spec)
+    except Exception:  # inertials MuJoCo rejects do not matter for drawing: take them from the shapes
+        spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
         return spec.compile()
 
 
@@ -225,7 +223,7 @@ def _mujoco_mesh(path: Path) -> Path:
     if not out.exists():
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = out.with_suffix(f".{os.getpid()}.stl")
-        trimesh.load(path, force="mesh").export(tmp)
+        trimesh.load(path, force="mesh").export(tmp)  # type: ignore[no-untyped-call]
         tmp.replace(out)  # atomic: concurrent runs never read a half-written file
     return out
 
@@ -236,9 +234,9 @@ class _PybulletRenderer:
     def __init__(self, description: Any, names: tuple[str, ...], width: int, height: int) -> None:
         import pybullet as p
 
-        from .kinematics import _is_mjcf
+        from .kinematics import mjcf_source
 
-        if _is_mjcf(description) is not None:
+        if mjcf_source(description) is not None:
             raise BackendUnavailableError("PyBullet's renderer draws URDF robots only; this robot is MJCF")
         self._p = p
         self.width, self.height = width, height

@@ -25,7 +25,7 @@ RAISED = {"right_shoulder_pitch": -2.6, "right_shoulder_roll": -0.35, "right_elb
 REST = {"right_shoulder_pitch": 0.0, "right_shoulder_roll": 0.0, "right_elbow": 0.0, "head_yaw": 0.0}
 WAVE_JOINTS = ("right_shoulder_roll", "right_elbow")
 WAVE_AMPLITUDE = (0.25, 0.35)  # rad; the wave swings between RAISED and RAISED - 2 * amplitude
-WAVE_FREQUENCY = 0.6  # Hz: peak acceleration A (2 pi f)^2 stays under the 6 rad/s^2 limit
+WAVE_FREQUENCY = 0.55  # Hz: the cubic pieces peak at ~1.23 A (2 pi f)^2 = 5.2 rad/s^2, under the 6 limit
 WAVES = 3
 
 

@@ -365,3 +365,85 @@ def test_cli_runs_wave_on_the_virtual_bus(capsys: pytest.CaptureFixture[str]) ->
         assert "ran wave.py on mit_leg (can)" in out
         assert emu.counters(3).commands > 1000  # ~7.5 s at 500 Hz
         wait_until_sync(lambda: all_disabled(emu), "DISABLE on exit")
+
+
+# --------------------------------------------------------------------- set_zero (issue 10, item 7)
+async def test_set_zero_with_torque_on_is_refused_and_nothing_moves() -> None:
+    """Before: the zero frame was sent while holding, and the old target in the new frame moved the knee."""
+    async with can_robot() as (robot, emu, _):
+        await robot.command(JointCommand("position", {"knee": 0.6}))
+        await wait_until(lambda: abs(emu.snapshot(3).position - 0.6) < 0.02, "knee at 0.6")
+        specials = emu.counters(3).specials
+        with pytest.raises(agentsdk.CommandRejected, match=r"set_zero\('knee'\) refused: motor id 3 has torque on"):
+            await robot.controller.set_zero("knee")
+        await run_cycles(robot, 100)
+        knee = emu.snapshot(3)
+        assert knee.zero_offset == 0.0 and abs(knee.position - 0.6) < 0.02
+        assert emu.counters(3).specials == specials  # no zero frame went out
+        assert robot.safety.state is SafetyState.OK
+        with pytest.raises(agentsdk.UnknownJointError):
+            await robot.controller.set_zero("ankle")
+
+
+def settled(emu: MotorEmulator, motor: int, position: float) -> bool:
+    s = emu.snapshot(motor)
+    return abs(s.position - position) < 0.01 and abs(s.velocity) < 0.02
+
+
+async def test_set_zero_with_torque_off_then_enable_holds_the_new_zero() -> None:
+    async with can_robot() as (robot, emu, _):
+        await robot.command(JointCommand("position", {"knee": 0.6}))
+        await wait_until(lambda: settled(emu, 3, 0.6), "knee at rest at 0.6")
+        await robot.estop(0)
+        await robot.reset()
+        await wait_until(lambda: all_disabled(emu), "every motor disabled")
+        raw = emu.snapshot(3).position + emu.snapshot(3).zero_offset
+        emu.motor(3, zero_pause=0.3)  # like CubeMars firmware: frames ignored for a while after a zero
+        await robot.controller.set_zero("knee")
+        assert emu.snapshot(3).zero_offset == pytest.approx(raw, abs=0.01)
+        await robot.enable()  # holds where the knee is: 0 in the new frame
+        await run_cycles(robot, 100)
+        knee = emu.snapshot(3)
+        assert abs(knee.position) < 0.02 and abs(knee.position + knee.zero_offset - raw) < 0.02, knee
+        st = await robot.read()
+        assert abs(st.positions()["knee"]) < 0.02
+        assert robot.safety.state is SafetyState.OK
+
+
+# ------------------------------------------------- no blocking calls on the event loop (issue 10, item 12)
+async def test_no_blocking_bus_calls_on_the_event_loop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: special frames were sent with no timeout and close joined the reader thread for up to 1 s."""
+    loop_thread = threading.get_ident()
+    blocking: list[str] = []
+    from can.interfaces.virtual import VirtualBus
+
+    real_send, real_stop, real_shutdown = VirtualBus.send, can.Notifier.stop, VirtualBus.shutdown
+
+    def send(self: VirtualBus, msg: can.Message, timeout: float | None = None) -> None:
+        if threading.get_ident() == loop_thread and (timeout is None or timeout > 0.02):
+            blocking.append(f"send(timeout={timeout})")
+        real_send(self, msg, timeout)
+
+    def stop(self: can.Notifier, timeout: float = 5.0) -> None:
+        if threading.get_ident() == loop_thread and timeout > 0:
+            blocking.append(f"Notifier.stop(timeout={timeout})")
+        real_stop(self, timeout)
+
+    def shutdown(self: VirtualBus) -> None:
+        if threading.get_ident() == loop_thread and any(self is b for b in robot_buses):
+            blocking.append("shutdown()")
+        real_shutdown(self)
+
+    monkeypatch.setattr(VirtualBus, "send", send)
+    monkeypatch.setattr(VirtualBus, "shutdown", shutdown)
+    monkeypatch.setattr(can.Notifier, "stop", stop)
+    robot_buses: list[VirtualBus] = []
+    async with can_robot() as (robot, _emu, _):
+        robot_buses.extend([robot.controller._bus, robot.controller._estop_bus])
+        await run_cycles(robot, 10)
+        await robot.estop(0)
+        await robot.reset()
+        await robot.controller.set_zero("knee")
+        await robot.enable()
+        await run_cycles(robot, 10)
+    assert blocking == []

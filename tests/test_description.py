@@ -601,7 +601,9 @@ def test_robot_yaml_with_unknown_gain_joint(tmp_path: Path) -> None:
     shutil.copytree(ROBOTS_DIR / "common", tmp_path / "common")
     yaml_path = tmp_path / "arm3" / "robot.yaml"
     yaml_path.write_text(yaml_path.read_text() + "\ninitial_positions: {joint4: 0.1}\n")
-    with pytest.raises(ConfigurationError, match=r"initial_positions names unknown joint\(s\) 'joint4'.*joint1"):
+    with pytest.raises(
+        ConfigurationError, match=r"initial_positions\.joint4: unknown joint 'joint4'; did you mean 'joint\d'\?; known"
+    ):
         resolve_robot(yaml_path)
 
 
@@ -630,7 +632,9 @@ def test_apply_overrides() -> None:
 def test_apply_overrides_unknown_joint_lists_known_joints() -> None:
     _, desc = resolve_robot("arm3")
     config = _config(joint_limits={"joint9": JointLimitsOverride(max_velocity=1.0)})
-    with pytest.raises(ConfigurationError, match=r"unknown joint\(s\) 'joint9'; known joints: joint1, joint2, joint3"):
+    with pytest.raises(
+        ConfigurationError, match=r"'joint9'; did you mean 'joint\d'\?; known joints: joint1, joint2, joint3"
+    ):
         apply_overrides(desc, config)
 
 
@@ -653,7 +657,7 @@ def test_check_config_initial_position_outside_limits() -> None:
     _, desc = resolve_robot("arm3")
     with pytest.raises(ConfigurationError, match=r"initial_positions\.joint2=2\.5 is outside the joint limits"):
         check_config(_config(initial_positions={"joint2": 2.5}), desc)
-    with pytest.raises(ConfigurationError, match=r"gains names unknown joint\(s\) 'wrist'"):
+    with pytest.raises(ConfigurationError, match=r"gains\.wrist: unknown joint 'wrist'; known joints"):
         check_config(_config(gains={"wrist": Gains(p=1.0, d=0.1)}), desc)
 
 

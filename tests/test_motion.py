@@ -280,10 +280,16 @@ async def test_frozen_joint_aborts_with_path_tolerance_violated_and_holds() -> N
         assert "joint2" in result.message
         assert result.time < 1.0  # aborted early, not at the end
         assert abs(result.error["joint2"]) > 0.05
-        # it decelerated within the limits (from where the violation was detected), then holds
-        _, _, v, _ = log.arrays()
-        amax, _ = decel_limits(robot, ["joint1", "joint2"])
-        acc = np.diff(v[:, :2], axis=0) / log.dt
+        # the reference was dropped at once: the stuck joint's setpoint went back to where it is
+        # (at rest), the tracking joint decelerated within its limits; then both hold
+        t, q, v, x = log.arrays()
+        k = int(np.searchsorted(t, result.time - 1e-9))
+        moved = np.flatnonzero(v[:, 1] != 0.0)
+        abort = int(moved[-1]) + 1  # the first tick after the abort
+        assert 0 < abort < k
+        assert np.all(q[abort:, 1] == x[0, 1]) and np.all(v[abort:, 1] == 0.0)
+        amax, _ = decel_limits(robot, ["joint1"])
+        acc = np.diff(v[:k, 0]) / log.dt
         assert np.all(np.abs(acc) <= amax * (1 + ACC_RTOL) + 1e-9)
         assert np.all(v[-1, :2] == 0.0)
         await check_holds(robot, ["joint1"])

@@ -588,6 +588,83 @@ async def test_parent_event_preempts_parallel_regions(robot: FakeRobot) -> None:
     assert sorted(cancelled) == ["Show/running/Blink/spinning", "Show/running/Spin/spinning"]
 
 
+async def test_every_failing_parallel_region_is_reported(robot: FakeRobot) -> None:
+    """Before: of two regions failing in the same step only the first exception survived."""
+    gate = asyncio.Event()
+
+    class Left(StateMachine):
+        work = State(initial=True)
+        done = State(final=True)
+        finish = work.to(done)
+
+        async def on_work(self, ctx: StateContext) -> str:
+            await gate.wait()
+            raise ValueError("left gripper jammed")
+
+    class Right(StateMachine):
+        work = State(initial=True)
+        done = State(final=True)
+        finish = work.to(done)
+
+        async def on_work(self, ctx: StateContext) -> str:
+            await gate.wait()
+            raise KeyError("right arm lost")
+
+    class Both(StateMachine):
+        run_both = State(initial=True, parallel=[Left, Right])
+        end = State(final=True)
+        done_run_both = run_both.to(end)
+
+    m = Both(robot)
+    task = asyncio.create_task(m.run())
+    await m.wait_state("Left/work")
+    await m.wait_state("Right/work")
+    gate.set()
+    with pytest.raises(StateMachineError, match=r"2 parallel regions of Both/run_both failed") as info:
+        await task
+    group = info.value.__cause__
+    assert isinstance(group, ExceptionGroup)
+    assert sorted(type(e).__name__ for e in group.exceptions) == ["KeyError", "ValueError"]
+    assert robot.estops  # the robot was stopped
+
+
+async def test_a_fault_state_receives_every_region_failure(robot: FakeRobot) -> None:
+    gate = asyncio.Event()
+    seen: list[BaseException | None] = []
+
+    class One(StateMachine):
+        work = State(initial=True)
+        done = State(final=True)
+        finish = work.to(done)
+
+        async def on_work(self, ctx: StateContext) -> str:
+            await gate.wait()
+            raise RuntimeError(ctx.state)
+
+    class Two(One):
+        pass
+
+    class Cell(StateMachine):
+        run_both = State(initial=True, parallel=[One, Two])
+        fault = State(fault=True)
+        end = State(final=True)
+        done_run_both = run_both.to(end)
+        recover = fault.to(end)
+
+        async def on_fault(self, ctx: StateContext) -> str:
+            seen.append(ctx.error)
+            return "recover"
+
+    m = Cell(robot)
+    task = asyncio.create_task(m.run())
+    await m.wait_state("One/work")
+    await m.wait_state("Two/work")
+    gate.set()
+    assert await task == "end"
+    (error,) = seen
+    assert isinstance(error, ExceptionGroup) and len(error.exceptions) == 2
+
+
 async def test_timeout_restarts_on_each_visit(robot: FakeRobot, clock: FakeClock) -> None:
     class Loop(StateMachine):
         waiting = State(initial=True, timeout=5.0)

@@ -197,7 +197,8 @@ def test_velocity_limit_violation() -> None:
     tr = Trajectory(["j1", "j2"], [TrajectoryPoint(1.0, [0, 0], [0, -2.5])])
     with pytest.raises(LimitViolation, match=r"point 0: joint 'j2' velocity -2.5 exceeds max_velocity 2"):
         tr.validate(JOINTS2)
-    Trajectory(["j1", "j2"], [TrajectoryPoint(1.0, [3, -3], [2, -2])]).validate(JOINTS2)  # at the limits is fine
+    at_limits = Trajectory(["j1", "j2"], [TrajectoryPoint(1.0, [3, -3], [2, -2])])
+    at_limits.validate(JOINTS2, allow_nonzero_velocity_at_end=True)  # at the limits: fine
 
 
 # --------------------------------------------------------------------------- interpolation

@@ -128,8 +128,8 @@ def repair_inertials(
     for child, joint in joints.items():
         children.setdefault(joint.parent, []).append(child)
     for name, rec in list(out.items()):
-        joint = joints.get(name)
-        if joint is None or not joint.movable or _valid(rec.inertial):
+        moving = joints.get(name)
+        if moving is None or not moving.movable or _valid(rec.inertial):
             continue
         carried = any(
             joints[c].type == "fixed" and _valid(out[c].inertial) for c in children.get(name, ())
@@ -143,7 +143,9 @@ def repair_inertials(
             moments, rot = inertial.principal()
             mass, xyz = inertial.mass, inertial.xyz
         new_mass = max(mass, MIN_MASS)
-        new_moments = tuple(max(m, MIN_INERTIA) for m in moments)
+        new_moments: tuple[float, float, float] = (
+            max(moments[0], MIN_INERTIA), max(moments[1], MIN_INERTIA), max(moments[2], MIN_INERTIA)
+        )
         a, b, c = sorted(new_moments)
         if a + b < c:  # raising the small moments cannot break the inequality, but stay exact
             new_moments = (a, b, a + b) if c - (a + b) <= _ROUNDOFF * c else new_moments
@@ -155,7 +157,7 @@ def repair_inertials(
         else:
             what, became = f"has principal moments {_moments(moments)}", f"moments {_moments(new_moments)}"
         detail = (
-            f"moving link (joint '{joint.name}') {what}: raised to {became} "
+            f"moving link (joint '{moving.name}') {what}: raised to {became} "
             f"(MuJoCo boundmass={_g(MIN_MASS)}, boundinertia={_g(MIN_INERTIA)})"
         )
         notes_of.setdefault(name, []).append(detail)

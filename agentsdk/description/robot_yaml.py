@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import replace
 from pathlib import Path
 
-from ..config import JointLimitsOverride, RobotConfig, load_robot_config
+from ..config import JointLimitsOverride, RobotConfig, did_you_mean, load_robot_config
 from ..errors import ConfigurationError
 from ..types import JointInfo
 from .loader import load_description
@@ -16,7 +17,21 @@ __all__ = ["apply_overrides", "check_config", "list_robots", "resolve_robot"]
 
 
 def _robot_label(config: RobotConfig, description: RobotDescription) -> str:
+    if config.source is not None:
+        return str(config.source)
     return f"robot '{config.name or description.name}'"
+
+
+def _unknown_joints(label: str, section: str, unknown: list[str], names: tuple[str, ...], extra: str = "") -> str:
+    """One line per unknown joint name, each with a "did you mean" from the robot's joints."""
+    choices = [*names, extra] if extra else list(names)
+    known = ", ".join(names) + (f" (or {extra!r})" if extra else "")
+    lines = []
+    for u in unknown:
+        hint = did_you_mean(u, choices)
+        hint = hint if "did you mean" in hint else ""
+        lines.append(f"{label}: {section}.{u}: unknown joint {u!r}{hint}; known joints: {known}")
+    return "\n".join(lines)
 
 
 def apply_overrides(description: RobotDescription, config: RobotConfig) -> tuple[JointInfo, ...]:
@@ -26,7 +41,9 @@ def apply_overrides(description: RobotDescription, config: RobotConfig) -> tuple
     values replace the built-in defaults, and its position/velocity/effort
     values can only tighten each joint's URDF limits. A per-joint entry
     replaces values for that joint; it may tighten but never widen a URDF
-    limit (that would exceed what the hardware description allows).
+    limit (that would exceed what the hardware description allows). Every
+    value must be finite (a NaN limit compares false with everything and would
+    silently remove the URDF limit).
     Raises ``ConfigurationError`` for an unknown joint name or an inconsistent
     override.
     """
@@ -35,10 +52,11 @@ def apply_overrides(description: RobotDescription, config: RobotConfig) -> tuple
     label = _robot_label(config, description)
     unknown = [k for k in limits if k != "default" and k not in names]
     if unknown:
-        raise ConfigurationError(
-            f"{label}: joint_limits names unknown joint(s) {', '.join(repr(u) for u in unknown)}; "
-            f"known joints: {', '.join(names)} (or 'default')"
-        )
+        raise ConfigurationError(_unknown_joints(label, "joint_limits", unknown, names, "default"))
+    for key, entry in limits.items():
+        for field, value in entry.model_dump(exclude_none=True).items():
+            if not math.isfinite(value):  # a model built without validation (model_construct)
+                raise ConfigurationError(f"{label}: joint_limits.{key}.{field}: expected a finite number, got {value}")
     default = limits.get("default", JointLimitsOverride())
     out: list[JointInfo] = []
     for j in description.joints:
@@ -58,25 +76,25 @@ def apply_overrides(description: RobotDescription, config: RobotConfig) -> tuple
         if own is not None:
             where = f"{label}: joint_limits.{j.name}"
             if own.min_position is not None:
-                if own.min_position < j.lower:
+                if not own.min_position >= j.lower:
                     raise ConfigurationError(
                         f"{where}.min_position={own.min_position:g} is below the URDF lower limit {j.lower:g}"
                     )
                 lower = own.min_position
             if own.max_position is not None:
-                if own.max_position > j.upper:
+                if not own.max_position <= j.upper:
                     raise ConfigurationError(
                         f"{where}.max_position={own.max_position:g} is above the URDF upper limit {j.upper:g}"
                     )
                 upper = own.max_position
             if own.max_velocity is not None:
-                if own.max_velocity > j.max_velocity:
+                if not own.max_velocity <= j.max_velocity:
                     raise ConfigurationError(
                         f"{where}.max_velocity={own.max_velocity:g} is above the URDF velocity limit {j.max_velocity:g}"
                     )
                 vel = own.max_velocity
             if own.max_effort is not None:
-                if own.max_effort > j.max_effort:
+                if not own.max_effort <= j.max_effort:
                     raise ConfigurationError(
                         f"{where}.max_effort={own.max_effort:g} is above the URDF effort limit {j.max_effort:g}"
                     )
@@ -85,7 +103,7 @@ def apply_overrides(description: RobotDescription, config: RobotConfig) -> tuple
                 acc = own.max_acceleration
             if own.max_jerk is not None:
                 jerk = own.max_jerk
-        if lower > upper:
+        if not lower <= upper:
             raise ConfigurationError(
                 f"{label}: joint_limits leave joint '{j.name}' an empty range "
                 f"(min_position {lower:g} > max_position {upper:g})"
@@ -112,16 +130,16 @@ def check_config(config: RobotConfig, description: RobotDescription) -> tuple[Jo
     joints = apply_overrides(description, config)
     names = description.joint_names
     label = _robot_label(config, description)
+    problems = []
     for section, keys in (("gains", config.gains), ("initial_positions", config.initial_positions)):
         unknown = [k for k in keys if k not in names and not (section == "gains" and k == "default")]
         if unknown:
-            raise ConfigurationError(
-                f"{label}: {section} names unknown joint(s) {', '.join(repr(u) for u in unknown)}; "
-                f"known joints: {', '.join(names)}"
-            )
+            problems.append(_unknown_joints(label, section, unknown, names, "default" if section == "gains" else ""))
+    if problems:
+        raise ConfigurationError("\n".join(problems))
     for j in joints:
         q = config.initial_positions.get(j.name)
-        if q is not None and not j.within(q):
+        if q is not None and not (math.isfinite(q) and j.within(q)):
             raise ConfigurationError(
                 f"{label}: initial_positions.{j.name}={q:g} is outside the joint limits [{j.lower:g}, {j.upper:g}]"
             )

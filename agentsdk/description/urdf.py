@@ -546,7 +546,7 @@ def _resolve_mimics(
 
 
 def _asdict(rec: JointRecord) -> dict[str, Any]:
-    return {k: getattr(rec, k) for k in JointRecord.__slots__}  # type: ignore[attr-defined]
+    return {k: getattr(rec, k) for k in JointRecord.__slots__}
 
 
 # --------------------------------------------------------------------------- output
@@ -584,7 +584,8 @@ def _write_back(
             root.remove(elem)
             root.append(elem)
             _joint_back(elem, joint)
-    return '<?xml version="1.0" encoding="utf-8"?>\n' + etree.tostring(root, encoding="unicode", pretty_print=True)
+    text: str = etree.tostring(root, encoding="unicode", pretty_print=True)
+    return '<?xml version="1.0" encoding="utf-8"?>\n' + text
 
 
 def _inertial_elem(inertial: Inertial) -> Any:

@@ -23,8 +23,10 @@ more than a whole period cannot be told apart from a prompt one.)
 
 Open enables each motor and checks its reply; a silent motor fails the open
 with an error naming its id and joint, and the motors already enabled are
-disabled again. Close disables every motor, even when cancelled. Zeroing is
-never automatic (``await robot.controller.set_zero(joint)`` is explicit).
+disabled again. Close disables every motor, even when cancelled (its blocking
+part, joining python-can's reader thread and shutting the driver down, runs in a
+worker thread). Zeroing is never automatic (``await robot.controller.set_zero(joint)``
+is explicit) and needs the joint's torque off.
 
 The emergency-stop hook (called by the safety layer's stall watchdog *thread*)
 sends the disable frames itself, on a second bus handle, without the event loop.
@@ -46,10 +48,11 @@ from typing import Any
 
 import can
 import numpy as np
-from pydantic import Field, PositiveFloat, PositiveInt
+from pydantic import Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
-from agentsdk.errors import BackendFault, BackendStartError, ConfigurationError
+from agentsdk.errors import BackendFault, BackendStartError, CommandRejected, ConfigurationError, UnknownJointError
+from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 from .config import CanBusConfig
@@ -59,6 +62,13 @@ __all__ = ["CanController", "CanOptions", "MotorStats"]
 
 log = logging.getLogger("agentsdk.can")
 
+#: receive poll interval (s) of python-can's reader thread on buses without a file descriptor
+_RX_POLL = 0.05
+#: how long a motor may take to answer after a zero frame (CubeMars pauses ~1 s)
+_ZERO_TIMEOUT = 2.0
+#: bus cycles with a reply a zero frame waits for before the state is taken to be in the new frame
+_SETTLE_CYCLES = 3
+
 
 class CanOptions(CanBusConfig):
     """robot.yaml ``backends.can`` plus runtime options (all overridable in ``connect``)."""
@@ -66,11 +76,27 @@ class CanOptions(CanBusConfig):
     #: fraction of the control period to wait for replies each cycle
     reply_deadline: float = Field(default=0.8, gt=0.0, le=1.0)
     #: consecutive cycles without a reply before a motor is declared lost (-> FAULT)
-    max_missed_replies: PositiveInt = 5
-    #: seconds to wait for each motor's reply to the enable frame at open
-    open_timeout: PositiveFloat = 0.2
+    max_missed_replies: int = Field(default=5, ge=1, le=1000)
+    #: seconds to wait for each motor's reply to the enable frame at open (and to special frames)
+    open_timeout: float = Field(default=0.2, gt=0.0, le=10.0)
     #: extra keyword arguments for ``can.Bus`` (e.g. ``receive_own_messages``)
     bus_kwargs: dict[str, Any] = Field(default_factory=dict)
+
+
+def _robots_with_can() -> list[str]:
+    """The shipped robots whose robot.yaml has a ``backends.can`` section."""
+    from agentsdk.config import load_robot_config
+    from agentsdk.description import list_robots
+    from agentsdk.robots import ROBOTS_DIR
+
+    out = []
+    for name in list_robots(ROBOTS_DIR):
+        try:
+            if "can" in load_robot_config(ROBOTS_DIR / name / "robot.yaml").backends:
+                out.append(name)
+        except ConfigurationError:
+            continue
+    return out
 
 
 @dataclass
@@ -108,9 +134,14 @@ class CanController(Backend):
         missing = [j.name for j in self.joints if j.name not in opts.motors]
         unknown = [n for n in opts.motors if n not in self.index]
         if missing or unknown:
-            raise ConfigurationError(
-                f"backends.can.motors must map every joint: missing {missing}, unknown {unknown}"
-            )
+            from agentsdk.config import did_you_mean
+
+            label = self.config.label
+            lines = [f"{label}: backends.can.motors: no motor for joint {n!r}" for n in missing]
+            lines += [
+                f"{label}: backends.can.motors.{n}: unknown joint{did_you_mean(n, self.names)}" for n in unknown
+            ]
+            raise ConfigurationError("\n".join(lines))
         self._motors = [opts.motors[j.name] for j in self.joints]
         self._ranges = [m.motor_ranges for m in self._motors]
         self._profile = opts.vendor_profile
@@ -168,6 +199,21 @@ class CanController(Backend):
         self._unexpected_ids: dict[int, int] = {}
         #: the emergency bus handle has no file descriptor (virtual): drain its rx queue each cycle
         self._drain_estop = False
+        #: the receive side runs in python-can's reader thread (buses without a file descriptor)
+        self._threaded_rx = False
+        #: torque on per joint, as the last setpoint written (set_zero needs it off)
+        self._torque = np.zeros(n, dtype=bool)
+
+    def _validate_options(self, options: dict[str, Any], given: frozenset[str] = frozenset()) -> Any:
+        if "motors" not in options:
+            # the usual mistake: a robot without a CAN section (e.g. `--backend can` with arm3)
+            with_can = _robots_with_can()
+            raise ConfigurationError(
+                f"{self.config.label}: robot {self.description.name!r} has no backends.can section: the CAN backend "
+                f"needs backends.can.motors, a motor (id, model) for each joint ({', '.join(self.names)})"
+                + (f"; shipped robots with one: {', '.join(with_can)}" if with_can else "")
+            )
+        return super()._validate_options(options, given)
 
     # ------------------------------------------------------------ open/close
     def _make_bus(self) -> can.BusABC:
@@ -188,6 +234,10 @@ class CanController(Backend):
             ) from exc
         self._bus.set_filters([{"can_id": opts.master_id, "can_mask": 0x7FF, "extended": False}])
         try:
+            self._bus.fileno()
+        except NotImplementedError:
+            self._threaded_rx = True
+        try:
             self._estop_bus.fileno()
         except NotImplementedError:
             # The emergency handle only sends. A kernel filter keeps a socket's rx buffer
@@ -199,7 +249,8 @@ class CanController(Backend):
         self._loop = asyncio.get_running_loop()
         self._all_in = asyncio.Event()
         self._any_reply = asyncio.Event()
-        self._notifier = can.Notifier(self._bus, [self._on_frame], loop=self._loop)
+        # a reader thread (buses without a file descriptor) polls at this interval: it ends that fast on close
+        self._notifier = can.Notifier(self._bus, [self._on_frame], timeout=_RX_POLL, loop=self._loop)
         enabled: list[int] = []
         try:
             for k, m in enumerate(self._motors):
@@ -222,23 +273,39 @@ class CanController(Backend):
         self._clock_offset = time.time() - time.monotonic()
         self._fill_state()
 
-    async def _special_and_wait(self, k: int, frame: bytes, wait: float) -> bool:
+    async def _special_and_wait(self, k: int, frame: bytes, wait: float, *, next_cycle: bool = False) -> bool:
         """Send a special frame to motor ``k`` and wait for a reply from it that left after it.
 
         Also used while the control loop runs (enable after an e-stop, set_zero): it leaves the
         cycle's reply window alone (with the loop's commands in flight, a reply from the motor
         after this frame is all the protocol can tell).
         """
-        assert self._bus is not None
-        sent = time.time()
-        self._any_reply.clear()
+        bus = self._bus
+        assert bus is not None
+        msg = can.Message(arbitration_id=self._motors[k].id, data=frame, is_extended_id=False)
         self._special_wait[k] = True
         try:
-            self._bus.send(can.Message(arbitration_id=self._motors[k].id, data=frame, is_extended_id=False))
             async with asyncio.timeout(wait):
+                while True:  # never block the event loop on a full transmit queue: retry
+                    try:
+                        bus.send(msg, timeout=0.0)
+                        break
+                    except can.CanOperationError:
+                        await asyncio.sleep(self.period)
+                sent = time.time()
+                self._any_reply.clear()
                 while self._reply_stamp[k] < sent:
                     await self._any_reply.wait()
                     self._any_reply.clear()
+                # The motor handles frames in order, so a reply to a command sent after this frame
+                # reflects it; the first reply after it may answer an earlier command. Replies carry
+                # no sequence number: wait for this motor's reply in several cycles started after it.
+                cycles: set[float] = set()
+                while next_cycle and len(cycles) < _SETTLE_CYCLES:
+                    await self._any_reply.wait()
+                    self._any_reply.clear()
+                    if self._window_start > sent and self._got[k]:
+                        cycles.add(self._window_start)
         except TimeoutError:
             return False
         finally:
@@ -258,10 +325,17 @@ class CanController(Backend):
                     log.error("could not send DISABLE to motor %d: %s", m.id, exc)
 
     async def _close(self) -> None:
+        notifier, self._notifier = self._notifier, None
+        if notifier is not None and not self._threaded_rx:
+            notifier.stop(timeout=0.0)  # removes the loop's fd reader; nothing to join (must run on the loop)
+            notifier = None
+        # disable frames, joining a reader thread, shutting drivers down: blocking, so off the event loop
+        await run_blocking(self._release, notifier, name="agentsdk-can-close")
+
+    def _release(self, notifier: can.Notifier | None) -> None:
         self._disable_all()
-        if self._notifier is not None:
-            self._notifier.stop(timeout=1.0)
-            self._notifier = None
+        if notifier is not None:
+            notifier.stop(timeout=10 * _RX_POLL)  # joins the reader thread (it polls every _RX_POLL)
         for bus in (self._bus, self._estop_bus):
             if bus is not None:
                 bus.shutdown()
@@ -285,9 +359,26 @@ class CanController(Backend):
         await self._enable()
 
     async def set_zero(self, joint: str) -> None:
-        """Explicitly set the motor's current position as its zero (never automatic)."""
-        k = self.index[joint]
-        if not await self._special_and_wait(k, ZERO, 1.5):
+        """Set the motor's current position as its zero: explicit, never automatic, and only with its torque off.
+
+        Zeroing changes the frame the position setpoint is expressed in: a motor
+        holding a position would jump to its old target in the new frame. So the
+        joint's torque must be off (``await robot.estop(0)``; then ``reset()``,
+        ``set_zero(...)``, ``enable()``, which holds the new position), else
+        :class:`CommandRejected` is raised and nothing is sent. After the zero the
+        joint reads ``-direction * zero_offset / gear_ratio`` (0 with the default mapping).
+        """
+        k = self.index.get(joint)
+        if k is None:
+            raise UnknownJointError(f"unknown joint {joint!r}; this robot's joints are: {', '.join(self.names)}")
+        if self._torque[k]:
+            raise CommandRejected(
+                f"set_zero({joint!r}) refused: motor id {self._motors[k].id} has torque on, and zeroing would make it "
+                "jump to its old target in the new frame; remove torque first (await robot.estop(0), "
+                "await robot.reset()), zero, then await robot.enable()"
+            )
+        # (CubeMars motors ignore frames for ~1 s after a zero frame: those cycles are not counted as missed)
+        if not await self._special_and_wait(k, ZERO, _ZERO_TIMEOUT, next_cycle=self._cycling):
             raise BackendFault(f"motor of joint {joint!r} did not acknowledge the zero frame")
 
     # ----------------------------------------------------------- receiving
@@ -383,6 +474,7 @@ class CanController(Backend):
         # encoded in place into the reused messages' data (no objects per frame)
         pos, vel, eff = sp.position.tolist(), sp.velocity.tolist(), sp.effort.tolist()
         kp, kd, en = sp.kp.tolist(), sp.kd.tolist(), sp.enabled.tolist()
+        self._torque[...] = sp.enabled  # torque on per joint (set_zero needs it off)
         for k, msg in enumerate(self._msgs):
             d, g, r = self._dir[k], self._gear[k], self._ranges[k]
             p = d * g * pos[k] + self._zero[k]
@@ -425,8 +517,9 @@ class CanController(Backend):
             if self._unexpected_ids:
                 self._unexpected_ids.clear()
         else:
+            special = self._special_wait
             for k, s in enumerate(stats):
-                if not got[k]:
+                if not got[k] and not special[k]:  # a special frame's pause is not a missed reply
                     s.missed += 1
                     s.consecutive_missed += 1
                     if s.consecutive_missed >= self.options.max_missed_replies:
@@ -493,4 +586,5 @@ class CanController(Backend):
         return np.logical_not(self._got)
 
     def _emergency_stop(self, category: int) -> None:
+        self._torque[:] = False
         self._disable_all()

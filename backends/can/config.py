@@ -22,17 +22,14 @@ works in the motor frame.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
-    PositiveFloat,
-    PositiveInt,
     ValidationError,
     field_validator,
     model_validator,
@@ -49,11 +46,13 @@ __all__ = ["ROBOTS_DIR", "CanBusConfig", "CanMotorConfig", "load_can_config", "p
 ROBOTS_DIR: Path = _SHIPPED_ROBOTS
 
 _MAX_STD_ID = 0x7FF
+#: longest accepted motor-side command timeout (s): beyond it a motor keeps running on a dead bus
+MAX_TIMEOUT = 10.0
 _T = TypeVar("_T")
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class CanMotorConfig(_Strict):
@@ -62,24 +61,19 @@ class CanMotorConfig(_Strict):
     id: int = Field(ge=1, le=_MAX_STD_ID)
     model: str
     direction: Literal[1, -1] = 1
-    zero_offset: float = 0.0
-    gear_ratio: PositiveFloat = 1.0
+    #: motor radians at joint zero
+    zero_offset: float = Field(default=0.0, ge=-1e3, le=1e3)
+    #: motor turns per joint turn (gains scale with its square: kept within [0.01, 1000])
+    gear_ratio: float = Field(default=1.0, ge=0.01, le=1000.0)
     #: per-field overrides of the model's ranges (``p_min``, ``t_max`` ...), for other firmware
     ranges: dict[str, float] | None = None
     #: motor-side command timeout [s]; ``None`` = the bus-level ``timeout``
-    timeout: PositiveFloat | None = None
+    timeout: Annotated[float, Field(gt=0.0, le=MAX_TIMEOUT)] | None = None
 
     @field_validator("model")
     @classmethod
     def _known_model(cls, v: str) -> str:
         _as_value_error(ranges_for, v)
-        return v
-
-    @field_validator("zero_offset", "gear_ratio")
-    @classmethod
-    def _finite(cls, v: float) -> float:
-        if not math.isfinite(v):
-            raise ValueError("must be finite")
         return v
 
     @model_validator(mode="after")
@@ -99,11 +93,12 @@ class CanBusConfig(_Strict):
 
     interface: str = "socketcan"
     channel: str = "vcan0"
-    bitrate: PositiveInt = 1_000_000
+    #: nominal bit rate (bit/s; classic CAN tops out at 1 Mbit/s)
+    bitrate: int = Field(default=1_000_000, ge=10_000, le=1_000_000)
     profile: str = "cubemars"
     master_id: int = Field(default=0, ge=0, le=_MAX_STD_ID)
     #: motor-side command timeout [s] (Katz firmware CAN_TIMEOUT, ~25 ms)
-    timeout: PositiveFloat = 0.025
+    timeout: float = Field(default=0.025, gt=0.0, le=MAX_TIMEOUT)
     motors: dict[str, CanMotorConfig] = Field(min_length=1)
 
     @field_validator("profile")
@@ -157,7 +152,10 @@ def parse_can_config(section: Mapping[str, Any] | None, *, source: str = "robot.
     try:
         return CanBusConfig.model_validate(dict(section))
     except ValidationError as exc:
-        raise ConfigurationError(f"{source}: invalid backends.can section:\n{exc}") from exc
+        from agentsdk.config import validation_problems
+
+        lines = validation_problems(exc, CanBusConfig, source=source, prefix="backends.can")
+        raise ConfigurationError("\n".join(lines)) from None
 
 
 def robot_yaml_path(robot: str | Path) -> Path:

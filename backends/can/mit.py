@@ -147,7 +147,7 @@ class MotorRanges:
         """Resolution of field ``name`` (``"p"``, ``"v"``, ``"kp"``, ``"kd"``, ``"t"``) in physical units."""
         bits = P_BITS if name == "p" else V_BITS
         try:
-            span = getattr(self, f"_{name}_span")
+            span: float = getattr(self, f"_{name}_span")
         except AttributeError:
             raise KeyError(f"unknown MIT field {name!r} (p, v, kp, kd, t)") from None
         return span / ((1 << bits) - 1)

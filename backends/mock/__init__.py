@@ -34,16 +34,16 @@ _POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.
 
 
 class MockOptions(BaseModel):
-    """Options of the mock backend (robot.yaml ``backends: mock:`` or ``connect(backend_options=...)``)."""
+    """robot.yaml ``backends.mock`` / ``connect("mock", ...)`` options (every number finite)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     #: first-order lag time constant (s); 0 = ideal tracking
     lag: float = Field(default=0.0, ge=0.0)
     #: joints that never move (fault injection)
     frozen_joints: tuple[str, ...] = ()
-    #: inertia used to integrate effort commands (kg·m²)
-    inertia: float = Field(default=0.05, gt=0.0)
+    #: inertia used to integrate effort commands (kg·m²); tiny values would overflow the integration
+    inertia: float = Field(default=0.05, ge=1e-9)
     #: damping of a joint with torque off (1/s)
     coast_damping: float = Field(default=20.0, ge=0.0)
     #: fail the next read/step with a BackendFault (fault injection)

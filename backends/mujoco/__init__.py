@@ -6,7 +6,8 @@ yields exactly the SDK's servo law ``kp*(q_des - q) + kd*(v_des - v) + effort_ff
 evaluated by MuJoCo at every physics step (with the damping term integrated
 implicitly by ``implicitfast``), clamped to the URDF effort limit.
 
-Divergence: MuJoCo silently resets a diverged state (``mjWARN_BADQACC``); this
+Divergence: MuJoCo silently resets a diverged state (``mjWARN_BADQACC``) and
+zeroes every control when one is NaN, inf or huge (``mjWARN_BADCTRL``); this
 backend checks the warning counters and finiteness after every control period
 and raises :class:`SimulationDiverged` instead, like dm_control's
 ``check_invalid_state``.
@@ -14,42 +15,73 @@ and raises :class:`SimulationDiverged` instead, like dm_control's
 
 from __future__ import annotations
 
+import logging
 import math
 from math import inf
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import mujoco
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
+from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, substeps
+from agentsdk.config import MAX_GAIN
 from agentsdk.description.collision import SelfCollision, for_robot
 from agentsdk.description.mjcf import colliding_body_pairs
 from agentsdk.description.mjspec import build_spec
-from agentsdk.errors import AgentSDKError, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
+from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 __all__ = ["MujocoController", "MujocoOptions"]
+
+#: smallest accepted physics timestep (s)
+MIN_TIMESTEP = 1e-6
+#: a gravity component (m/s²): finite, within ±1000 (about 100 g)
+GravityComponent = Annotated[float, Field(ge=-1000.0, le=1000.0)]
 
 _WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADQACC,
     mujoco.mjtWarning.mjWARN_BADQPOS,
     mujoco.mjtWarning.mjWARN_BADQVEL,
+    # NaN, inf or |ctrl| > mjMAXVAL: MuJoCo zeroes every control and carries on, i.e. the
+    # robot silently goes limp; it is a fault like a divergence
+    mujoco.mjtWarning.mjWARN_BADCTRL,
 )
+_BADCTRL = mujoco.mjtWarning.mjWARN_BADCTRL
+
+
+log = logging.getLogger("agentsdk.backends.mujoco")
+
+
+def _log_mujoco_warning(message: str) -> None:
+    log.warning("MuJoCo: %s", message.strip())
+
+
+def _route_warnings() -> None:
+    """Send MuJoCo's warnings to logging instead of stdout and ``MUJOCO_LOG.TXT`` in the working directory.
+
+    The hook is process-wide: it is installed only when nobody else installed one.
+    The warnings that matter to a run (divergence, bad controls) become faults anyway.
+    """
+    if mujoco.get_mju_user_warning() is None:
+        mujoco.set_mju_user_warning(_log_mujoco_warning)
 
 
 class MujocoOptions(BaseModel):
     """robot.yaml ``backends.mujoco`` / ``connect("mujoco", ...)`` options."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    timestep: float = Field(default=0.001, gt=0.0)
+    #: physics timestep (s); the control period must be a whole multiple of it (at most MAX_SUBSTEPS)
+    timestep: float = Field(default=0.001, ge=MIN_TIMESTEP, le=0.1)
     integrator: Literal["implicitfast", "implicit", "euler", "rk4"] = "implicitfast"
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    #: gravity vector (m/s²), each component within ±1000
+    gravity: tuple[GravityComponent, GravityComponent, GravityComponent] = (0.0, 0.0, -9.81)
     #: joint damping added to every actuated joint (N·m·s/rad), models gearbox friction
-    joint_damping: float = Field(default=0.0, ge=0.0)
+    joint_damping: float = Field(default=0.0, ge=0.0, le=MAX_GAIN)
     #: reflected rotor inertia added to every actuated joint (kg·m²)
-    armature: float = Field(default=0.0, ge=0.0)
+    armature: float = Field(default=0.0, ge=0.0, le=MAX_GAIN)
     #: keep a free-floating base instead of fixing the root link to the world
     floating_base: bool = False
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
@@ -73,14 +105,17 @@ class MujocoController(Backend):
     #: the self-collision model in use (None for an MJCF model, which keeps its own contact settings)
     collision: SelfCollision | None = None
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._nsub = substeps(self.period, self.options.timestep, "MuJoCo", self.config.label)
+
     async def _open(self) -> None:
+        # building and compiling a model takes up to seconds: off the event loop
+        await run_blocking(self._build, name="agentsdk-mujoco-build")
+
+    def _build(self) -> None:
         opts: MujocoOptions = self.options
-        nsub = round(self.period / opts.timestep)
-        if nsub < 1 or abs(nsub * opts.timestep - self.period) > 1e-9:
-            raise ConfigurationError(
-                f"control period {self.period:g} s is not a whole multiple of the MuJoCo timestep {opts.timestep:g} s"
-            )
-        self._nsub = nsub
+        _route_warnings()
         desc = self.description
         label = f"robot {desc.name!r} ({desc.source})"
         try:
@@ -282,6 +317,14 @@ class MujocoController(Backend):
             n = w[code].number
             if n != self._warn[k]:
                 self._warn[k] = n
+                if code == _BADCTRL:
+                    act = w[code].lastinfo
+                    joint = self.names[act] if 0 <= act < len(self.names) else f"actuator {act}"
+                    raise SimulationDiverged(
+                        f"MuJoCo rejected the control of joint {joint!r} of {self.description.name!r} in the step "
+                        f"after t={t0:.4f} s (NaN, inf or above {mujoco.mjMAXVAL:g}: {mujoco.mjtWarning(code).name}); "
+                        "MuJoCo zeroed every control, so the servos were off"
+                    )
                 # MuJoCo has already reset the state: report the time before this step
                 # and the dof it flagged (lastinfo), not the reset values
                 raise SimulationDiverged(

@@ -42,18 +42,20 @@ import os
 import sys
 import tempfile
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import pybullet as p
 from pydantic import BaseModel, ConfigDict, Field
 
-from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
+from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, substeps
+from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
 from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf
 from agentsdk.description.mjcf import mjcf_unsupported_by_pybullet
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
@@ -71,20 +73,25 @@ _MOVABLE = {p.JOINT_REVOLUTE: "revolute", p.JOINT_PRISMATIC: "prismatic"}
 _MAX_LINKS = 127
 #: force limit of the gear constraints that make mimic joints follow their leader (N or N·m)
 _GEAR_FORCE = 1e5
+#: smallest accepted physics timestep (s)
+MIN_TIMESTEP = 1e-6
+#: a gravity component (m/s²): finite, within ±1000 (about 100 g)
+GravityComponent = Annotated[float, Field(ge=-1000.0, le=1000.0)]
 
 
 class PybulletOptions(BaseModel):
     """robot.yaml ``backends.pybullet`` / ``connect("pybullet", ...)`` options."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
-    #: physics timestep (s); the control period must be a whole multiple of it
-    timestep: float = Field(default=0.001, gt=0.0)
-    gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
+    #: physics timestep (s); the control period must be a whole multiple of it (at most MAX_SUBSTEPS)
+    timestep: float = Field(default=0.001, ge=MIN_TIMESTEP, le=0.1)
+    #: gravity vector (m/s²), each component within ±1000
+    gravity: tuple[GravityComponent, GravityComponent, GravityComponent] = (0.0, 0.0, -9.81)
     #: joint damping added to every actuated joint (N·m·s/rad), on top of the URDF ``<dynamics damping>``
-    joint_damping: float = Field(default=0.0, ge=0.0)
+    joint_damping: float = Field(default=0.0, ge=0.0, le=MAX_GAIN)
     #: constraint solver iterations (joint limits, contacts)
-    solver_iterations: int = Field(default=50, ge=1)
+    solver_iterations: int = Field(default=50, ge=1, le=10_000)
     #: keep a free-floating base instead of fixing the root link to the world
     floating_base: bool = False
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
@@ -107,13 +114,7 @@ class PybulletController(Backend):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         opts: PybulletOptions = self.options
-        nsub = round(self.period / opts.timestep)
-        if nsub < 1 or abs(nsub * opts.timestep - self.period) > 1e-9:
-            raise ConfigurationError(
-                f"control period {self.period:g} s (update_rate {1.0 / self.period:g} Hz) is not a whole multiple "
-                f"of the PyBullet timestep {opts.timestep:g} s; change backends.pybullet.timestep or update_rate"
-            )
-        self._nsub = nsub
+        self._nsub = substeps(self.period, opts.timestep, "PyBullet", self.config.label)
         if opts.gui and not _has_display():
             raise ConfigurationError(
                 "pybullet gui=True needs a display, but neither DISPLAY nor WAYLAND_DISPLAY is set; "
@@ -146,6 +147,13 @@ class PybulletController(Backend):
 
     # ------------------------------------------------------------ open/close
     async def _open(self) -> None:
+        if self.options.gui:
+            self._build()  # the GUI client starts its own window thread: opened from the loop's thread
+        else:
+            # loading the robot takes up to seconds: off the event loop
+            await run_blocking(self._build, name="agentsdk-pybullet-build")
+
+    def _build(self) -> None:
         opts: PybulletOptions = self.options
         try:
             self._cid = p.connect(p.GUI if opts.gui else p.DIRECT)

@@ -1,0 +1,98 @@
+"""Asynchronous, hierarchical state machines for robot behaviours.
+
+Why our own engine and not python-statemachine underneath: its async engine
+awaits callbacks inline inside one run-to-completion step (``on_enter`` is
+awaited before the next queued event is even looked at), so a long-running
+state body cannot be preempted by an external event, and a state never owns a
+task that could be cancelled.  It has no per-state timeouts, no injectable
+clock (we need the robot's simulated time), and no hook to cancel and await a
+state's child work (motions, nested machines) when the state is left -- all of
+that would be our code wrapped around its transition table.  What it would still
+give us, class-based declaration and definition-time validation, is the small
+part; so we keep its declaration style (``State``, ``a.to(b)``, ``|``) and
+implement a small engine on ``asyncio.TaskGroup``: one task per state body, one
+event queue per machine, and task cancellation as the preemption mechanism.
+
+Declaring a machine::
+
+    class Patrol(StateMachine):
+        idle = State(initial=True)
+        moving = State(timeout=5.0)          # "timeout" fires after 5 s of machine clock
+        done = State(final=True)
+        fault = State(fault=True)            # exceptions in any state land here
+
+        go = idle.to(moving)                 # the attribute name is the event name
+        arrived = moving.to(done)
+        stop = moving.to(idle) | idle.to(done)
+        timeout = moving.to(fault)
+        retry = fault.to(idle, guard="can_retry") | fault.to(done)
+
+        async def on_idle(self, ctx: StateContext) -> str | None:
+            return "go"                      # completion event
+
+        async def on_moving(self, ctx: StateContext) -> str | None:
+            await ctx.robot.follow(path)     # motion registered in the state's scope
+            return "arrived"
+
+        def can_retry(self) -> bool:
+            return self.attempts < 3
+
+    final_state = await Patrol(robot).run()
+
+Semantics:
+
+* The class is validated when it is defined; mistakes raise
+  :class:`StateMachineDefinitionError` naming the class, the state and the problem.
+* Entering a state starts its body ``async def on_<state>(self, ctx)`` as its own
+  task, inside a fresh :class:`~agentsdk.scope.MotionScope`.  A returned string is
+  fired as an event; ``None`` means "wait here for an event or the timeout".
+* ``machine.send(event)`` (synchronous) queues an external event.  If the current
+  state has an enabled transition for it, the state is left: its body task is
+  cancelled (its ``finally`` runs), its motions are asked to decelerate and hold
+  and are awaited (bounded by ``stop_timeout``; on expiry the robot is e-stopped
+  and :class:`StateMachineError` is raised).  Events nobody handles are recorded
+  in :attr:`StateMachine.history` (or raise :class:`EventNotAllowed` when
+  ``strict=True``).
+* ``State(machine=Sub)`` runs a nested machine as the state body; reaching a
+  final state of ``Sub`` fires ``done_<state>`` (or ``done=``).
+  ``State(parallel=[A, B])`` runs several machines as concurrent regions and
+  fires ``done_<state>`` when all of them are final.  Events are offered to the
+  outer machine first: an outer transition preempts the whole nested machine
+  (an inner machine cannot swallow the outer ``stop``); events the outer state
+  does not take are forwarded to the active nested machine(s).
+* An exception in a state body (or guard) goes to the nearest ``fault=True``
+  state of the machine or an enclosing one (``machine.last_error``,
+  ``ctx.error``).  With no fault state, the robot is stopped with
+  ``await robot.estop(category=1)`` and ``run()`` raises :class:`StateMachineError`
+  naming the state path, chained to the original exception.
+* Cancelling ``run()`` leaves the active state (same cleanup) and re-raises
+  ``CancelledError``.
+"""
+
+from ..scope import ClockLike, LoopClock
+from ._declaration import State, Transition, TransitionList
+from ._discovery import find_machines
+from ._errors import EventNotAllowed, StateMachineDefinitionError, StateMachineError
+from ._machine import StateMachine, TransitionListener
+from ._runtime import HistoryRecord, StateContext
+
+__all__ = [
+    "ClockLike",
+    "EventNotAllowed",
+    "HistoryRecord",
+    "LoopClock",
+    "State",
+    "StateContext",
+    "StateMachine",
+    "StateMachineDefinitionError",
+    "StateMachineError",
+    "Transition",
+    "TransitionList",
+    "TransitionListener",
+    "find_machines",
+]
+
+for _name in __all__:
+    _obj = globals()[_name]
+    if getattr(_obj, "__module__", "").startswith(__name__ + "."):
+        _obj.__module__ = __name__  # documented and pickled as agentsdk.statemachine.X

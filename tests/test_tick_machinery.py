@@ -44,7 +44,8 @@ async def _scenario(backend: str, batch: bool) -> tuple[int, np.ndarray, list[st
     position/velocity] as one array, and the safety events' kinds.
     """
     rows: list[np.ndarray] = []
-    async with agentsdk.connect(backend, robot="arm3", safety={"command_timeout": 0.05}) as robot:
+    safety = {"command_timeout": 0.05, "stall_timeout": 10.0}
+    async with agentsdk.connect(backend, robot="arm3", safety=safety) as robot:
         if not batch:
             robot._loop.batch_seconds = 0.0  # one tick per pass through the event loop
         names = list(robot.joint_names)
@@ -136,7 +137,7 @@ class _Probes:
 async def test_mujoco_tick_allocates_no_arrays(what: str) -> None:
     if not _available("mujoco"):
         pytest.skip("mujoco not installed")
-    async with agentsdk.connect("mujoco", robot="arm3") as robot:
+    async with agentsdk.connect("mujoco", robot="arm3", safety={"stall_timeout": 10.0}) as robot:
         names = list(robot.joint_names)
         probes = _Probes(robot)
         if what == "trajectory":

@@ -490,7 +490,9 @@ def _waypoints(rb: _Robot, target_duration: float, seed: int = 1) -> tuple[np.nd
     for _ in range(100):
         wps.append(lo + (hi - lo) * (0.3 + 0.4 * rng.random(len(lo))))
         wps_arr = np.array(wps)
-        traj = plan(wps_arr, rb.joints, start=(q0, None, None))
+        # 1 % below the limits: plan() at the full limits can exceed them by float noise (~1e-4 relative
+        # in the interpolated acceleration), which follow()'s check (1e-6) rejects
+        traj = plan(wps_arr, rb.joints, start=(q0, None, None), velocity_scale=0.99, acceleration_scale=0.99)
         if traj.duration >= target_duration:
             break
     return np.array(wps), traj

@@ -280,7 +280,7 @@ async def _backend_free_run(robot_yaml: Path, interface: str, channel: str, dura
     config, desc = resolve_robot(robot_yaml)
     joints = apply_overrides(desc, config)
     ctl = load_backend("can")(config, desc, joints, realtime=True, interface=interface, channel=channel,
-                              max_missed_replies=10**9)
+                              max_missed_replies=1000)
     await ctl.open()
     try:
         # hold the measured position with the robot's gains, as the control loop would
@@ -313,7 +313,7 @@ async def _backend_free_run(robot_yaml: Path, interface: str, channel: str, dura
 async def _backend_realtime(robot_yaml: Path, interface: str, channel: str, duration: float) -> dict[str, Any]:
     """The whole stack at the robot.yaml's update_rate, holding position."""
     async with agentsdk.connect("can", robot=robot_yaml, interface=interface, channel=channel,
-                                max_missed_replies=10**9) as robot:
+                                max_missed_replies=1000) as robot:
         ctl = robot.controller
         await robot.clock.sleep(0.2)  # settle
         ticks0, skipped0 = robot.ticks, robot.missed_deadlines

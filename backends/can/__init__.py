@@ -287,12 +287,14 @@ class CanController(Backend):
         try:
             async with asyncio.timeout(wait):
                 while True:  # never block the event loop on a full transmit queue: retry
+                    # stamped before the send: on one CPU the motor may answer (kernel rx stamp)
+                    # before this task runs again, and that reply must count as after the frame
+                    sent = time.time()
                     try:
                         bus.send(msg, timeout=0.0)
                         break
                     except can.CanOperationError:
                         await asyncio.sleep(self.period)
-                sent = time.time()
                 self._any_reply.clear()
                 while self._reply_stamp[k] < sent:
                     await self._any_reply.wait()

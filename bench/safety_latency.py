@@ -63,7 +63,7 @@ async def rearm(robot: agentsdk.Robot) -> None:
 def moving(robot: agentsdk.Robot, k: int) -> agentsdk.Motion:
     """A trajectory that keeps joint1 and joint3 moving for a while."""
     sign = 1.0 if k % 2 == 0 else -1.0
-    return robot.follow(Trajectory(["joint1", "joint3"], [TrajectoryPoint(2.0, [sign * 1.5, -sign * 1.5])]))
+    return robot.follow(Trajectory(["joint1", "joint3"], [TrajectoryPoint(3.0, [sign * 1.5, -sign * 1.5])]))
 
 
 # ------------------------------------------------------------------ e-stop

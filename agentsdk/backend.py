@@ -25,11 +25,16 @@ Hooks receive values and return values; none of them sees the loop's buffers::
 Optional hooks: ``async _enable()`` (re-arm actuators after an e-stop) and
 ``async _recover()`` (bring a faulted backend back; default: not recoverable).
 
-The joint servo law every backend implements is the MIT / ros2_control one::
+The joint servo law every backend implements is the MIT / ros2_control one, plus the
+model's gravity torque::
 
-    effort = kp * (q_des - q) + kd * (v_des - v) + effort_ff     (clamped to +-max_effort)
+    effort = kp * (q_des - q) + kd * (v_des - v) + effort_ff + tau_model     (clamped to +-max_effort)
 
-and a joint whose ``enabled`` flag is False produces no torque. Position,
+where ``tau_model = g(q)`` at the measured position for the joints whose
+:attr:`Backend.gravity_compensation` flag is set (robot.yaml ``gravity_compensation``,
+on by default), computed by the backend from its own model (see
+:mod:`agentsdk.dynamics`) once per control period, and 0 for the others. A joint
+whose ``enabled`` flag is False produces no torque (no gravity compensation either). Position,
 velocity and effort commands are all expressed in this law (velocity: kp = 0;
 effort: kp = kd = 0), so a backend needs one code path. The loop enforces the
 torque-off rule itself: after an emergency stop every setpoint it writes has
@@ -41,9 +46,17 @@ Read-only information a backend may use: :attr:`Backend.description`,
 :attr:`~Backend.config`, :attr:`~Backend.joints` (with limits, after robot.yaml
 overrides), :attr:`~Backend.names`, :attr:`~Backend.index`,
 :attr:`~Backend.period`, :attr:`~Backend.realtime`, :attr:`~Backend.options`
-(validated by :attr:`~Backend.options_model`), :attr:`~Backend.initial_positions`,
-and the limit arrays :attr:`~Backend.lower`, :attr:`~Backend.upper`,
-:attr:`~Backend.max_velocity`, :attr:`~Backend.max_effort`.
+(validated by :attr:`~Backend.options_model`), :attr:`~Backend.initial_positions`
+(decided once for every backend, :mod:`agentsdk.description.start`; a simulator starts
+exactly there), :attr:`~Backend.gravity_compensation`, :attr:`~Backend.servo_gains`
+(robot.yaml gains, else from the model), :attr:`~Backend.dynamics` (the description's
+rigid-body model, for backends without a simulator), and the limit arrays
+:attr:`~Backend.lower`, :attr:`~Backend.upper`, :attr:`~Backend.max_velocity`,
+:attr:`~Backend.max_effort`.
+
+A simulator sets :attr:`~Backend.servo_timestep` (its physics step: the model-based
+gains stay within what it integrates stably) and, for a floating base, overrides
+:meth:`~Backend.base_state`.
 
 Capabilities are read from the instance: a backend may set ``self.capabilities``
 in ``__init__`` (e.g. a configuration that supports fewer modes).
@@ -53,6 +66,8 @@ from __future__ import annotations
 
 import asyncio
 import enum
+import functools
+import logging
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable
 from dataclasses import dataclass
@@ -61,12 +76,18 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
+from .config import Gains
 from .errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError
+from .pose import BaseState, Pose
 from .types import MODES, CommandMode, FloatArray, JointInfo
 
 if TYPE_CHECKING:
     from .config import RobotConfig
     from .description import RobotDescription
+    from .description.start import StartPose
+    from .dynamics import DynamicsModel, GainReport
+
+log = logging.getLogger("agentsdk")
 
 __all__ = ["MAX_SUBSTEPS", "Backend", "Capabilities", "JointReading", "ModeCode", "SetpointView", "substeps"]
 
@@ -220,14 +241,72 @@ class Backend(ABC):
         self.upper = _readonly([j.upper for j in joints])
         self.max_velocity = _readonly([j.max_velocity for j in joints])
         self.max_effort = _readonly([j.max_effort for j in joints])
-        q0 = np.zeros(len(joints))
-        # the description's own start pose (an MJCF "home" keyframe), then robot.yaml initial_positions
-        for name, q in {**description.default_positions, **config.initial_positions}.items():
-            if name in self.index:
-                q0[self.index[name]] = q
-        #: where the joints start (the description's default pose and robot.yaml ``initial_positions``, else 0)
-        self.initial_positions = _readonly(q0)
+        from .description.start import start_pose
+
+        start = start_pose(description, config, joints)
+        warning = start.warning(config.name or description.name)
+        if warning:
+            log.warning("%s", warning)
+        #: the start pose and where each joint's value came from (:mod:`agentsdk.description.start`)
+        self.start_pose: StartPose = start
+        #: where the joints start: robot.yaml ``initial_positions``, an SRDF group state, the model's
+        #: home pose, else 0 -- always inside the limits
+        self.initial_positions = _readonly([start.positions[j.name] for j in joints])
+        gc = np.array([config.gravity_compensation_for(j.name) for j in joints], dtype=bool)
+        override = getattr(self.options, "gravity_compensation", None)  # a backend option may switch it
+        if override is not None:
+            gc[:] = bool(override)
+        gc.flags.writeable = False
+        #: per joint: the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)
+        self.gravity_compensation: np.ndarray = gc
         self._backend_open = False
+
+    # ------------------------------------------------------------ model-based information
+    @property
+    def servo_timestep(self) -> float | None:
+        """The step at which the servo law is integrated (a simulator's physics timestep), or None.
+
+        None (the default) means the servo runs in continuous time or in motor firmware; the
+        model-based gains then have no discrete-time bound.
+        """
+        return None
+
+    @property
+    def floating_base(self) -> bool:
+        """True when the robot's base floats (robot.yaml ``floating_base``; a simulator's option may override)."""
+        return bool(self.config.floating_base)
+
+    @functools.cached_property
+    def dynamics(self) -> DynamicsModel:
+        """The description's rigid-body model (``g(q)``, ``M(q)``), built on first use."""
+        from .dynamics import DynamicsModel
+
+        return DynamicsModel(self.description, self.joints)
+
+    @functools.cached_property
+    def model_gain_report(self) -> GainReport:
+        """The model-based gains of every joint at the start pose and what bounded each."""
+        mg = self.config.model_gains
+        return self.dynamics.gains(
+            self.initial_positions,
+            bandwidth=mg.bandwidth,
+            damping_ratio=mg.damping_ratio,
+            timestep=self.servo_timestep,
+            floating_base=self.floating_base,
+        )
+
+    @functools.cached_property
+    def servo_gains(self) -> tuple[Gains, ...]:
+        """Servo gains per joint: robot.yaml ``gains`` (the joint's, else ``default``), else from the model."""
+        explicit = [self.config.gains_for(j.name) for j in self.joints]
+        if all(g is not None for g in explicit):
+            return tuple(g for g in explicit if g is not None)
+        model = self.model_gain_report.as_gains()
+        return tuple(g if g is not None else model[k] for k, g in enumerate(explicit))
+
+    def base_state(self) -> BaseState:
+        """The base's pose and velocity in the world; a fixed base (the default) is the identity at rest."""
+        return BaseState(Pose())
 
     def _validate_options(self, options: dict[str, Any], given: frozenset[str] = frozenset()) -> Any:
         """Validate the merged options with :attr:`options_model`; one error line per problem.

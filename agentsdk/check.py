@@ -107,20 +107,27 @@ def check_robot(
     out.extend(_wrap([f"{rec.name} {rec.mass:.4g}" for rec in moving]))
     out.append("")
 
-    start = {**desc.default_positions, **config.initial_positions}
-    source = "robot.yaml initial_positions" if config.initial_positions else (
-        "the model's home keyframe" if desc.default_positions else "all joints at 0"
-    )
-    out.append(f"start pose ({source}):")
-    entries = []
-    for j in joints:
-        q = start.get(j.name, 0.0)
-        flag = "" if j.within(q) else f" (outside its limits [{j.lower:g}, {j.upper:g}])"
-        entries.append(f"{j.name}={q:g}{flag}")
-    out.extend(_wrap(entries) or ["    (no commanded joints)"])
-    outside = [j.name for j in joints if not j.within(start.get(j.name, 0.0))]
-    if outside:
-        out.append(f"  note: {', '.join(outside)} start outside their limits; set initial_positions in robot.yaml")
+    from .description.start import start_pose
+
+    try:
+        pose = start_pose(desc, config, joints)
+    except AgentSDKError as exc:
+        report.problems.append(f"start pose: {' '.join(str(exc).split())}")
+        pose = None
+    if pose is not None:
+        out.append(f"start pose ({pose.summary()}):")
+        entries = [
+            f"{j.name}={pose.positions[j.name]:g}"
+            + (f" (clipped from {pose.clipped[j.name]:g})" if j.name in pose.clipped else "")
+            for j in joints
+        ]
+        out.extend(_wrap(entries) or ["    (no commanded joints)"])
+        if pose.clipped:
+            out.append(f"  note: {', '.join(pose.clipped)} start clipped into their limits; "
+                       "set initial_positions or initial_group_state in robot.yaml")
+        out.append("")
+    gc = [j.name for j in joints if not config.gravity_compensation_for(j.name)]
+    out.append("gravity compensation: " + ("on for every joint" if not gc else f"off for {', '.join(gc)}"))
     out.append("")
 
     if collision is not None:
@@ -160,4 +167,18 @@ def check_robot(
         else:
             out.append(f"  {backend:9s} ✗ {r.get('error_type')}")
             report.problems.append(f"{backend}: {' '.join(str(r.get('error')).split())}")
+    explicit = {j.name for j in joints if config.gains_for(j.name) is not None}
+    for backend, r in zip(chosen, results, strict=True):
+        if not r.get("gains"):
+            continue
+        if len(explicit) == len(joints):
+            source = "robot.yaml"
+        elif explicit:
+            source = "robot.yaml, the others from the model"
+        else:
+            source = "from the model, agentsdk.dynamics.model_gains"
+        out.append("")
+        out.append(f"servo gains on {backend} ({source}; p N·m/rad, d N·m·s/rad):")
+        gain_pairs = zip(r["joints"], r["gains"], strict=True)
+        out.extend(_wrap([f"{name} p={g[0]:.4g} d={g[1]:.4g}" for name, g in gain_pairs]))
     return report

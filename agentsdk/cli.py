@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import importlib.util
+import inspect
 import json
 import logging
 import os
@@ -34,15 +34,31 @@ from typing import Any
 
 from .errors import AgentSDKError, ConfigurationError
 
-__all__ = ["Interrupted", "load_behavior", "main", "run_behavior"]
+__all__ = ["BehaviorError", "Interrupted", "load_behavior", "main", "run_behavior"]
 
+#: a user error (configuration, robot, options, arguments)
 EXIT_USER_ERROR = 2
+#: the behavior raised (the robot was stopped)
 EXIT_BEHAVIOR_FAILED = 1
+#: the behavior script cannot be used (syntax error, failing import, no async main(robot))
+EXIT_BAD_BEHAVIOR = 3
 EXIT_INTERRUPTED = 130
 
 
+class BehaviorError(ConfigurationError):
+    """A behavior script cannot be used: missing, a syntax error, an import failing, no ``async def main(robot)``.
+
+    ``agentsdk run`` reports it in one line (file:line) and exits with :data:`EXIT_BAD_BEHAVIOR`.
+    """
+
+
 def load_behavior(spec: str) -> ModuleType:
-    """Import a behavior script by path, or by name from the shipped ``behaviors`` package."""
+    """Import a behavior script by path, or by name from the shipped ``behaviors`` package.
+
+    Checked when the file loads, not when the robot is already running: the file
+    must compile, import, and define ``main`` as an ``async def`` taking the robot.
+    Raises :class:`BehaviorError` naming the file and line otherwise.
+    """
     path = Path(spec)
     if not path.exists() and not spec.endswith(".py"):
         import agentsdk.behaviors as behaviors
@@ -51,16 +67,46 @@ def load_behavior(spec: str) -> ModuleType:
         if candidate.exists():
             path = candidate
     if not path.is_file():
-        raise ConfigurationError(f"behavior script not found: {spec}")
+        raise BehaviorError(f"behavior script not found: {spec}")
+    try:
+        source = path.read_bytes()
+        code = compile(source, str(path), "exec", dont_inherit=True)
+    except SyntaxError as exc:
+        where = f"{exc.filename or path}:{exc.lineno}" + (f":{exc.offset}" if exc.offset else "")
+        raise BehaviorError(f"{where}: {type(exc).__name__}: {exc.msg}") from None
+    except (OSError, ValueError) as exc:
+        raise BehaviorError(f"cannot read behavior script {path}: {exc}") from None
     name = f"agentsdk_behavior_{path.stem}"
-    module_spec = importlib.util.spec_from_file_location(name, path)
-    if module_spec is None or module_spec.loader is None:
-        raise ConfigurationError(f"cannot import behavior script {path}")
-    module = importlib.util.module_from_spec(module_spec)
+    module = ModuleType(name)
+    module.__file__ = str(path)
     sys.modules[name] = module
-    module_spec.loader.exec_module(module)
-    if not callable(getattr(module, "main", None)):
-        raise ConfigurationError(f"{path} does not define `async def main(robot)`")
+    try:
+        exec(code, module.__dict__)
+    except Exception as exc:
+        del sys.modules[name]
+        tb = traceback.extract_tb(exc.__traceback__)
+        frame = next((f for f in reversed(tb) if f.filename == str(path)), tb[-1] if tb else None)
+        where = f"{frame.filename}:{frame.lineno}" if frame is not None else str(path)
+        raise BehaviorError(f"{where}: importing the behavior failed: {type(exc).__name__}: {exc}") from exc
+    main = getattr(module, "main", None)
+    if main is None:
+        raise BehaviorError(f"{path} does not define `async def main(robot)`")
+    call = type(main).__call__ if callable(main) and not inspect.isfunction(main) else None
+    if not (inspect.iscoroutinefunction(main) or (call is not None and inspect.iscoroutinefunction(call))):
+        line = getattr(getattr(main, "__code__", None), "co_firstlineno", None)
+        where = f"{path}:{line}" if line else str(path)
+        raise BehaviorError(f"{where}: `main` must be an `async def main(robot)` coroutine function, "
+                            f"got {type(main).__name__} {getattr(main, '__name__', '')}".rstrip())
+    try:
+        inspect.signature(main).bind(object())
+    except TypeError:
+        line = main.__code__.co_firstlineno if hasattr(main, "__code__") else None
+        where = f"{path}:{line}" if line else str(path)
+        raise BehaviorError(
+            f"{where}: `main` must take exactly one argument, the robot: async def main(robot)"
+        ) from None
+    except ValueError:  # no signature available (a builtin): let the call decide
+        pass
     return module
 
 
@@ -143,11 +189,13 @@ async def run_behavior(
     """
     from .robot import connect
 
-    t_wall = time.perf_counter()
     async with connect(backend, robot=robot, realtime=realtime, **(options or {})) as bot:
         if on_robot is not None:
             on_robot(bot)
         aloop = asyncio.get_running_loop()
+        # the real-time factor covers the behavior only: not the connect (description load,
+        # simulator build), the viewer/recorder setup, nor the stop and close after it
+        t_sim, t_wall = bot.clock.now(), time.perf_counter()
         task: asyncio.Task[Any] = aloop.create_task(_awaited(main_fn(bot)), name="agentsdk-behavior")
         stop_task: asyncio.Task[None] | None = None
         signals: list[int] = []
@@ -194,7 +242,8 @@ async def run_behavior(
             events = [e.detail for e in bot.safety.events if e.kind == "estop"]
             detail = events[-1] if events else "robot stopped"
             raise Interrupted(signals[0], detail)
-        summary = RunSummary(bot.clock.now(), time.perf_counter() - t_wall, await final_errors(bot), bot.realtime)
+        wall = time.perf_counter() - t_wall
+        summary = RunSummary(bot.clock.now() - t_sim, wall, await final_errors(bot), bot.realtime)
     return summary
 
 
@@ -266,8 +315,10 @@ class _RunExtras:
         video: str | None = None,
         video_fps: float = 30.0,
         video_size: tuple[int, int] = (640, 480),
+        record_format: str = "mcap",
     ) -> None:
         self.record, self.plot, self.rate = record, plot, rate
+        self.record_format = record_format
         self.video, self.video_fps, self.video_size = video, video_fps, video_size
         self.video_recorder: Any = None
         self.progress_on, self.view, self.label, self.metadata, self.total = progress, view, label, metadata, total
@@ -282,7 +333,7 @@ class _RunExtras:
             from .recording import Recorder
 
             self.recorder = Recorder.attach(bot, self.record, rate=self.rate, keep=bool(self.plot),
-                                            metadata=self.metadata)
+                                            metadata=self.metadata, format=self.record_format)
         if self.view and bot.backend == "mujoco":
             self.viewer = _MujocoView(bot)
         if self.video:
@@ -386,6 +437,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.record_rate is not None and not args.record_rate > 0:
         raise ConfigurationError(f"--record-rate must be > 0 Hz, got {args.record_rate:g}")
     _apply_scheduling(args.rt_priority, args.cpus)
+    if args.record_format != "mcap" and not args.record:
+        raise ConfigurationError("--record-format needs --record")
     if args.view:
         _check_view(backend)
         if backend == "pybullet":
@@ -400,6 +453,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         video=args.video,
         video_fps=args.video_fps,
         video_size=video_size,
+        record_format=args.record_format,
         label=f"{behavior_name} on {robot} ({backend})",
         metadata={
             "robot": robot_spec_for_metadata(robot),
@@ -470,6 +524,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     _check_output(args.record, "recording")
     _check_output(args.plot, "plot")
     data = read_recording(args.recording)
+    if data.truncated and not args.quiet:
+        print(f"warning: {args.recording} was not finished (the recording process was killed?); "
+              f"replaying the {data.duration:.3f} s recovered from it", file=sys.stderr)
     backend = args.backend or data.backend or "mujoco"
     robot = args.robot or data.robot
     if args.tolerance is not None and not args.tolerance >= 0:
@@ -631,6 +688,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--debug", action="store_true", help="show tracebacks")
     r.add_argument("--record", metavar="RUN.mcap", help="record joint states, commands, safety events and "
                    "state-machine transitions to an MCAP file (Foxglove-readable)")
+    r.add_argument("--record-format", choices=("mcap", "ros2"), default="mcap",
+                   help="mcap: agentsdk channels + Foxglove /tf and /robot_description (default); "
+                   "ros2: a rosbag2 MCAP with CDR sensor_msgs/JointState and tf2_msgs/TFMessage")
     r.add_argument("--record-rate", type=float, metavar="HZ",
                    help="decimate recorded joint states to HZ (commands are always complete)")
     r.add_argument("--plot", metavar="OUT.png", help="plot desired vs actual position per joint and the error")
@@ -700,7 +760,7 @@ def main(argv: list[str] | None = None) -> int:
         if debug:
             raise
         _print_error(exc)
-        return EXIT_USER_ERROR
+        return EXIT_BAD_BEHAVIOR if isinstance(exc, BehaviorError) else EXIT_USER_ERROR
 
 
 def _print_error(exc: BaseException) -> None:

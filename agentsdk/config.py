@@ -6,12 +6,17 @@ Example::
     xacro_args: {link1_length: "0.3"}
     update_rate: 500                    # Hz, like controller_manager.update_rate
     gains:                              # joint servo gains, like ros2_control pid gains
-      default: {p: 400.0, d: 10.0}
+      default: {p: 400.0, d: 10.0}      # (joints without gains get them from the model, see model_gains)
       joint3: {p: 20.0, d: 0.5}
+    model_gains: {bandwidth: 10.0, damping_ratio: 1.0}   # Hz; see agentsdk.dynamics.model_gains
+    gravity_compensation: true          # or per joint: {default: true, gripper: false}
     joint_limits:                       # like ros2_control joint_limits.yaml
       default: {max_acceleration: 5.0, max_jerk: 100.0}
       joint1: {max_velocity: 1.5}
     initial_positions: {joint2: 0.2}
+    initial_group_state: home           # else an SRDF <group_state> (joints not in initial_positions)
+    floating_base: false                # true: free base on a ground plane (simulators)
+    ground_friction: 0.8                # ground contact friction coefficient (floating base)
     safety: {command_timeout: 0.2}      # see agentsdk.safety.SafetyConfig
     strict: false                       # true: refuse descriptions that need repairs
     self_collision: auto                # auto | true | false, the same on every simulator
@@ -32,7 +37,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, field_validator
 
 from .errors import ConfigurationError
 
@@ -42,6 +47,7 @@ __all__ = [
     "MIN_UPDATE_RATE",
     "Gains",
     "JointLimitsOverride",
+    "ModelGains",
     "RobotConfig",
     "did_you_mean",
     "format_value",
@@ -55,6 +61,10 @@ MAX_UPDATE_RATE = 10_000.0
 MIN_UPDATE_RATE = 1.0
 #: largest accepted servo gain (N·m/rad, N·m·s/rad or N/m, N·s/m): beyond any real joint servo
 MAX_GAIN = 1e9
+
+
+#: smallest velocity (rad/s), acceleration (rad/s^2) and jerk (rad/s^3) limit accepted in robot.yaml
+MIN_MOTION_LIMIT = 1e-3
 
 
 class _Strict(BaseModel):
@@ -72,6 +82,21 @@ class Gains(_Strict):
     v: float | None = Field(default=None, ge=0.0, le=MAX_GAIN)
 
 
+class ModelGains(_Strict):
+    """How servo gains are computed from the model for joints robot.yaml gives no gains for.
+
+    Per joint, from the joint-space inertia at the start pose: a position loop of
+    ``bandwidth`` Hz with damping ratio ``damping_ratio``, bounded by the effort limit
+    and by what the simulator's timestep integrates stably (see
+    :func:`agentsdk.dynamics.model_gains` for the formula).
+    """
+
+    #: closed-loop bandwidth of each joint's position servo (Hz)
+    bandwidth: PositiveFloat = 10.0
+    #: damping ratio of each joint's position servo (1: critically damped)
+    damping_ratio: PositiveFloat = 1.0
+
+
 class JointLimitsOverride(_Strict):
     """Per-joint limit overrides; unset fields keep the URDF value.
 
@@ -82,9 +107,11 @@ class JointLimitsOverride(_Strict):
 
     min_position: float | None = None
     max_position: float | None = None
-    max_velocity: float | None = Field(default=None, gt=0.0)
-    max_acceleration: float | None = Field(default=None, gt=0.0)
-    max_jerk: float | None = Field(default=None, gt=0.0)
+    # (a floor, not just > 0: ruckig cannot time a stop under a subnormal limit, and a stop
+    # that takes hours is no stop)
+    max_velocity: float | None = Field(default=None, ge=MIN_MOTION_LIMIT)
+    max_acceleration: float | None = Field(default=None, ge=MIN_MOTION_LIMIT)
+    max_jerk: float | None = Field(default=None, ge=MIN_MOTION_LIMIT)
     max_effort: float | None = Field(default=None, gt=0.0)
 
 
@@ -96,9 +123,21 @@ class RobotConfig(_Strict):
     xacro_args: dict[str, str] = Field(default_factory=dict)
     #: control rate (Hz), like controller_manager.update_rate
     update_rate: float = Field(default=500.0, ge=MIN_UPDATE_RATE, le=MAX_UPDATE_RATE)
-    gains: dict[str, Gains] = Field(default_factory=lambda: {"default": Gains(p=100.0, d=5.0)})
+    #: explicit servo gains by joint (or ``default``); joints without any get gains from the model
+    gains: dict[str, Gains] = Field(default_factory=dict)
+    #: bandwidth and damping ratio of the gains computed from the model
+    model_gains: ModelGains = Field(default_factory=ModelGains)
+    #: add the model's gravity torque g(q) to every joint's servo law (``true``/``false``, or per joint
+    #: ``{default: true, joint: false}``)
+    gravity_compensation: bool | dict[str, bool] = True
     joint_limits: dict[str, JointLimitsOverride] = Field(default_factory=dict)
     initial_positions: dict[str, float] = Field(default_factory=dict)
+    #: an SRDF ``<group_state>`` the joints start in (those not in ``initial_positions``)
+    initial_group_state: str | None = None
+    #: simulators: a free-floating base standing on a ground plane instead of a base fixed to the world
+    floating_base: bool = False
+    #: Coulomb friction coefficient of the robot on the ground plane (floating base), the same on every simulator
+    ground_friction: PositiveFloat = 0.8
     safety: dict[str, Any] = Field(default_factory=dict)
     backends: dict[str, dict[str, Any]] = Field(default_factory=dict)
     #: refuse a description that needs repairs (DescriptionError) instead of repairing it with a warning
@@ -141,10 +180,16 @@ class RobotConfig(_Strict):
         """How error messages name this configuration: the robot.yaml path, else the robot."""
         return str(self.source) if self.source is not None else f"robot {self.name!r}"
 
-    def gains_for(self, joint: str) -> Gains:
-        """The servo gains of ``joint`` (its own entry, else ``default``)."""
-        g = self.gains.get(joint) or self.gains.get("default")
-        return g if g is not None else Gains(p=100.0, d=5.0)
+    def gains_for(self, joint: str) -> Gains | None:
+        """The robot.yaml gains of ``joint`` (its own, else ``default``); None: computed from the model."""
+        return self.gains.get(joint) or self.gains.get("default")
+
+    def gravity_compensation_for(self, joint: str) -> bool:
+        """Whether ``joint``'s servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)."""
+        gc = self.gravity_compensation
+        if isinstance(gc, bool):
+            return gc
+        return gc.get(joint, gc.get("default", True))
 
     def backend_options(self, backend: str) -> dict[str, Any]:
         """The robot.yaml ``backends.<backend>`` section (a copy; empty when absent)."""

@@ -241,7 +241,6 @@ class ControlLoop:
 
     def __init__(self, backend: Backend) -> None:
         self.backend = backend
-        config = backend.config
         joints = backend.joints
         self.joints = joints
         self.names = backend.names
@@ -253,7 +252,7 @@ class ControlLoop:
         self._sp = Setpoint(n)
         #: robot time of the latest state (s)
         self.stamp = 0.0
-        gains = [config.gains_for(j.name) for j in joints]
+        gains = backend.servo_gains  # robot.yaml gains, else from the model
         self.gain_p = _readonly([g.p for g in gains])
         self.gain_d = _readonly([g.d for g in gains])
         self.gain_v = _readonly([g.d if g.v is None else g.v for g in gains])

@@ -47,6 +47,7 @@ import numpy as np
 
 from . import scope
 from .backend import ModeCode
+from .config import format_value
 from .errors import CommandRejected, InvalidValueError, LimitViolation, UnknownJointError
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .trajectory import (
@@ -95,6 +96,21 @@ class ResultCode(enum.IntEnum):
     #: stopped by the safety layer (e-stop, fault), the robot closing, or a setpoint step the
     #: position-step limiter would have had to clip
     ABORTED = -12
+
+
+class MotionPhase(enum.Enum):
+    """Where a running motion is in its life (internal bookkeeping, shown in debug logs)."""
+
+    #: scheduled with a future ``start_time``: validated, waiting for its start
+    PENDING = "pending"
+    #: sampling its trajectory
+    FOLLOW = "follow"
+    #: the trajectory has ended; waiting for the goal tolerance within ``goal_time``
+    SETTLE = "settle"
+    #: decelerating to rest (cancel, preemption, abort, e-stop)
+    STOPPING = "stopping"
+    #: finished: its result is set and it writes nothing
+    DEAD = "dead"
 
 
 @dataclass(frozen=True, slots=True)
@@ -206,7 +222,8 @@ def _turns_to(current: np.ndarray, target: np.ndarray) -> np.ndarray:
     dist = _wrap_angle(target - current)
     half = np.abs(np.abs(dist) - math.pi) < 1e-9
     dist = np.where(half, np.where(target > current, np.abs(dist), -np.abs(dist)), dist)
-    return np.round(((current + dist) - target) / _TWO_PI) * _TWO_PI
+    turns: np.ndarray = np.round(((current + dist) - target) / _TWO_PI) * _TWO_PI
+    return turns
 
 
 class Motion:
@@ -260,7 +277,7 @@ class Motion:
     async def feedback(self, rate: float = 50.0) -> AsyncIterator[Feedback]:
         """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included)."""
         if not (rate > 0 and math.isfinite(rate)):
-            raise InvalidValueError(f"feedback rate must be a positive number, got {rate!r}")
+            raise InvalidValueError(f"feedback rate must be a positive number of Hz, got {format_value(rate)}")
         clock = self._mgr.loop.clock
         period = 1.0 / rate
         next_t = clock.now()
@@ -293,7 +310,7 @@ class _Exec:
     goal_tol: np.ndarray
     goal_time: float
     goal: np.ndarray
-    phase: str = "follow"  # pending | follow | settle | stopping | dead
+    phase: MotionPhase = MotionPhase.FOLLOW
     stop_code: ResultCode | None = None
     stop_msg: str = ""
     des_q: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -425,7 +442,7 @@ class MotionManager:
         """
         tau, s, sdot = self._advance(ex, self.loop.stamp)
         q, vt, at = ex.sampler.sample(tau)
-        if ex.phase == "stopping" or (s == 1.0 and sdot == 0.0):
+        if ex.phase == MotionPhase.STOPPING or (s == 1.0 and sdot == 0.0):
             return q, vt, at
         return q, vt * s, at * (s * s) + vt * sdot
 
@@ -485,7 +502,7 @@ class MotionManager:
             q0, v0, a0 = self._predicted(idx, t_start)
             traj, _ = self._prepare(ex, traj, q0, v0, a0, t_start)
             ex.pending_traj = traj
-            ex.phase = "pending"
+            ex.phase = MotionPhase.PENDING
             motion = Motion(self, idx, names, traj, t_start)
             ex.motion = motion
             self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
@@ -544,11 +561,12 @@ class MotionManager:
                 check_motion_limits(sampler, lo, hi, vmax, amax)
                 return scaled, sampler
             except LimitViolation:
-                k = time_scale_for_limits(sampler, vmax, amax)
-                # k == 1: velocities and accelerations fit, the position limits do not: no stretching helps
-                if not math.isfinite(k) or k <= 1.0 + 1e-9 or traj.duration * factor * k > MAX_TIME_FROM_START:
+                scale = time_scale_for_limits(sampler, vmax, amax)
+                # scale == 1: velocities and accelerations fit, the position limits do not: no stretching helps
+                too_long = traj.duration * factor * scale > MAX_TIME_FROM_START
+                if not math.isfinite(scale) or scale <= 1.0 + 1e-9 or too_long:
                     break
-                factor *= max(k, 1.01)
+                factor *= max(scale, 1.01)
                 scaled = traj.time_scaled(factor)
                 sampler = TrajectorySampler(scaled, start_time=t0, start_positions=q0, start_velocities=v0,
                                             start_accelerations=a0)
@@ -563,9 +581,9 @@ class MotionManager:
             ex = self._owner[j]
             if ex is not None and ex.sampler is not None:
                 m = int(np.flatnonzero(ex.idx == j)[0])
-                tau = t if ex.phase == "stopping" else ex.tau + ex.s * (t - ex.t_last)
+                tau = t if ex.phase == MotionPhase.STOPPING else ex.tau + ex.s * (t - ex.t_last)
                 eq, ev, ea = ex.sampler.sample(tau)
-                s = 1.0 if ex.phase == "stopping" else ex.s
+                s = 1.0 if ex.phase == MotionPhase.STOPPING else ex.s
                 q[k], v[k], a[k] = eq[m], ev[m] * s, ea[m] * s * s
         return q, v, a
 
@@ -574,7 +592,7 @@ class MotionManager:
         """Make ``ex`` follow ``sampler`` from time ``t0`` (the desired state there is (q0, v0, a0))."""
         ex.sampler = sampler
         ex.t0 = ex.tau = ex.t_last = t0
-        ex.phase = "follow"
+        ex.phase = MotionPhase.FOLLOW
         # the trajectory's velocities are in its own time: start at full speed when the start state
         # moves (no velocity jump), else directly at the current scaling (a paused robot stays put)
         ex.s = 1.0 if np.any(np.abs(v0) > 1e-9) else self._speed
@@ -600,7 +618,10 @@ class MotionManager:
         except (TypeError, ValueError):
             raise InvalidValueError(f"move_to: targets must be numbers, got {dict(positions)!r}") from None
         if not np.isfinite(goal).all():
-            raise InvalidValueError(f"move_to: non-finite target in {dict(positions)!r}")
+            j = int(np.flatnonzero(~np.isfinite(goal))[0])
+            raise InvalidValueError(
+                f"move_to: non-finite target {format_value(goal[j])} for joint {names[j]!r}"
+            )
         if duration is not None:
             try:
                 duration = float(duration)
@@ -660,11 +681,11 @@ class MotionManager:
             if ex.motion is motion:
                 self._finish(ex, code, f"{msg} before its scheduled start")
                 return
-        for ex in set(self._owner):
-            if ex is not None and ex.motion is motion:
+        for owner in set(self._owner):
+            if owner is not None and owner.motion is motion:
                 # cancel: from the current desired state (the robot tracks it; a smooth stop)
-                q, v, a = self._desired_next(ex)
-                self._begin_stop(ex, code, msg, self.loop.stamp, q, v, a, measured=None)
+                q, v, a = self._desired_next(owner)
+                self._begin_stop(owner, code, msg, self.loop.stamp, q, v, a, measured=None)
                 return
 
     def _stop_start(
@@ -718,14 +739,14 @@ class MotionManager:
         """Replace ``ex``'s reference by a stop ramp from (q, v, a) at ``t0``; ``measured`` marks the joints
         whose reference was reset to their measured state (the limiter is told).
         """
-        if ex.phase in ("stopping", "dead"):
+        if ex.phase in (MotionPhase.STOPPING, MotionPhase.DEAD):
             return
         if measured is not None and measured.any() and self._rebase is not None:
             self._rebase(ex.idx[measured], q[measured])
         ex.sampler = self._plan_stop_sampler(ex.idx, q, v, a, t0)
         ex.t0 = ex.tau = ex.t_last = t0
         ex.s, ex.sdot = 1.0, 0.0
-        ex.phase = "stopping"
+        ex.phase = MotionPhase.STOPPING
         ex.stop_code = code
         ex.stop_msg = msg
 
@@ -741,7 +762,7 @@ class MotionManager:
         sampler = self._plan_stop_sampler(idx, q, v, a, t0)
         n = len(idx)
         ex = _Exec(None, idx, sampler, t0, np.full(n, np.inf), np.full(n, np.inf), 0.0, goal=q.copy(),
-                   phase="stopping", stop_code=code, stop_msg=msg, on_done=on_done)
+                   phase=MotionPhase.STOPPING, stop_code=code, stop_msg=msg, on_done=on_done)
         ex.tau = ex.t_last = t0
         ex.des_q, ex.des_v, ex.des_a = q.copy(), v.copy(), a.copy()
         self._install(ex)
@@ -778,7 +799,7 @@ class MotionManager:
                     self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
             if meas.any() and self._rebase is not None:
                 self._rebase(idx[meas], q0[meas])
-            self._start_ramp(idx, q0, v0, a0, None, "", on_done=lambda: done.done() or done.set_result(None))
+            self._start_ramp(idx, q0, v0, a0, None, "", on_done=lambda: None if done.done() else done.set_result(None))
         try:
             await done
         finally:
@@ -809,7 +830,7 @@ class MotionManager:
             if ex.motion is not None and not ex.motion._future.done():
                 ex.motion._future.set_exception(exc)
                 ex.motion._future.exception()  # mark retrieved: the awaiting side re-raises it
-            ex.phase = "dead"
+            ex.phase = MotionPhase.DEAD
 
     def limiter_clipped(self, idx: np.ndarray, detail: str) -> None:
         """The safety layer's limiter had to clip the setpoint of joints ``idx`` that a motion drives.
@@ -824,13 +845,13 @@ class MotionManager:
             ex.reported_clip = True
             if self._report is not None:
                 self._report("clip", detail, self.loop.names[j])
-            if ex.phase in ("follow", "settle"):
+            if ex.phase in (MotionPhase.FOLLOW, MotionPhase.SETTLE):
                 q, v, a = ex.des_q, ex.des_v, ex.des_a
                 self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", self.loop.stamp, q, v, a, None)
 
     def _finish(self, ex: _Exec, code: ResultCode | None, msg: str) -> None:
         self._release(ex)
-        ex.phase = "dead"
+        ex.phase = MotionPhase.DEAD
         self._resolve(ex, code, msg)
         if ex.on_done is not None:
             ex.on_done()
@@ -859,7 +880,7 @@ class MotionManager:
             return ex.tau, ex.s, ex.sdot
         if dt > self.loop.period:
             dt = self.loop.period
-        if ex.phase == "stopping":
+        if ex.phase == MotionPhase.STOPPING:
             return ex.tau + dt, 1.0, 0.0
         s = ex.s
         f = self._speed
@@ -883,9 +904,9 @@ class MotionManager:
         return ex.tau + 0.5 * (s + s_new) * dt, s_new, (s_new - s) / dt
 
     def _update(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
-        if ex.phase == "dead":
+        if ex.phase == MotionPhase.DEAD:
             return False
-        if ex.phase == "pending":
+        if ex.phase == MotionPhase.PENDING:
             if t < ex.t0 - 1e-9:
                 return True
             if not self._activate(ex, t):
@@ -894,7 +915,7 @@ class MotionManager:
         tau, s, sdot = self._advance(ex, t)
         ex.tau, ex.s, ex.sdot, ex.t_last = tau, s, sdot, t
         q, vt, at = ex.sampler.sample(tau)
-        stopping = ex.phase == "stopping"
+        stopping = ex.phase == MotionPhase.STOPPING
         if stopping or (s == 1.0 and sdot == 0.0):
             v, a = vt, at
         else:
@@ -906,7 +927,7 @@ class MotionManager:
             err = np.where(ex.wrap, _wrap_angle(err), err)
         m = ex.motion
         elapsed = tau - ex.t0
-        if ex.phase == "follow":
+        if ex.phase == MotionPhase.FOLLOW:
             over = ~(np.abs(err) <= ex.path_tol)
             if over.any():
                 k = int(np.argmax(over))
@@ -920,11 +941,11 @@ class MotionManager:
                     self._begin_stop(ex, ResultCode.SUCCESSFUL, "ended moving; decelerated to rest", t, q, v, a,
                                      None)
                     return self._write_stop(ex, t, st, sp)
-                ex.phase = "settle"
+                ex.phase = MotionPhase.SETTLE
         qc = self._limited(ex, q, v, a)
         if qc is None:  # a step the limiter would have clipped: aborted
             return self._write_stop(ex, t, st, sp)
-        if ex.phase == "settle":
+        if ex.phase == MotionPhase.SETTLE:
             gerr = np.abs(ex.goal - actual)
             if ex.wrap is not None:
                 gerr = np.where(ex.wrap, np.abs(_wrap_angle(ex.goal - actual)), gerr)
@@ -959,6 +980,7 @@ class MotionManager:
         if ex.wrap is not None:
             err = np.where(ex.wrap, _wrap_angle(err), err)
         qc = self._limited(ex, q, v, a)
+        assert qc is not None  # only a FOLLOW sample aborts instead of being limited; this is a stop
         self._write(ex, t, st, sp, qc, v, a, err)
         if ex.sampler.duration <= 0.0:
             self._finish(ex, ex.stop_code, ex.stop_msg)
@@ -976,7 +998,7 @@ class MotionManager:
         joint that moves towards its limit) is reported once. Never silent.
         """
         lo, hi, step, step_tol = ex.limits if ex.limits is not None else self._exec_limits(ex)
-        out = np.maximum(q, lo)
+        out: np.ndarray = np.maximum(q, lo)
         np.minimum(out, hi, out=out)
         what = ""
         if (out != q).any() and float(np.max(np.abs(out - q))) > _BOUND_TOL:
@@ -995,7 +1017,7 @@ class MotionManager:
         idx = ex.idx
         k = int(np.argmax(np.abs(out - q)))
         name = self.loop.names[int(idx[k])]
-        if ex.phase == "follow":
+        if ex.phase == MotionPhase.FOLLOW:
             if what == "step":
                 assert step is not None and origin is not None
                 detail = (f"the planned setpoint of joint {name!r} steps {abs(q[k] - origin[idx[k]]):.4g} in one "
@@ -1014,7 +1036,8 @@ class MotionManager:
         if not ex.reported_clip:
             ex.reported_clip = True
             if self._report is not None:
-                self._report("clip", f"the {'stop ramp' if ex.phase == 'stopping' else 'motion'} of joint {name!r} "
+                kind = "stop ramp" if ex.phase is MotionPhase.STOPPING else "motion"
+                self._report("clip", f"the {kind} of joint {name!r} "
                              f"was limited by {abs(out[k] - q[k]):.4g} ({what}: position bounds or "
                              "max_position_step)", name)
         return out
@@ -1051,7 +1074,7 @@ class MotionManager:
         m = ex.motion
         if m is not None:
             dur = ex.sampler.duration
-            if ex.phase == "stopping":  # the stop ramp is not progress along the trajectory: keep the last value
+            if ex.phase == MotionPhase.STOPPING:  # a stop ramp is no progress along the trajectory: keep the last
                 progress = m._feedback.progress if m._feedback is not None else 0.0
             else:
                 progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
@@ -1072,7 +1095,7 @@ class MotionManager:
                 traj = traj.after(late)
             traj, sampler = self._prepare(ex, traj, q0, v0, a0, t)
         except CommandRejected as exc:
-            ex.phase = "dead"
+            ex.phase = MotionPhase.DEAD
             if ex.motion is not None and not ex.motion._future.done():
                 ex.motion._future.set_result(
                     MotionResult(ResultCode.INVALID_GOAL, {n: 0.0 for n in ex.motion.joint_names},

@@ -19,7 +19,7 @@ import numpy.typing as npt
 
 from .errors import InvalidValueError
 
-__all__ = ["Pose"]
+__all__ = ["BaseState", "Pose"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -302,3 +302,53 @@ class Pose:
 
     def __reduce__(self) -> tuple[Any, ...]:
         return (Pose, (self.position.tolist(), self.orientation.tolist()))
+
+
+class BaseState:
+    """Where a robot's base is and how it moves: ``pose`` in the world, ``linear_velocity`` and
+    ``angular_velocity`` (3,) in the world frame, like ``nav_msgs/Odometry`` without covariances.
+
+    ``linear_velocity`` is the velocity of the base frame's origin (m/s), ``angular_velocity``
+    the base's rotation rate (rad/s); ``stamp`` is robot time (s). A fixed base is the world's
+    identity pose at rest. Immutable; the arrays are read-only.
+    """
+
+    __slots__ = ("angular_velocity", "linear_velocity", "pose", "stamp")
+
+    pose: Pose
+    linear_velocity: FloatArray
+    angular_velocity: FloatArray
+    stamp: float
+
+    def __init__(
+        self,
+        pose: Pose,
+        linear_velocity: Sequence[float] | npt.ArrayLike = (0.0, 0.0, 0.0),
+        angular_velocity: Sequence[float] | npt.ArrayLike = (0.0, 0.0, 0.0),
+        stamp: float = 0.0,
+    ) -> None:
+        if not isinstance(pose, Pose):
+            raise InvalidValueError(f"pose: expected a Pose, got {type(pose).__name__}")
+        object.__setattr__(self, "pose", pose)
+        object.__setattr__(self, "linear_velocity", _frozen(_vector(linear_velocity, 3, "linear_velocity")))
+        object.__setattr__(self, "angular_velocity", _frozen(_vector(angular_velocity, 3, "angular_velocity")))
+        object.__setattr__(self, "stamp", float(stamp))
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError(f"BaseState is immutable (cannot set {name!r})")
+
+    @property
+    def position(self) -> FloatArray:
+        """The base's position in the world (m), ``pose.position``."""
+        return self.pose.position
+
+    @property
+    def height(self) -> float:
+        """The base's height above the world's ``z = 0`` (the ground plane of a floating base), m."""
+        return float(self.pose.position[2])
+
+    def __repr__(self) -> str:
+        return (
+            f"BaseState(pose={self.pose!r}, linear_velocity={self.linear_velocity.tolist()}, "
+            f"angular_velocity={self.angular_velocity.tolist()}, stamp={self.stamp:g})"
+        )

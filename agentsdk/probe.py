@@ -9,7 +9,8 @@ a worker process:
   control ticks and returns a JSON-able report: joint names, the simulator's
   own view of limits, link masses and self-collision pairs
   (``simulator_report()`` of the MuJoCo and PyBullet backends), the repairs, or
-  the error (type and message);
+  the error (type and message); with a ``behavior`` it also runs one of the
+  standard trials and reports what it measured (:data:`BEHAVIORS`);
 * :class:`ProbePool` keeps long-lived worker processes (``python -m
   agentsdk.probe``) that probe many robots each, in parallel; a worker that
   dies (signal, abort) or hangs is replaced, and its job reports
@@ -32,7 +33,17 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import IO, Any
 
-__all__ = ["ProbePool", "probe", "probe_in_subprocess"]
+__all__ = ["BEHAVIORS", "ProbePool", "probe", "probe_in_subprocess"]
+
+#: standard trials a probe can run after connecting (``behavior``), what the corpus tests measure:
+#:
+#: * ``"hold_move"``: hold the start pose for ``HOLD`` s (``drift``: the largest joint excursion), then
+#:   ``move_to`` +``MOVE`` rad on every joint (clipped inside the limits; ``move_code``, ``move_error``:
+#:   the result and its largest goal error), then hold ``SETTLE`` s (``final``: the positions);
+#: * ``"stand"``: a floating-base robot stands ``STAND`` s on its joint servos (``heights``: the base
+#:   height at the start and every 0.5 s).
+BEHAVIORS = ("hold_move", "stand")
+HOLD, MOVE, SETTLE, STAND = 2.0, 0.25, 0.5, 5.0
 
 
 def _jsonable(value: Any) -> Any:
@@ -49,7 +60,43 @@ def _jsonable(value: Any) -> Any:
     return value
 
 
-async def _probe_async(robot: str, backend: str, duration: float, options: Mapping[str, Any]) -> dict[str, Any]:
+async def _hold_move(bot: Any, out: dict[str, Any]) -> None:
+    import numpy as np
+
+    joints = bot.joints
+    lower = np.array([j.lower for j in joints])
+    upper = np.array([j.upper for j in joints])
+    q0 = (await bot.read()).position
+    out["inside_limits"] = bool(np.all((q0 >= lower - 1e-9) & (q0 <= upper + 1e-9)))
+    peak = np.zeros(len(joints))
+    for _ in range(round(HOLD / 0.05)):
+        await bot.clock.sleep(0.05)
+        peak = np.maximum(peak, np.abs((await bot.read()).position - q0))
+    out["drift"] = float(peak.max(initial=0.0))
+    out["drift_joint"] = joints[int(np.argmax(peak))].name if len(joints) else None
+    goal = np.clip(q0 + MOVE, lower, upper)
+    result = await bot.move_to({j.name: float(g) for j, g in zip(joints, goal, strict=True)})
+    out["move_code"] = result.code.name
+    errors = {k: abs(v) for k, v in result.error.items()}
+    out["move_error"] = max(errors.values(), default=0.0)
+    out["move_joint"] = max(errors, key=lambda k: errors[k]) if errors else None
+    await bot.clock.sleep(SETTLE)
+    out["final"] = (await bot.read()).position.tolist()
+    out["goal"] = goal.tolist()
+
+
+async def _stand(bot: Any, out: dict[str, Any]) -> None:
+    heights = [bot.base_state().height]
+    for _ in range(round(STAND / 0.5)):
+        await bot.clock.sleep(0.5)
+        heights.append(bot.base_state().height)
+    out["heights"] = heights
+    out["final"] = (await bot.read()).position.tolist()
+
+
+async def _probe_async(
+    robot: str, backend: str, duration: float, options: Mapping[str, Any], behavior: str | None = None
+) -> dict[str, Any]:
     import agentsdk
     from agentsdk.errors import AgentSDKError
 
@@ -77,6 +124,13 @@ async def _probe_async(robot: str, backend: str, duration: float, options: Mappi
             await bot.clock.sleep(duration)
             state = await bot.read()
             out["position"] = state.position.tolist()
+            out["gains"] = [[g.p, g.d] for g in bot.gains.values()]
+            if behavior == "hold_move":
+                await _hold_move(bot, out)
+            elif behavior == "stand":
+                await _stand(bot, out)
+            elif behavior is not None:
+                raise ValueError(f"unknown probe behavior {behavior!r}; known: {', '.join(BEHAVIORS)}")
         except AgentSDKError as exc:
             run_error = f"{type(exc).__name__}: {exc}"
         out["ok"] = run_error is None
@@ -86,18 +140,24 @@ async def _probe_async(robot: str, backend: str, duration: float, options: Mappi
 
 
 def probe(
-    robot: str, backend: str, *, duration: float = 0.02, options: Mapping[str, Any] | None = None
+    robot: str,
+    backend: str,
+    *,
+    duration: float = 0.02,
+    options: Mapping[str, Any] | None = None,
+    behavior: str | None = None,
 ) -> dict[str, Any]:
     """Connect ``robot`` on ``backend`` in this process, run ``duration`` s (lockstep) and report (JSON-able).
 
-    ``loaded``: the connection opened; ``ok``: it also ran ``duration`` without
-    a fault (``run_error`` says which); on failure ``error_type``/``error``.
+    ``loaded``: the connection opened; ``ok``: it also ran ``duration`` (and the
+    ``behavior``, one of :data:`BEHAVIORS`) without a fault (``run_error`` says
+    which); on failure ``error_type``/``error``.
     """
     from .errors import AgentSDKError
 
     t0 = time.perf_counter()
     try:
-        out = asyncio.run(_probe_async(robot, backend, duration, dict(options or {})))
+        out = asyncio.run(_probe_async(robot, backend, duration, dict(options or {}), behavior))
     except AgentSDKError as exc:
         out = {"ok": False, "loaded": False, "error_type": type(exc).__name__, "error": str(exc)}
     except Exception as exc:  # a non-SDK exception is a bug the caller must see, with its type
@@ -117,7 +177,10 @@ def _worker_main() -> int:
         if not line.strip():
             continue
         job = json.loads(line)
-        result = probe(job["robot"], job["backend"], duration=job.get("duration", 0.02), options=job.get("options"))
+        result = probe(
+            job["robot"], job["backend"], duration=job.get("duration", 0.02), options=job.get("options"),
+            behavior=job.get("behavior"),
+        )
         proto.write(json.dumps(result) + "\n")
     return 0
 
@@ -194,7 +257,7 @@ class ProbePool:
         return " | ".join(tail)
 
     def run(self, jobs: Iterable[Mapping[str, Any]]) -> list[dict[str, Any]]:
-        """Run ``jobs`` (dicts with ``robot``, ``backend``, optional ``duration``/``options``)."""
+        """Run ``jobs`` (dicts with ``robot``, ``backend``, optional ``duration``/``options``/``behavior``)."""
         jobs = list(jobs)
         results: list[dict[str, Any] | None] = [None] * len(jobs)
         pending = deque(range(len(jobs)))

@@ -22,6 +22,7 @@ import numpy as np
 
 from .backend import Backend, Capabilities, SetpointView
 from .clock import Clock
+from .config import Gains
 from .description import apply_overrides, resolve_robot
 from .errors import AgentSDKError, BackendStartError, CommandRejected
 from .loop import ControlLoop, HookHandle, Phase
@@ -36,7 +37,7 @@ if TYPE_CHECKING:
     from .description import RobotDescription
     from .kinematics import Kinematics
     from .motion import Motion, MotionManager, MotionResult, Tolerances
-    from .pose import Pose
+    from .pose import BaseState, Pose
     from .trajectory import Trajectory
 
 __all__ = ["Robot", "connect"]
@@ -117,6 +118,38 @@ class Robot:
     def closed(self) -> bool:
         """True after :meth:`close`."""
         return self._loop.closed
+
+    @property
+    def gains(self) -> Mapping[str, Gains]:
+        """The servo gains in effect per joint (``p``, ``d`` and velocity-mode ``v``), read-only.
+
+        robot.yaml ``gains`` where given, else computed from the model (see
+        :func:`agentsdk.dynamics.model_gains`; ``robot.controller.model_gain_report`` says what
+        bounded each).
+        """
+        loop = self._loop
+        return MappingProxyType({
+            name: Gains(p=float(p), d=float(d), v=float(v))
+            for name, p, d, v in zip(loop.names, loop.gain_p, loop.gain_d, loop.gain_v, strict=True)
+        })
+
+    @property
+    def gravity_compensation(self) -> Mapping[str, bool]:
+        """Per joint: whether the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)."""
+        flags = self._loop.backend.gravity_compensation.tolist()
+        return MappingProxyType(dict(zip(self._loop.names, flags, strict=True)))
+
+    def base_state(self) -> BaseState:
+        """The base's pose in the world and its linear/angular velocity (world frame), now.
+
+        A floating base (robot.yaml ``floating_base: true``) as the simulator measures it; a
+        fixed base is the world's identity pose at rest.
+        """
+        self._loop.check_open()
+        state = self._loop.backend.base_state()
+        from .pose import BaseState
+
+        return BaseState(state.pose, state.linear_velocity, state.angular_velocity, self._loop.stamp)
 
     # ------------------------------------------------------------ loop state
     @property
@@ -432,7 +465,9 @@ async def _open_robot(
         joints = apply_overrides(description, config)
         safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
         bounds = PositionBounds(joints, safety_cfg.position_margin)
-        return cls(config, description, joints, realtime=realtime, **options), safety_cfg, bounds
+        backend_obj = cls(config, description, joints, realtime=realtime, **options)
+        backend_obj.servo_gains  # noqa: B018 - gains from the model (a compile) here, not on the event loop
+        return backend_obj, safety_cfg, bounds
 
     backend_obj, safety_cfg, bounds = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
     loop = ControlLoop(backend_obj)

@@ -105,7 +105,8 @@ class SafetyConfig(BaseModel):
     #: damping gain used by category 1 where position control is absent (N·m·s/rad)
     stop_damping: float = Field(default=5.0, ge=0.0, le=MAX_GAIN)
     #: scale of the joints' max_acceleration used when decelerating to a stop
-    stop_deceleration_scale: float = Field(default=1.0, gt=0.0, le=1.0)
+    #: (at least 1 %: a stop under a vanishing deceleration never ends)
+    stop_deceleration_scale: float = Field(default=1.0, ge=0.01, le=1.0)
     #: minimum seconds between two identical clamp warnings in the log
     warn_interval: float = Field(default=1.0, ge=0.0)
     #: a controlled stop is achieved once every measured speed is below this (rad/s or m/s) ...
@@ -522,7 +523,7 @@ class SafetyLayer:
             hi = self._emax[idx]
             lo = -hi
             what, unit = "effort", "N·m"
-        out = np.minimum(np.maximum(values, lo), hi)
+        out: np.ndarray = np.minimum(np.maximum(values, lo), hi)
         bad = out != values
         reject = self.config.limit_policy == "reject"
         names = self.loop.names
@@ -902,7 +903,8 @@ class SafetyLayer:
         )
         timer = aloop.create_task(loop.clock.sleep(bound), name="agentsdk-stop-bound")
         try:
-            await asyncio.wait({ramp, fault, timer}, return_when=asyncio.FIRST_COMPLETED)
+            waits: set[asyncio.Future[Any]] = {ramp, fault, timer}
+            await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
         finally:
             self._fault_waiters.discard(fault)
             for t in (ramp, timer):

@@ -48,11 +48,14 @@ from typing import Literal, TypeAlias
 
 import numpy as np
 import numpy.typing as npt
-from ruckig import ControlInterface, InputParameter, Result, Ruckig, Synchronization
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError, Synchronization
 from ruckig import Trajectory as _RuckigTrajectory
 
 from .errors import CommandRejected, ConfigurationError, InvalidValueError, LimitViolation, UnknownJointError
 from .types import FloatArray, JointInfo
+
+#: the longest profile ruckig computes (its ``ErrorTrajectoryDuration``, result -101, beyond 7.6e3 s)
+MAX_PROFILE_DURATION = 7.6e3
 
 __all__ = [
     "MAX_TIME_FROM_START",
@@ -86,8 +89,6 @@ _END_VEL_EPS = float(np.finfo(np.float32).eps)
 MAX_TIME_FROM_START = 1e6
 #: shortest time between two points (and from the start to a first point at a time > 0), s
 MIN_SEGMENT_DURATION = 1e-9
-#: ruckig (Community) refuses profiles longer than this (its ErrorTrajectoryDuration, -101)
-_RUCKIG_MAX_DURATION = 7.6e3
 _MIN_GAP = 1e-6  # s, breakpoints closer than this are merged
 _INF_JERK_RAMP = 0.002  # s, acceleration ramp time used for joints with max_jerk = inf
 
@@ -128,7 +129,7 @@ class TrajectoryPoint:
         accelerations: Sequence[float] | npt.ArrayLike | None = None,
     ) -> None:
         try:
-            t = float(time_from_start)  # type: ignore[arg-type]
+            t = float(time_from_start)
         except (TypeError, ValueError) as exc:
             raise InvalidValueError(f"time_from_start: {time_from_start!r} is not a number") from exc
         object.__setattr__(self, "time_from_start", t)
@@ -235,7 +236,9 @@ class Trajectory:
                 for j, v in enumerate(vals):
                     if not math.isfinite(v):
                         raise InvalidValueError(f"point {k}: {what[:-1]} of joint {names[j]!r} is {v}")
-        object.__setattr__(self, "times", _frozen_array([p.time_from_start for p in points]))
+        times = np.array([p.time_from_start for p in points], dtype=np.float64)
+        times.setflags(write=False)
+        object.__setattr__(self, "times", times)
         object.__setattr__(self, "positions", _frozen_array([p.positions for p in points]))
         object.__setattr__(
             self,
@@ -664,7 +667,8 @@ class TrajectorySampler:
     @property
     def final_positions(self) -> FloatArray:
         """Joint positions at the end of the trajectory (full joint order)."""
-        return self._end_state[0]
+        positions: FloatArray = self._end_state[0]
+        return positions
 
     def finished(self, t: float) -> bool:
         """True once ``t`` is at or past the last point's time."""
@@ -788,7 +792,7 @@ def _root_candidates(dc: FloatArray, T: FloatArray) -> FloatArray:
     if d < 1 or S == 0:
         return np.zeros((S, 0, N))
     p = np.moveaxis(dc, 2, 1).reshape(S * N, d1)  # (K, d+1) ascending
-    ok = np.isfinite(p).all(axis=1)
+    ok = np.asarray(np.isfinite(p).all(axis=1))
     p = np.where(ok[:, None], p, 0.0)
     scale = np.abs(p).max(axis=1)
     lead = p[:, -1]
@@ -1037,12 +1041,15 @@ class _Ruckig:
         inp.minimum_duration = min_duration
         try:
             res = self.otg.calculate(inp, self.traj)
-        except RuntimeError as exc:  # ruckig raises for invalid input
+        except (RuntimeError, RuckigError) as exc:  # ruckig raises for invalid input
             raise CommandRejected(f"trajectory generation failed: {exc}") from exc
-        except ValueError as exc:  # a result code its Python enum does not know, e.g. -101
-            code = str(exc).split()[0] if str(exc) else "?"
-            detail = " (the motion would last longer than ruckig's limit of 7600 s)" if code == "-101" else ""
-            raise CommandRejected(f"trajectory generation failed: ruckig error {code}{detail}") from exc
+        except ValueError as exc:  # a result code the Python enum lacks (-101: longer than ruckig can time)
+            if "-101" in str(exc):
+                raise CommandRejected(
+                    f"trajectory generation failed: the move would last longer than {MAX_PROFILE_DURATION:g} s, "
+                    "the longest profile ruckig times"
+                ) from None
+            raise CommandRejected(f"trajectory generation failed: ruckig returned {exc}") from None
         if res != Result.Working:
             raise CommandRejected(f"trajectory generation failed: ruckig returned {res.name}")
         return self.traj
@@ -1383,8 +1390,11 @@ def plan_point_to_point(
     _check_start_velocity(v0, infos)
     if duration is not None and not (math.isfinite(duration) and duration > 0.0):
         raise InvalidValueError(f"duration must be a positive number of seconds, got {duration}")
-    if duration is not None and duration > _RUCKIG_MAX_DURATION:
-        raise InvalidValueError(f"duration {duration:g} s is longer than the supported {_RUCKIG_MAX_DURATION:g} s")
+    if duration is not None and duration > MAX_PROFILE_DURATION:
+        raise InvalidValueError(
+            f"duration {duration:g} s is longer than {MAX_PROFILE_DURATION:g} s, the longest move ruckig times; "
+            "split the motion or use a trajectory"
+        )
     rk = _Ruckig(lim)
     zero = np.zeros(len(names))
     tr = rk.solve(q0, v0, a0, q1, zero, duration)

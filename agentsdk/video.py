@@ -313,7 +313,10 @@ class VideoRecorder:
         self._names = tuple(robot.joint_names)
         self._description = ctl.description
         self.backend = robot.backend
+        # on MuJoCo, frames are the backend's own qpos (a floating base and passive joints included),
+        # drawn with its own model: MujocoController's public ``model`` and ``data``
         self._mj_model = getattr(ctl, "model", None) if robot.backend == "mujoco" else None
+        self._mj_data: Any = getattr(ctl, "data", None) if self._mj_model is not None else None
         self.frames: list[np.ndarray] = []
         self._next = 0.0
         self._attached = False
@@ -338,7 +341,7 @@ class VideoRecorder:
         if self._next <= t:  # a gap (e.g. realtime overrun): resume the cadence from now
             self._next = t + 1.0 / self.fps
         if self._mj_model is not None:
-            self.frames.append(np.array(self._ctl.data.qpos, dtype=float))
+            self.frames.append(np.array(self._mj_data.qpos, dtype=float))
         else:
             self.frames.append(np.array(state.position, dtype=float))
 

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import can
+import numpy as np
 import pytest
 import yaml
 
@@ -52,12 +53,13 @@ def unique_channel() -> str:
     return f"agentsdk-can-test-{os.getpid()}-{next(_channels)}"
 
 
-def mit_leg_at(tmp_path: Path, update_rate: float) -> Path:
-    """A copy of mit_leg's robot.yaml running at another control rate."""
+def mit_leg_at(tmp_path: Path, update_rate: float, **changes: Any) -> Path:
+    """A copy of mit_leg's robot.yaml running at another control rate (and other robot.yaml ``changes``)."""
     src = ROOT / "robots" / "mit_leg" / "robot.yaml"
     cfg = yaml.safe_load(src.read_text())
     cfg["description"] = str(src.parent / cfg["description"])
     cfg["update_rate"] = update_rate
+    cfg.update(changes)
     dst = tmp_path / "mit_leg" / "robot.yaml"
     dst.parent.mkdir(parents=True, exist_ok=True)
     dst.write_text(yaml.safe_dump(cfg))
@@ -65,11 +67,11 @@ def mit_leg_at(tmp_path: Path, update_rate: float) -> Path:
 
 
 @contextlib.contextmanager
-def emulator(channel: str, robot: str | Path = "mit_leg") -> Iterator[MotorEmulator]:
+def emulator(channel: str, robot: str | Path = "mit_leg", **kw: Any) -> Iterator[MotorEmulator]:
     """The robot's motors on a virtual channel; thread stopped and bus shut down on exit."""
     bus = can.Bus(interface="virtual", channel=channel)
     try:
-        emu = MotorEmulator.from_robot(robot, bus)
+        emu = MotorEmulator.from_robot(robot, bus, **kw)
         emu.start()
         try:
             yield emu
@@ -162,6 +164,12 @@ class TestCanConformanceVirtual(BackendConformance):
     robot = "mit_leg"
     connect_options: ClassVar[dict[str, Any]] = {"max_missed_replies": MAX_MISSED}
 
+    @pytest.fixture(autouse=True)
+    def _without_gravity(self, tmp_path: Path) -> None:
+        """The free-motor emulator has no gravity: mit_leg with gravity compensation off, so the
+        measured effort is the commanded one (with it on, the host adds g(q), test_gravity_feedforward_*)."""
+        self.robot = str(mit_leg_at(tmp_path, 500.0, gravity_compensation=False))
+
     @contextlib.asynccontextmanager
     async def open_robot(self, **overrides: Any) -> AsyncIterator[Robot]:
         channel = unique_channel()
@@ -169,6 +177,37 @@ class TestCanConformanceVirtual(BackendConformance):
         with emulator(channel):
             async with agentsdk.connect(self.backend, robot=self.robot, realtime=self.realtime, **opts) as robot:
                 yield robot
+
+
+# ----------------------------------------------------------------------- gravity feed-forward (issue 13)
+async def hold_drift(robot: Robot, seconds: float = 1.0) -> float:
+    """Largest joint excursion from the start pose while the robot holds it (after 0.2 s to settle
+    from the enable: the motors are limp until then)."""
+    q0 = np.array([robot.controller.initial_positions[k] for k in range(len(robot.joints))])
+    await robot.command(JointCommand("position", dict(zip(robot.joint_names, q0.tolist(), strict=True))))
+    await robot.clock.sleep(0.2)
+    peak = 0.0
+    for _ in range(round(seconds / 0.02)):
+        await robot.clock.sleep(0.02)
+        peak = max(peak, float(abs((await robot.read()).position - q0).max()))
+    return peak
+
+
+async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant(tmp_path: Path) -> None:
+    """The host's g(q) goes out as the MIT torque feed-forward; without it the leg sags by g/kp."""
+    drift = {}
+    for on in (True, False):
+        leg = mit_leg_at(tmp_path / str(on), 500.0, gravity_compensation=on)
+        channel = unique_channel()
+        with emulator(channel, leg, plant="mujoco"):
+            async with agentsdk.connect("can", robot=leg, interface="virtual", channel=channel,
+                                        max_missed_replies=MAX_MISSED) as robot:
+                drift[on] = await hold_drift(robot)
+                sent = robot.controller.gravity_torque
+                assert bool(abs(sent).max() > 0.1) is on  # hip_abduction carries ~0.9 N·m
+    print(f"mit_leg hold drift on the MuJoCo plant: with g(q) {drift[True]:.5f} rad, without {drift[False]:.5f} rad")
+    assert drift[True] < 0.01, drift
+    assert drift[False] > 2 * drift[True], drift
 
 
 # ----------------------------------------------------------------------- basics

@@ -71,7 +71,9 @@ def one_line_per_problem(message: str, n: int | None = None) -> list[str]:
         ({"joint_limits": {"joint1": {"min_position": NAN}}}, "joint_limits.joint1.min_position", "finite"),
         ({"joint_limits": {"joint1": {"max_position": -INF}}}, "joint_limits.joint1.max_position", "finite"),
         ({"joint_limits": {"default": {"max_acceleration": INF}}}, "joint_limits.default.max_acceleration", "finite"),
-        ({"joint_limits": {"joint2": {"max_jerk": 0.0}}}, "joint_limits.joint2.max_jerk", "> 0"),
+        ({"joint_limits": {"joint2": {"max_jerk": 0.0}}}, "joint_limits.joint2.max_jerk", ">= 0.001"),
+        ({"joint_limits": {"joint2": {"max_acceleration": 5e-324}}}, "joint_limits.joint2.max_acceleration",
+         ">= 0.001"),
         ({"initial_positions": {"joint1": INF}}, "initial_positions.joint1", "finite"),
     ],
 )
@@ -312,3 +314,18 @@ def test_cli_robot_yaml_typos_one_line_per_problem(tmp_path: Path) -> None:
     lines = one_line_per_problem(proc.stderr.strip(), 2)
     assert f"error: {path}: upate_rate: unknown key; did you mean 'update_rate'?" in lines
     assert f"error: {path}: gains.default.i: unknown key; expected one of: d, p, v" in lines
+
+
+async def test_limits_narrowed_past_the_start_pose_are_refused(tmp_path: Path) -> None:
+    """Found by the property test: min_position 1.0 with the robot starting at 0 made the safety
+    layer drive the joint into its new range by itself. The start must be inside the limits."""
+    narrowed = robot_yaml(tmp_path, joint_limits={"default": {"min_position": 1.0}})
+    with pytest.raises(ConfigurationError) as info:
+        async with agentsdk.connect("mock", robot=narrowed):
+            pass
+    (line,) = one_line_per_problem(str(info.value), 1)
+    assert "joint 'joint1' starts at 0 rad, outside its joint_limits [1," in line, line
+    assert "set initial_positions.joint1" in line
+    ok = robot_yaml(tmp_path, joint_limits={"joint1": {"min_position": 1.0}}, initial_positions={"joint1": 1.5})
+    async with agentsdk.connect("mock", robot=ok) as robot:
+        assert robot.joints[0].lower == 1.0

@@ -23,8 +23,8 @@ def _record_positions(robot: agentsdk.Robot, out: list[np.ndarray]) -> None:
 
 
 async def test_wave_reaches_last_target_in_lockstep() -> None:
-    from behaviors.wave import POSES
-    from behaviors.wave import main as wave
+    from agentsdk.behaviors.wave import POSES
+    from agentsdk.behaviors.wave import main as wave
 
     summary = await run_behavior(wave, backend="mujoco", robot="arm3")
     assert summary.sim_time == pytest.approx(1.5 * len(POSES))
@@ -34,7 +34,7 @@ async def test_wave_reaches_last_target_in_lockstep() -> None:
 
 
 async def test_lockstep_runs_are_bit_identical() -> None:
-    from behaviors.wave import main as wave
+    from agentsdk.behaviors.wave import main as wave
 
     runs: list[list[np.ndarray]] = []
     for _ in range(2):

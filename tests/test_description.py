@@ -570,7 +570,9 @@ def test_resolve_bare_urdf_synthesises_a_config() -> None:
     config, desc = resolve_robot(MESH_ARM)
     assert desc.name == config.name == "mesh_arm"
     assert config.description_path == MESH_ARM.resolve()
-    assert config.gains_for("joint_a") == Gains(p=100.0, d=5.0)
+    # no gains in a bare URDF: the backend computes them from the model (agentsdk.dynamics.model_gains)
+    assert config.gains_for("joint_a") is None
+    assert config.gravity_compensation is True
 
 
 def test_resolve_robot_yaml_path_and_directory() -> None:

@@ -43,9 +43,13 @@ async def _hold(robot: agentsdk.Robot, pose: dict[str, float], settle: float = 1
 # --------------------------------------------------------------------------- effort mode
 
 
-@pytest.mark.parametrize("effort", ["zero", "against_gravity"])
+@pytest.mark.parametrize("effort", ["small", "against_gravity"])
 async def test_effort_mode_accelerates_as_physics_predicts(effort: str) -> None:
-    """Default PyBullet velocity motors are off: a joint in effort mode obeys (tau - tau_g) / I."""
+    """Default PyBullet velocity motors are off: a joint in effort mode obeys (tau + g_comp - tau_g) / I.
+
+    Gravity compensation (on by default) adds g(q) to the commanded effort, so the net
+    acceleration is tau / I and the reported effort is tau + g(q), as on a Franka or a Kinova.
+    """
     async with agentsdk.connect("pybullet", robot="arm3") as robot:
         st0 = await _hold(robot, {"joint1": 0.0, "joint2": 0.5, "joint3": 0.0})
         j2 = st0.index("joint2")
@@ -57,8 +61,9 @@ async def test_effort_mode_accelerates_as_physics_predicts(effort: str) -> None:
         k = names.index("joint2")
         inertia, tau_gravity = mass[k, k], -bias[k]  # generalized gravity force at rest
         assert tau_gravity > 0.5  # tipped towards +x: gravity pulls joint2 further positive
-        tau = 0.0 if effort == "zero" else -(tau_gravity + 3.0)
-        expected = (tau + tau_gravity) / inertia
+        assert robot.gravity_compensation["joint2"]
+        tau = -1.0 if effort == "small" else -(tau_gravity + 3.0)
+        expected = tau / inertia  # the servo law's g(q) cancels gravity
 
         applied = await robot.command(JointCommand("effort", {"joint2": tau}))
         assert applied.values["joint2"] == pytest.approx(tau)
@@ -69,8 +74,8 @@ async def test_effort_mode_accelerates_as_physics_predicts(effort: str) -> None:
 
         assert math.copysign(1.0, measured) == math.copysign(1.0, expected)
         assert measured == pytest.approx(expected, rel=0.1)  # observed: within ~1%
-        # the effort reported is the commanded torque; the other joints still hold
-        assert st1.effort[j2] == pytest.approx(tau)
+        # the effort reported is the commanded torque plus the gravity compensation; the other joints still hold
+        assert st1.effort[j2] == pytest.approx(tau - tau_gravity, rel=0.02)
         others = [i for i in range(len(st1.names)) if i != j2]
         assert np.abs(st1.position[others] - st0.position[others]).max() < 1e-3
 

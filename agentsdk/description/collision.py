@@ -42,7 +42,16 @@ from ..errors import DescriptionError
 from .meshes import MeshError, simulator_mesh
 from .model import Geometry, Repair, RobotDescription
 
-__all__ = ["TOUCH_DISTANCE", "SelfCollision", "SrdfRules", "for_robot", "from_mjcf", "read_srdf", "self_collision"]
+__all__ = [
+    "TOUCH_DISTANCE",
+    "SelfCollision",
+    "SrdfRules",
+    "for_robot",
+    "from_mjcf",
+    "read_srdf",
+    "self_collision",
+    "standing_height",
+]
 
 log = logging.getLogger("agentsdk.description")
 
@@ -343,7 +352,10 @@ def for_robot(description: RobotDescription, config: object, mode: Mode | bool |
 
     assert isinstance(config, RobotConfig)
     chosen = config.self_collision if mode is None else mode
-    start = {**description.default_positions, **config.initial_positions}
+    from .robot_yaml import apply_overrides
+    from .start import start_pose
+
+    start = dict(start_pose(description, config, apply_overrides(description, config)).positions)
     srdf = config.srdf_path or description.srdf
     if srdf is not None and not srdf.is_file():
         raise DescriptionError(f"robot '{description.name}': srdf {srdf} not found")
@@ -381,3 +393,62 @@ def from_mjcf(description: RobotDescription) -> SelfCollision:
         pairs=frozenset(p for p in candidates if p in pairs),
         excluded=excluded,
     )
+
+
+_HEIGHTS: dict[int, tuple[SelfCollision, float]] = {}
+
+
+def standing_height(description: RobotDescription, collision: SelfCollision) -> float:
+    """How high the root link's frame must be for the robot to stand on the ground plane ``z = 0``.
+
+    The robot at its start pose (``collision.start``), root frame upright at the origin: the
+    height is minus the lowest point of its collision shapes (mesh vertices - the convex hulls
+    both simulators collide -, exact for spheres, capsules, cylinders and boxes), so the lowest
+    shape touches the ground. The same number for every simulator (one floating-base placement).
+    """
+    cached = _HEIGHTS.get(id(collision))
+    if cached is not None and cached[0] is collision:
+        return cached[1]
+    import mujoco
+    import numpy as np
+
+    from .mjspec import build_spec
+
+    model = build_spec(description, collision.shapes, shell=collision.shell).spec.compile()
+    data = mujoco.MjData(model)
+    for name, q in collision.start.items():
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if jid >= 0:
+            data.qpos[model.jnt_qposadr[jid]] = q
+    for mimic in description.mimics:
+        jf = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, mimic.joint)
+        jl = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, mimic.leader)
+        if jf >= 0 and jl >= 0:
+            data.qpos[model.jnt_qposadr[jf]] = mimic.offset + mimic.multiplier * data.qpos[model.jnt_qposadr[jl]]
+    mujoco.mj_kinematics(model, data)
+    gt = mujoco.mjtGeom
+    lowest = math.inf
+    for g in range(model.ngeom):
+        pos, rot, size = data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), model.geom_size[g]
+        kind = int(model.geom_type[g])
+        axis_z = float(rot[2, 2])
+        if kind == gt.mjGEOM_MESH:
+            mid = int(model.geom_dataid[g])
+            adr, num = int(model.mesh_vertadr[mid]), int(model.mesh_vertnum[mid])
+            z = float((model.mesh_vert[adr:adr + num] @ rot[2]).min()) + float(pos[2])
+        elif kind == gt.mjGEOM_SPHERE:
+            z = float(pos[2]) - float(size[0])
+        elif kind == gt.mjGEOM_CAPSULE:
+            z = float(pos[2]) - abs(axis_z) * float(size[1]) - float(size[0])
+        elif kind == gt.mjGEOM_CYLINDER:
+            z = float(pos[2]) - abs(axis_z) * float(size[1]) - float(size[0]) * math.sqrt(max(0.0, 1 - axis_z**2))
+        elif kind == gt.mjGEOM_BOX:
+            z = float(pos[2]) - float(np.abs(rot[2]) @ size[:3])
+        elif kind == gt.mjGEOM_ELLIPSOID:
+            z = float(pos[2]) - float(np.linalg.norm(rot[2] * size[:3]))
+        else:
+            continue
+        lowest = min(lowest, z)
+    height = 0.0 if not math.isfinite(lowest) else -lowest
+    _HEIGHTS[id(collision)] = (collision, height)
+    return height

@@ -311,6 +311,19 @@ class RobotDescription:
         return None
 
     @property
+    def base_link(self) -> str:
+        """The link a floating base floats by: the root link, or its single child.
+
+        The child when the root is a massless link rigidly attached to it (ROS's
+        ``world -> base_link`` pattern).
+        """
+        root = self.link(self.root_link) if any(r.name == self.root_link for r in self.link_records) else None
+        out = self.child_joints(self.root_link)
+        if (root is None or root.mass == 0.0) and len(out) == 1 and out[0].type == "fixed":
+            return out[0].child
+        return self.root_link
+
+    @property
     def mimics(self) -> tuple[Mimic, ...]:
         """Joints that follow a commanded joint, in document order."""
         return tuple(

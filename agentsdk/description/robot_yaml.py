@@ -131,17 +131,33 @@ def check_config(config: RobotConfig, description: RobotDescription) -> tuple[Jo
     names = description.joint_names
     label = _robot_label(config, description)
     problems = []
-    for section, keys in (("gains", config.gains), ("initial_positions", config.initial_positions)):
-        unknown = [k for k in keys if k not in names and not (section == "gains" and k == "default")]
+    gravity = config.gravity_compensation if isinstance(config.gravity_compensation, dict) else {}
+    for section, keys in (
+        ("gains", config.gains),
+        ("initial_positions", config.initial_positions),
+        ("gravity_compensation", gravity),
+    ):
+        unknown = [k for k in keys if k not in names and not (section != "initial_positions" and k == "default")]
         if unknown:
-            problems.append(_unknown_joints(label, section, unknown, names, "default" if section == "gains" else ""))
+            extra = "default" if section != "initial_positions" else ""
+            problems.append(_unknown_joints(label, section, unknown, names, extra))
     if problems:
         raise ConfigurationError("\n".join(problems))
+    urdf = {j.name: j for j in description.joints}
     for j in joints:
         q = config.initial_positions.get(j.name)
         if q is not None and not (math.isfinite(q) and j.within(q)):
             raise ConfigurationError(
                 f"{label}: initial_positions.{j.name}={q:g} is outside the joint limits [{j.lower:g}, {j.upper:g}]"
+            )
+        # the implicit start (the description's default pose, else 0) must not be outside limits that
+        # robot.yaml narrowed: the robot would start outside them and be driven in by the safety layer
+        start = description.default_positions.get(j.name, 0.0)
+        own = urdf.get(j.name)
+        if q is None and own is not None and own.within(start) and not j.within(start):
+            raise ConfigurationError(
+                f"{label}: joint {j.name!r} starts at {start:g} rad, outside its joint_limits "
+                f"[{j.lower:g}, {j.upper:g}]; set initial_positions.{j.name} inside them"
             )
     return joints
 

@@ -35,6 +35,13 @@ Joint <-> motor mapping (robot.yaml ``backends.can.motors``)::
 
     q_motor = direction * gear_ratio * q_joint + zero_offset
     tau_motor = direction * tau_joint / gear_ratio,   kp_motor = kp / gear_ratio**2
+
+Gravity compensation (``tau_model`` of the servo law, robot.yaml ``gravity_compensation``): the
+motors run the PD law in firmware, so the host computes ``g(q)`` at the last measured position
+from the description's rigid-body model (:class:`agentsdk.dynamics.DynamicsModel`, a MuJoCo model
+compiled from the same description) once per cycle and adds it to the MIT torque feed-forward,
+which the encoder clamps to the motor's torque range. ``CanController.gravity_torque`` is the
+last value sent (joint side).
 """
 
 from __future__ import annotations
@@ -73,6 +80,9 @@ _SETTLE_CYCLES = 3
 class CanOptions(CanBusConfig):
     """robot.yaml ``backends.can`` plus runtime options (all overridable in ``connect``)."""
 
+    #: override robot.yaml ``gravity_compensation`` for every joint (None: robot.yaml); off for a plant
+    #: without gravity (the free-motor emulator)
+    gravity_compensation: bool | None = None
     #: fraction of the control period to wait for replies each cycle
     reply_deadline: float = Field(default=0.8, gt=0.0, le=1.0)
     #: consecutive cycles without a reply before a motor is declared lost (-> FAULT)
@@ -225,6 +235,13 @@ class CanController(Backend):
 
     async def _open(self) -> None:
         opts: CanOptions = self.options
+        # tau_model: g(q) from the description's model, for the joints with gravity compensation
+        self._gc_mask = self.gravity_compensation.astype(float)
+        self._gc_model = None
+        if self._gc_mask.any():  # compiling the model is blocking work: not on the event loop
+            self._gc_model = await run_blocking(lambda: self.dynamics, name="agentsdk-can-dynamics")
+        #: the gravity torque (joint side, N·m) added to the last command's feed-forward
+        self.gravity_torque = np.zeros(len(self.joints))
         try:
             self._bus = self._make_bus()
             self._estop_bus = self._make_bus()
@@ -287,15 +304,13 @@ class CanController(Backend):
         try:
             async with asyncio.timeout(wait):
                 while True:  # never block the event loop on a full transmit queue: retry
-                    # stamped before the send: on one CPU the motor may answer (kernel rx stamp)
-                    # before this task runs again, and that reply must count as after the frame
-                    sent = time.time()
+                    sent = time.time()  # before the send: the reply can be stamped before send() returns
+                    self._any_reply.clear()
                     try:
                         bus.send(msg, timeout=0.0)
                         break
                     except can.CanOperationError:
                         await asyncio.sleep(self.period)
-                self._any_reply.clear()
                 while self._reply_stamp[k] < sent:
                     await self._any_reply.wait()
                     self._any_reply.clear()
@@ -474,7 +489,13 @@ class CanController(Backend):
     # ------------------------------------------------------------- the cycle
     def _write(self, sp: SetpointView) -> None:
         # encoded in place into the reused messages' data (no objects per frame)
-        pos, vel, eff = sp.position.tolist(), sp.velocity.tolist(), sp.effort.tolist()
+        pos, vel = sp.position.tolist(), sp.velocity.tolist()
+        if self._gc_model is not None:  # tau_model: g(q) at the last measured position (main's feedforward)
+            gt = self._gc_model.gravity(self._q, self.gravity_torque)
+            gt *= self._gc_mask
+            eff = (sp.effort + gt).tolist()
+        else:
+            eff = sp.effort.tolist()
         kp, kd, en = sp.kp.tolist(), sp.kd.tolist(), sp.enabled.tolist()
         self._torque[...] = sp.enabled  # torque on per joint (set_zero needs it off)
         for k, msg in enumerate(self._msgs):

@@ -867,6 +867,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--flood-rate", type=float, default=0.0, help="junk frames per second (0 = off)")
     p.add_argument("--flood-id", type=lambda s: int(s, 0), default=0x7FF, help="arbitration id of the junk frames")
     p.add_argument("--seed", type=int, default=0, help="seed of the drop/junk RNG")
+    p.add_argument("--substep", type=float, default=0.0005,
+                   help="physics substep [s] (default 0.0005; a slow host needs a coarser one for the MuJoCo plant)")
     p.add_argument("--plant", choices=("rotor", "mujoco"), default="rotor",
                    help="what the motors drive: free rotors (default) or a MuJoCo simulation of the robot "
                    "(gravity, coupled inertia, contacts)")
@@ -909,6 +911,7 @@ def main(argv: list[str] | None = None) -> int:
             profile=args.profile,
             timeout=args.timeout,
             silent=args.silent,
+            substep=args.substep,
             initial_positions=robot_cfg.initial_positions,
             drop_rate=args.drop_rate,
             reply_latency=args.latency,

@@ -26,8 +26,9 @@ class EmulatedCanConformance(BackendConformance):
     robot: ClassVar[str] = "mit_leg"
     settle_time: ClassVar[float] = 3.0
     #: the in-process emulator shares the GIL and 2 CPUs with the control loop: under load
-    #: it answers late for tens of cycles with nothing wrong, so escalate only on real loss
-    connect_options: ClassVar[dict[str, Any]] = {"max_missed_replies": 250}
+    #: it answers late for tens of cycles with nothing wrong, so escalate only on real loss.
+    #: Its free motors have no gravity, so the host's gravity feed-forward is off.
+    connect_options: ClassVar[dict[str, Any]] = {"max_missed_replies": 250, "gravity_compensation": False}
 
     @contextlib.asynccontextmanager
     async def open_robot(self, **overrides: Any) -> AsyncIterator[Robot]:

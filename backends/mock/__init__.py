@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, ModeCode, SetpointView
 from agentsdk.errors import BackendFault, ConfigurationError
-from agentsdk.types import MODES
+from agentsdk.types import MODES, CommandMode
 
 __all__ = ["MockController", "MockOptions"]
 
@@ -50,7 +50,7 @@ class MockOptions(BaseModel):
     read_error: bool = False
     step_error: bool = False
     #: supported command modes (to test capability gating)
-    modes: tuple[str, ...] = MODES
+    modes: tuple[CommandMode, ...] = MODES
 
 
 class MockController(Backend):

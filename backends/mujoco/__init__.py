@@ -6,6 +6,16 @@ yields exactly the SDK's servo law ``kp*(q_des - q) + kd*(v_des - v) + effort_ff
 evaluated by MuJoCo at every physics step (with the damping term integrated
 implicitly by ``implicitfast``), clamped to the URDF effort limit.
 
+Gravity compensation (``tau_model`` of the servo law, :mod:`agentsdk.dynamics`): once per
+control period ``g(q)`` at the measured position is computed from this backend's own compiled
+model (``mj_rne`` at rest on a private ``MjData``, a floating base's attitude included) and
+added to ``ctrl``, so the actuator's force limit clamps the whole law.
+
+Floating base (robot.yaml ``floating_base: true``): the root body gets a free joint, a ground
+plane is added (friction robot.yaml ``ground_friction``, the robot's geoms given the same
+coefficient, MuJoCo taking the larger of two), and the robot starts standing on it at its
+start pose (:func:`agentsdk.description.collision.standing_height`).
+
 Divergence: MuJoCo silently resets a diverged state (``mjWARN_BADQACC``) and
 zeroes every control when one is NaN, inf or huge (``mjWARN_BADCTRL``); this
 backend checks the warning counters and finiteness after every control period
@@ -26,10 +36,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, substeps
 from agentsdk.config import MAX_GAIN
-from agentsdk.description.collision import SelfCollision, for_robot
+from agentsdk.description.collision import SelfCollision, for_robot, standing_height
 from agentsdk.description.mjcf import colliding_body_pairs
 from agentsdk.description.mjspec import build_spec
+from agentsdk.description.model import quat_from_rpy
+from agentsdk.dynamics import GravityTerm
 from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
+from agentsdk.pose import BaseState, Pose
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
@@ -82,8 +95,9 @@ class MujocoOptions(BaseModel):
     joint_damping: float = Field(default=0.0, ge=0.0, le=MAX_GAIN)
     #: reflected rotor inertia added to every actuated joint (kg·m²)
     armature: float = Field(default=0.0, ge=0.0, le=MAX_GAIN)
-    #: keep a free-floating base instead of fixing the root link to the world
-    floating_base: bool = False
+    #: a free-floating base on a ground plane instead of a root link fixed to the world
+    #: (default: robot.yaml ``floating_base``)
+    floating_base: bool | None = None
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
     self_collision: Literal["auto"] | bool | None = None
 
@@ -104,6 +118,19 @@ class MujocoController(Backend):
     data: mujoco.MjData
     #: the self-collision model in use (None for an MJCF model, which keeps its own contact settings)
     collision: SelfCollision | None = None
+    _free_body = ""  # the body given a free joint (floating base)
+    _ground_height = 0.0  # the root frame's height when standing on the ground plane
+
+    @property
+    def servo_timestep(self) -> float:
+        """MuJoCo's physics timestep: the servo law is evaluated (and integrated) at every step."""
+        return float(self.options.timestep)
+
+    @property
+    def floating_base(self) -> bool:
+        """True when the base floats on a ground plane (option ``floating_base``, else robot.yaml)."""
+        opt = self.options.floating_base
+        return bool(self.config.floating_base if opt is None else opt)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -167,6 +194,8 @@ class MujocoController(Backend):
         # views into the model and data, made once (each attribute access builds a new array object)
         self._ctrl = d.ctrl
         self._tmp = np.zeros(n)
+        self._setup_gravity_compensation()
+        self._setup_base()
         self._bias = m.actuator_biasprm  # view: (nu, 10)
         self._bias_kp = self._bias[:, 1]
         self._bias_kd = self._bias[:, 2]
@@ -207,13 +236,23 @@ class MujocoController(Backend):
         else:
             for a, b in sorted(collision.excluded):
                 spec.add_exclude(bodyname1=a, bodyname2=b)
-        if opts.floating_base:
+        if self.floating_base:
             tops = list(spec.worldbody.bodies)
             if len(tops) != 1:
                 raise BackendStartError(
                     f"floating_base: robot {desc.name!r} has {len(tops)} bodies attached to the world, expected one"
                 )
             tops[0].add_freejoint()
+            self._free_body = tops[0].name
+            mu = self.config.ground_friction
+            for geom in spec.geoms:
+                geom.friction = [mu, *list(geom.friction)[1:]]
+            ground = spec.worldbody.add_geom()
+            ground.name = "agentsdk/ground"
+            ground.type = mujoco.mjtGeom.mjGEOM_PLANE
+            ground.size = [0.0, 0.0, 1.0]  # infinite
+            ground.friction = [mu, 0.005, 0.0001]
+            self._ground_height = standing_height(desc, collision)
         return spec
 
     def _mjcf_spec(self) -> mujoco.MjSpec:
@@ -253,12 +292,55 @@ class MujocoController(Backend):
         pairs = colliding_body_pairs(m, world=self.description.format != "mjcf")
         return {"joints": joints, "masses": masses, "pairs": sorted(pairs)}
 
+    # ------------------------------------------------------------ gravity compensation
+    def _setup_gravity_compensation(self) -> None:
+        """``tau_model = g(q)`` from this model for the joints with gravity compensation (none: off)."""
+        m = self.model
+        mask = self.gravity_compensation.astype(float)
+        self._tau_model = np.zeros(len(self.joints))
+        self._gc_mask = mask
+        on = mask.any() and bool(np.any(m.opt.gravity))
+        self._gravity = GravityTerm(m, self.names) if on else None
+
+    # ------------------------------------------------------------ floating base
+    def _setup_base(self) -> None:
+        m = self.model
+        self._free_qadr = -1
+        if not self._free_body:
+            return
+        body = m.body(self._free_body)
+        jnt = int(m.body_jntadr[body.id])
+        self._free_qadr, self._free_dadr = int(m.jnt_qposadr[jnt]), int(m.jnt_dofadr[jnt])
+        # the base link (description.base_link) in the free body's frame
+        desc = self.description
+        self._base_offset = Pose()
+        if desc.base_link != self._free_body:
+            joint = desc.parent_joint(desc.base_link)
+            assert joint is not None
+            w, x, y, z = quat_from_rpy(joint.rpy)
+            self._base_offset = Pose(joint.xyz, (x, y, z, w))
+
+    def base_state(self) -> BaseState:
+        """The floating base link's pose and velocity (world frame) from the free joint's state."""
+        if self._free_qadr < 0:
+            return BaseState(Pose())
+        d, a, v = self.data, self._free_qadr, self._free_dadr
+        w, x, y, z = d.qpos[a + 3 : a + 7]
+        body = Pose(d.qpos[a : a + 3], (x, y, z, w))
+        rot = body.rotation
+        omega = rot @ d.qvel[v + 3 : v + 6]  # MuJoCo: angular velocity of a free joint in the body frame
+        base = body @ self._base_offset
+        lin = d.qvel[v : v + 3] + np.cross(omega, base.position - body.position)
+        return BaseState(base, lin, omega)
+
     def _reset_state(self) -> None:
         m, d = self.model, self.data
         if self._home_key >= 0:
             mujoco.mj_resetDataKeyframe(m, d, self._home_key)
         else:
             mujoco.mj_resetData(m, d)
+        if self._free_qadr >= 0:
+            d.qpos[self._free_qadr + 2] += self._ground_height  # standing on the ground plane
         d.qpos[self._qadr] = self.initial_positions
         for follower, leader, multiplier, offset in self._mimic:
             d.qpos[follower] = multiplier * d.qpos[leader] + offset
@@ -278,6 +360,10 @@ class MujocoController(Backend):
         np.multiply(sp.kd, sp.velocity, out=tmp)
         ctrl += tmp
         ctrl += sp.effort
+        if self._gravity is not None:  # tau_model: g(q) at the measured position, allocation-free
+            tau = self._gravity.compute(self.data.qpos, self._tau_model)
+            tau *= self._gc_mask
+            ctrl += tau
         en = sp.enabled
         if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0

@@ -26,6 +26,19 @@ diverges once ``kd*dt/I > 2``) and matches the MuJoCo backend closely. A
 floating base uses the plain explicit law (PyBullet's floating-base dynamics
 queries are not reliable enough to build the implicit step on).
 
+Gravity compensation (``tau_model`` of the servo law, :mod:`agentsdk.dynamics`): once per
+control period ``g(q)`` at the measured position is added to the feed-forward of the law above
+(so the clamp covers it). It comes from the description's rigid-body model
+(:class:`agentsdk.dynamics.DynamicsModel`: the same links and inertials PyBullet loaded, a floating
+base at PyBullet's measured attitude), not from PyBullet's ``calculateInverseDynamics``, which
+mishandles URDF fixed joints (bullet3 #1379: on example-robot-data's double pendulum it gives
+0.074 N·m where 0.266 N·m hold the link) and floating bases (bullet3 #3149, #3264).
+
+Floating base (robot.yaml ``floating_base: true``): a ground plane is added; PyBullet multiplies
+the two friction coefficients of a contact, so the plane gets robot.yaml ``ground_friction`` and
+the robot's links 1.0 (the same contact friction as on MuJoCo); the robot starts standing on it
+(:func:`agentsdk.description.collision.standing_height`).
+
 ``effort`` in the measured state is the servo torque (like MuJoCo's
 ``actuator_force``): the clamped law above, without passive damping.
 
@@ -36,6 +49,7 @@ non-finite value or a speed above 1e4 rad/s (m/s) raises
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
@@ -45,16 +59,23 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-import pybullet as p
 from pydantic import BaseModel, ConfigDict, Field
+
+from .quiet import filtered_native_output
+
+with filtered_native_output():  # "pybullet build time: ..." goes to the log, not the user's terminal
+    import pybullet as p
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, substeps
 from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
-from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf
+from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf, standing_height
 from agentsdk.description.mjcf import mjcf_unsupported_by_pybullet
+from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
+from agentsdk.dynamics import DynamicsModel
 from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.pose import BaseState, Pose
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
@@ -92,8 +113,9 @@ class PybulletOptions(BaseModel):
     joint_damping: float = Field(default=0.0, ge=0.0, le=MAX_GAIN)
     #: constraint solver iterations (joint limits, contacts)
     solver_iterations: int = Field(default=50, ge=1, le=10_000)
-    #: keep a free-floating base instead of fixing the root link to the world
-    floating_base: bool = False
+    #: a free-floating base on a ground plane instead of a root link fixed to the world
+    #: (default: robot.yaml ``floating_base``)
+    floating_base: bool | None = None
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
     self_collision: Literal["auto"] | bool | None = None
     #: open the PyBullet GUI (needs a display; one GUI per process)
@@ -144,6 +166,20 @@ class PybulletController(Backend):
         # what _read returns (the substep scratch arrays above change inside _step)
         self._rq = np.zeros(n)
         self._rv = np.zeros(n)
+        # tau_model (gravity compensation) of this control period, masked per joint
+        self._tau_model = np.zeros(n)
+        self._gc_mask = self.gravity_compensation.astype(float)
+
+    @property
+    def servo_timestep(self) -> float:
+        """PyBullet's physics timestep: the servo law is evaluated (and integrated) at every step."""
+        return float(self.options.timestep)
+
+    @property
+    def floating_base(self) -> bool:
+        """True when the base floats on a ground plane (option ``floating_base``, else robot.yaml)."""
+        opt = self.options.floating_base
+        return bool(self.config.floating_base if opt is None else opt)
 
     # ------------------------------------------------------------ open/close
     async def _open(self) -> None:
@@ -154,6 +190,11 @@ class PybulletController(Backend):
             await run_blocking(self._build, name="agentsdk-pybullet-build")
 
     def _build(self) -> None:
+        # PyBullet's b3Warning/b3Printf lines go to the log, not into the user's output
+        with filtered_native_output():
+            self._build_client()
+
+    def _build_client(self) -> None:
         opts: PybulletOptions = self.options
         try:
             self._cid = p.connect(p.GUI if opts.gui else p.DIRECT)
@@ -211,8 +252,14 @@ class PybulletController(Backend):
         self.collision = collision
         skip: frozenset[str] = frozenset()
         base_pose: tuple[list[float], list[float]] | None = None
-        if opts.floating_base:
-            skip, base_pose = _world_link(desc)
+        if self.floating_base:
+            # the base link floats (a massless root fixed to it is left out: PyBullet would hold a massless
+            # base static); it starts where the root frame stands on the ground plane
+            if desc.base_link != desc.root_link:
+                skip = frozenset({desc.root_link})
+            height = standing_height(desc, collision) if desc.format == "urdf" else 0.0
+            pose = Pose((0.0, 0.0, height)) @ _base_offset(desc)
+            base_pose = (pose.position.tolist(), pose.orientation.tolist())
         # PyBullet's state queries fail beyond MAX_LINKS links: leave out links that carry nothing
         extra = len(desc.links) - 1 - len(skip) - _MAX_LINKS
         collapse = collapsible_links(desc, collision.shapes, extra) if extra > 0 else frozenset()
@@ -234,7 +281,7 @@ class PybulletController(Backend):
             kw: dict[str, Any] = {}
             if base_pose is not None:
                 kw = {"basePosition": base_pose[0], "baseOrientation": base_pose[1]}
-            self._body = p.loadURDF(tmp, useFixedBase=not opts.floating_base, flags=flags, physicsClientId=cid, **kw)
+            self._body = p.loadURDF(tmp, useFixedBase=not self.floating_base, flags=flags, physicsClientId=cid, **kw)
         finally:
             Path(tmp).unlink(missing_ok=True)
         body = self._body
@@ -301,21 +348,38 @@ class PybulletController(Backend):
         if passive:
             log.warning("%s: movable joints %s are not commanded; they stay passive", label, ", ".join(passive))
 
-        # passive dynamics: our own damping (URDF + option), Coulomb friction through the motors
+        # passive dynamics: our own damping (URDF + option); Coulomb friction in the implicit step
+        # (a fixed base), else through the motors
         self._damping = np.array([float(info[6]) for info in dofs]) + opts.joint_damping
         friction = [float(info[7]) for info in dofs]
+        self._implicit = not self.floating_base
+        self._friction = np.array(friction)
+        self._friction_any = any(friction) and self._implicit
         for link in range(-1, len(infos)):
             p.changeDynamics(body, link, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
-        for j in self._dofs:
-            p.changeDynamics(body, j, jointDamping=0.0, maxJointVelocity=SPEED_CAP, physicsClientId=cid)
+        for dof in self._dofs:
+            # two calls: given together with maxJointVelocity, PyBullet 3.2.7 ignores jointDamping (the URDF
+            # damping then acts twice, explicitly in PyBullet and implicitly here: light damped links diverge)
+            p.changeDynamics(body, dof, jointDamping=0.0, physicsClientId=cid)
+            p.changeDynamics(body, dof, maxJointVelocity=SPEED_CAP, physicsClientId=cid)
         # turn the default velocity motors off (they hold the joints otherwise); keep URDF friction
         if nd:
             p.setJointMotorControlArray(
-                body, self._dofs, p.VELOCITY_CONTROL, targetVelocities=[0.0] * nd, forces=friction,
-                physicsClientId=cid,
+                body, self._dofs, p.VELOCITY_CONTROL, targetVelocities=[0.0] * nd,
+                forces=[0.0] * nd if self._implicit else friction, physicsClientId=cid,
             )
-        self._implicit = not opts.floating_base
         self._base_pose = p.getBasePositionAndOrientation(body, physicsClientId=cid)
+        self._setup_dynamics()
+        if self.floating_base:
+            mu = self.config.ground_friction
+            plane = p.createCollisionShape(p.GEOM_PLANE, physicsClientId=cid)
+            self._ground = p.createMultiBody(0.0, plane, physicsClientId=cid)
+            p.changeDynamics(self._ground, -1, lateralFriction=mu, physicsClientId=cid)
+            for link in range(-1, len(infos)):  # combined friction = product: mu * 1
+                p.changeDynamics(body, link, lateralFriction=1.0, physicsClientId=cid)
+            info = p.getDynamicsInfo(body, -1, physicsClientId=cid)
+            # the base's inertial frame in its link frame (PyBullet reports the base by its inertial frame)
+            self._base_inertial = Pose(info[3], info[4])
 
         # preallocated work arrays
         self._q_all = np.zeros(nd)
@@ -327,6 +391,7 @@ class PybulletController(Backend):
         self._hd = np.zeros(nd)
         self._rhs = np.zeros(nd)
         self._zeros = [0.0] * nd
+        self._diag = np.diag_indices(nd)
         self._neg_damping = -self._damping
         #: every dof is a commanded joint, in command order (no gather/scatter per substep)
         self._sel_all = bool(np.array_equal(self._sel, np.arange(nd)))
@@ -375,7 +440,7 @@ class PybulletController(Backend):
             q0[self._dof_row[follower]] = multiplier * q0[self._dof_row[leader]] + offset
         for k, j in enumerate(self._dofs):
             p.resetJointState(body, j, float(q0[k]), 0.0, physicsClientId=cid)
-        if self.options.floating_base:
+        if self.floating_base:
             p.resetBasePositionAndOrientation(body, *self._base_pose, physicsClientId=cid)
             p.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
         self._tau[:] = 0.0
@@ -385,16 +450,99 @@ class PybulletController(Backend):
     async def _close(self) -> None:
         cid, self._cid = self._cid, -1
         if cid >= 0:
-            try:
-                p.disconnect(physicsClientId=cid)
-            except p.error:  # already gone
-                pass
+            # the GUI prints its threads' shutdown
+            with filtered_native_output() if self.options.gui else contextlib.nullcontext():
+                try:
+                    p.disconnect(physicsClientId=cid)
+                except p.error:  # already gone
+                    pass
+
+    # ------------------------------------------------------------ gravity compensation
+    def _setup_dynamics(self) -> None:
+        """The description's rigid-body model (see the module docstring) and the buffers of the implicit step."""
+        self._model = DynamicsModel(
+            self.description, self.joints, gravity=self.options.gravity, floating_base=self.floating_base
+        )
+        self._gc_on = bool(self._gc_mask.any()) and any(self.options.gravity)
+        self._gc_q = np.zeros(len(self.joints))
+        nd, nv = len(self._dofs), self._model.model.nv
+        # PyBullet dof k is the model's dof _perm[k]
+        self._perm = self._model.dofs(list(self._dof_row)) if not self.floating_base else np.zeros(0, dtype=np.intp)
+        self._mq = np.zeros(nv)
+        self._mv = np.zeros(nv)
+        self._m_full = np.zeros((nv, nv))
+        self._m_rows = np.zeros((nd, nv))
+        self._m_bias = np.zeros(nv)
+        self._mass = np.zeros((nd, nd))
+        self._bias = np.zeros(nd)
+        self._a = np.zeros((nd, nd))
+
+    def _gravity_torque(self) -> np.ndarray:
+        """g(q) at the latest sensed state into ``_tau_model`` (masked per joint)."""
+        q = np.take(self._q_all, self._sel, out=self._gc_q)
+        base = self.base_state().pose if self.floating_base else None
+        tau = self._model.gravity(q, self._tau_model, base)
+        tau *= self._gc_mask
+        return tau
+
+    def _implicit_terms(self) -> tuple[np.ndarray, np.ndarray]:
+        """``M(q)`` and ``c(q, v) + g(q)`` in PyBullet's dof order, from the description's model.
+
+        PyBullet's own ``calculateInverseDynamics`` is wrong with fixed joints (module docstring).
+        """
+        perm = self._perm
+        self._mq[perm] = self._q_all
+        self._mv[perm] = self._v_all
+        self._model.terms(self._mq, self._mv, self._m_full, self._m_bias)
+        np.take(self._m_full, perm, axis=0, out=self._m_rows)
+        np.take(self._m_rows, perm, axis=1, out=self._mass)
+        np.take(self._m_bias, perm, out=self._bias)
+        return self._mass, self._bias
+
+    def _implicit_step(self, f_all: np.ndarray, d_all: np.ndarray, h: float) -> np.ndarray:
+        """The generalized force whose explicit PyBullet step lands where an implicit-damping step would.
+
+        ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction: per dof, the
+        torque that would stop the joint this step, within +-its friction (one decoupled projection),
+        then ``f = c + g + M qacc`` (PyBullet's motors carry no friction here).
+        """
+        mass, bias = self._implicit_terms()
+        a = self._a
+        np.copyto(a, mass)
+        a[self._diag] += h * d_all
+        rhs = f_all - bias
+        qacc = np.linalg.solve(a, rhs)
+        if self._friction_any:
+            stop = -(a[self._diag] / h) * (self._v_all + h * qacc)  # torque that stops each dof this step
+            np.clip(stop, -self._friction, self._friction, out=stop)
+            rhs += stop
+            qacc = np.linalg.solve(a, rhs)
+        np.matmul(mass, qacc, out=f_all)
+        f_all += bias
+        return f_all
+
+    # ------------------------------------------------------------ floating base
+    def base_state(self) -> BaseState:
+        """The floating base link's pose and velocity (world frame) as PyBullet measures them."""
+        if not self.floating_base:
+            return BaseState(Pose())
+        cid, body = self._cid, self._body
+        pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=cid)
+        lin, ang = p.getBaseVelocity(body, physicsClientId=cid)
+        inertial = Pose(pos, orn)
+        link = inertial @ self._base_inertial.inverse()
+        omega = np.array(ang)
+        # PyBullet's linear velocity is the inertial frame's (centre of mass): move it to the link origin
+        v = np.array(lin) + np.cross(omega, link.position - inertial.position)
+        return BaseState(link, v, omega)
 
     # ------------------------------------------------------------ servo
     def _write(self, sp: SetpointView) -> None:
         np.copyto(self._qd, sp.position)
         np.copyto(self._vd, sp.velocity)
         np.copyto(self._ff, sp.effort)
+        if self._gc_on:  # tau_model: g(q) at the measured position, added to the feed-forward
+            self._ff += self._gravity_torque()
         np.copyto(self._kp, sp.kp)
         np.copyto(self._kd, sp.kd)
         np.copyto(self._en, sp.enabled)
@@ -447,19 +595,8 @@ class PybulletController(Backend):
                 else:
                     np.copyto(d_all, damping)
                     d_all[sel] += kdm
-                if np.count_nonzero(d_all):
-                    ql, vl = self._ql, self._vl
-                    mass = np.array(p.calculateMassMatrix(body, ql, physicsClientId=cid))
-                    bias = p.calculateInverseDynamics(body, ql, vl, self._zeros, physicsClientId=cid)
-                    hd = self._hd
-                    np.multiply(d_all, h, out=hd)
-                    diag = mass.reshape(-1)[:: len(dofs) + 1]  # a view of the diagonal
-                    np.add(diag, hd, out=diag)
-                    rhs = self._rhs
-                    np.subtract(f_all, bias, out=rhs)
-                    qacc = np.linalg.solve(mass, rhs)
-                    np.multiply(hd, qacc, out=rhs)
-                    np.subtract(f_all, rhs, out=f_all)
+                if np.count_nonzero(d_all) or self._friction_any:
+                    f_all = self._implicit_step(f_all, d_all, h)
             set_motors(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
             step(physicsClientId=cid)
             self._time += h
@@ -510,30 +647,15 @@ def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
-def _world_link(desc: RobotDescription) -> tuple[frozenset[str], tuple[list[float], list[float]] | None]:
-    """For a floating base: a massless root link fixed to the next one (the ROS ``world`` link) is left out.
-
-    PyBullet treats a massless base as static, so ``world -(fixed)-> base_link``
-    would stay bolted down; the child becomes the floating root, placed at the
-    fixed joint's origin.
-    """
-    root = desc.link(desc.root_link)
-    out = desc.child_joints(desc.root_link)
-    if root.mass > 0 or len(out) != 1 or out[0].type != "fixed":
-        return frozenset(), None
-    return frozenset({desc.root_link}), (list(out[0].xyz), list(_quat_from_rpy(list(out[0].rpy))))
+def _base_offset(desc: RobotDescription) -> Pose:
+    """The floating base link (``desc.base_link``) in the root link's frame (identity when it is the root)."""
+    if desc.base_link == desc.root_link:
+        return Pose()
+    joint = desc.parent_joint(desc.base_link)
+    assert joint is not None
+    w, x, y, z = quat_from_rpy(joint.rpy)
+    return Pose(joint.xyz, (x, y, z, w))
 
 
 def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)[:40]
-
-
-def _quat_from_rpy(rpy: list[float]) -> tuple[float, float, float, float]:
-    r, pi, y = (0.5 * a for a in rpy)
-    cr, sr, cp, sp_, cy, sy = math.cos(r), math.sin(r), math.cos(pi), math.sin(pi), math.cos(y), math.sin(y)
-    return (
-        sr * cp * cy - cr * sp_ * sy,
-        cr * sp_ * cy + sr * cp * sy,
-        cr * cp * sy - sr * sp_ * cy,
-        cr * cp * cy + sr * sp_ * sy,
-    )

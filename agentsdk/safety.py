@@ -1043,7 +1043,8 @@ class SafetyLayer:
             if self.loop.torque_off or self.loop.closed:
                 continue
             if now - last <= timeout:
-                wait = max(last + timeout - now, 0.0) + 1e-4
+                # (at most 1 s: a huge stall_timeout would overflow the wait; a wake-up a second is free)
+                wait = min(max(last + timeout - now, 0.0) + 1e-4, 1.0)
                 continue
             # the event loop is stuck: stop the actuators from this thread
             try:

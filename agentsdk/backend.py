@@ -3,7 +3,11 @@
 A backend is a subclass of :class:`Backend` that implements a few narrow hooks.
 The control loop (:mod:`agentsdk.loop`) owns everything else -- the setpoint and
 state buffers, the clocks, the tick phases, the torque-off rule, validation --
-the way python-can's ``BusABC.recv`` owns the logic around ``_recv_internal``.
+the way python-can's ``BusABC.recv`` owns the logic around ``_recv_internal``:
+the loop calls the public, final methods :meth:`Backend.open`, :meth:`~Backend.close`,
+:meth:`~Backend.write`, :meth:`~Backend.step`, :meth:`~Backend.read`,
+:meth:`~Backend.emergency_stop`, :meth:`~Backend.enable` and :meth:`~Backend.recover`,
+which call the hooks (a subclass implements the hooks and never overrides those).
 Hooks receive values and return values; none of them sees the loop's buffers::
 
     class MyBackend(Backend):
@@ -60,18 +64,20 @@ in ``__init__`` (e.g. a configuration that supports fewer modes).
 
 from __future__ import annotations
 
+import asyncio
 import enum
 import functools
 import logging
 from abc import ABC, abstractmethod
+from collections.abc import Awaitable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias
+from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
 from .config import Gains
-from .errors import BackendFault, ConfigurationError
+from .errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError
 from .pose import BaseState, Pose
 from .types import MODES, CommandMode, FloatArray, JointInfo
 
@@ -171,8 +177,24 @@ class Backend(ABC):
     """Base class of every backend. Users never see it directly: they get a :class:`~agentsdk.Robot`.
 
     Construction only validates (options, capabilities); hardware or simulators
-    are opened in :meth:`_open`, called by the loop from a running event loop.
+    are opened by :meth:`open` (the ``_open`` hook), called by the loop from a
+    running event loop. The public methods below are final: a backend implements
+    the ``_hooks`` they call.
     """
+
+    #: the public methods the loop calls; a subclass implements the hooks instead
+    _FINAL: ClassVar[tuple[str, ...]] = (
+        "open", "close", "write", "step", "read", "emergency_stop", "enable", "recover",
+    )
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        overridden = [name for name in Backend._FINAL if name in cls.__dict__]
+        if overridden:
+            raise TypeError(
+                f"{cls.__name__} overrides {', '.join(overridden)} of agentsdk.Backend; implement the hooks "
+                f"({', '.join('_' + n for n in overridden)}) instead"
+            )
 
     #: entry-point name, set by subclasses
     name: ClassVar[str] = ""
@@ -237,6 +259,7 @@ class Backend(ABC):
         gc.flags.writeable = False
         #: per joint: the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)
         self.gravity_compensation: np.ndarray = gc
+        self._backend_open = False
 
     # ------------------------------------------------------------ model-based information
     @property
@@ -309,6 +332,65 @@ class Backend(ABC):
                 else:
                     lines.append(f"{self.config.label}: backends.{self.name}.{line}")
             raise ConfigurationError("\n".join(lines)) from None
+
+    # ------------------------------------------------------------ public, final: what the loop calls
+    @final
+    async def open(self) -> None:
+        """Connect to the hardware or build the simulation (the ``_open`` hook).
+
+        On failure the backend is closed again (``_close``) and the error raised:
+        an :class:`~agentsdk.errors.AgentSDKError` as it is, anything else as a
+        :class:`~agentsdk.errors.BackendStartError` naming the backend and the robot.
+        """
+        self._backend_open = True  # a failed open is closed like an open one
+        try:
+            await self._open()
+        except (asyncio.CancelledError, AgentSDKError):
+            await self.close()
+            raise
+        except Exception as exc:
+            await self.close()
+            raise BackendStartError(
+                f"backend {self.name!r} failed to start robot {self.description.name!r}: {exc}"
+            ) from exc
+
+    @final
+    async def close(self) -> None:
+        """Leave actuators safe and release resources (the ``_close`` hook). Idempotent: runs once per open."""
+        if not self._backend_open:
+            return
+        self._backend_open = False
+        await self._close()
+
+    @final
+    def write(self, sp: SetpointView) -> None:
+        """Apply the servo setpoint (the ``_write`` hook); once per tick, before :meth:`step`."""
+        self._write(sp)
+
+    @final
+    def step(self, dt: float) -> Awaitable[None]:
+        """Advance one control period (the ``_step`` hook); returns its awaitable."""
+        return self._step(dt)
+
+    @final
+    def read(self) -> JointReading:
+        """The latest measured ``(position, velocity, effort)`` (the ``_read`` hook; the arrays may be reused)."""
+        return self._read()
+
+    @final
+    def emergency_stop(self, category: int = 0) -> None:
+        """Remove actuator torque now (the ``_emergency_stop`` hook): synchronous, thread-safe, no event loop."""
+        self._emergency_stop(category)
+
+    @final
+    async def enable(self) -> None:
+        """Re-arm the actuators after an emergency stop (the ``_enable`` hook)."""
+        await self._enable()
+
+    @final
+    async def recover(self) -> None:
+        """Bring a faulted backend back (the ``_recover`` hook); raises BackendFault if it cannot."""
+        await self._recover()
 
     # ------------------------------------------------------------------ hooks
     @abstractmethod

@@ -397,6 +397,30 @@ def _options(items: list[str] | None) -> dict[str, Any]:
     return options
 
 
+def _apply_scheduling(priority: int | None, cpus: str | None) -> None:
+    """``--rt-priority`` / ``--cpus``: SCHED_FIFO and CPU affinity for this process (agentsdk.realtime)."""
+    if priority is None and cpus is None:
+        return
+    cpu_list: list[int] | None = None
+    if cpus is not None:
+        try:
+            cpu_list = [int(c) for c in cpus.split(",") if c.strip()]
+        except ValueError as exc:
+            raise ConfigurationError(f"--cpus must be a comma-separated list of CPU numbers, got {cpus!r}") from exc
+        if not cpu_list:
+            raise ConfigurationError("--cpus needs at least one CPU number")
+    if priority is None:
+        assert cpu_list is not None
+        try:
+            os.sched_setaffinity(0, cpu_list)
+        except (AttributeError, OSError, ValueError) as exc:
+            raise ConfigurationError(f"cannot pin the process to CPUs {cpu_list}: {exc}") from exc
+        return
+    from .realtime import set_realtime_priority
+
+    set_realtime_priority(priority, cpu_list)
+
+
 def _cmd_run(args: argparse.Namespace) -> int:
     from .progress import progress_enabled
     from .recording import robot_spec_for_metadata
@@ -412,6 +436,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         raise ConfigurationError("--record-rate needs --record or --plot")
     if args.record_rate is not None and not args.record_rate > 0:
         raise ConfigurationError(f"--record-rate must be > 0 Hz, got {args.record_rate:g}")
+    _apply_scheduling(args.rt_priority, args.cpus)
     if args.record_format != "mcap" and not args.record:
         raise ConfigurationError("--record-format needs --record")
     if args.view:
@@ -653,6 +678,11 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--backend", default=None, help="mujoco (default), pybullet, mock, can")
     r.add_argument("--robot", default=None, help="robot name or path to .urdf/.xacro/robot.yaml")
     r.add_argument("--realtime", action="store_true", help="pace the simulation to the wall clock")
+    r.add_argument("--rt-priority", type=int, metavar="N",
+                   help="run with the SCHED_FIFO real-time policy at priority N (1..99; Linux, needs CAP_SYS_NICE "
+                   "or an rtprio limit; a clear error says what to change where it is not permitted)")
+    r.add_argument("--cpus", metavar="LIST",
+                   help="pin the process to these CPUs, e.g. 2,3 (with or without --rt-priority)")
     r.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
     r.add_argument("--quiet", "-q", action="store_true", help="no summary, no progress bar")
     r.add_argument("--debug", action="store_true", help="show tracebacks")

@@ -9,8 +9,10 @@ behavior written against ``robot.clock`` runs unchanged in either time model.
   or after their deadline, in deadline order (ties: first come, first served).
   Runs as fast as the CPU allows and is deterministic.
 * :class:`RealtimeClock` — ``time.monotonic`` since connect. ``sleep_until``
-  sleeps on the event loop until shortly before the deadline and then yields in
-  a tight loop for the last part, because asyncio timers are only ~1 ms precise.
+  wakes within tens of microseconds of the deadline without spinning: asyncio's
+  own timers are only ~1 ms precise, so it sleeps on a Linux ``timerfd``
+  (:class:`agentsdk.realtime.DeadlineTimer`) watched by the event loop;
+  elsewhere it falls back to ``asyncio.sleep``.
 """
 
 from __future__ import annotations
@@ -25,12 +27,9 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from .errors import AgentTimeoutError, InvalidValueError
+from .realtime import DeadlineTimer, timerfd_available
 
 __all__ = ["Clock", "LockstepClock", "RealtimeClock"]
-
-#: below this remaining time RealtimeClock stops trusting loop timers
-_SPIN_WINDOW = 0.0015
-
 
 def _check_duration(dt: float) -> float:
     try:
@@ -179,22 +178,54 @@ class RealtimeClock(Clock):
     def __init__(self) -> None:
         super().__init__()
         self._t0 = time.monotonic()
+        self._timer: DeadlineTimer | None = None
+        self._timer_failed = False
 
     def now(self) -> float:
         """Seconds since this clock was created (``time.monotonic`` based)."""
         return time.monotonic() - self._t0
 
     async def sleep_until(self, deadline: float) -> None:
-        """Sleep until ``deadline`` (clock seconds): an asyncio sleep, then a short cooperative spin for precision."""
+        """Sleep until ``deadline`` (clock seconds) on the timerfd, no spin (else ``asyncio.sleep`` precision)."""
         deadline = _check_deadline(deadline)
         self._check_running()
         remaining = deadline - self.now()
-        if remaining > _SPIN_WINDOW:
-            await self._park(None if math.isinf(remaining) else remaining - _SPIN_WINDOW)
-        # last part: yield to the loop until the deadline (keeps other tasks running)
-        while self.now() < deadline:  # deliberate: a precise final spin
+        if remaining <= 0.0:
             await asyncio.sleep(0)
             self._check_running()
+            return
+        if math.isinf(remaining):
+            await self._park(None)  # until cancelled, or until the clock fails
+            return
+        timer = self._timer
+        if timer is None or timer.closed or timer.loop is not asyncio.get_running_loop():
+            timer = self._precise_timer()
+        if timer is None:
+            await self._park(remaining)  # no timerfd: the event loop's timer precision
+            return
+        fut = timer.sleep_until(self._t0 + deadline)
+        self._parked.add(fut)  # fail() (robot closed, loop faulted) wakes it with the reason
+        try:
+            await fut
+        finally:
+            self._parked.discard(fut)
+
+    def _precise_timer(self) -> DeadlineTimer | None:
+        if self._timer_failed or not timerfd_available():
+            return None
+        try:
+            self._timer = DeadlineTimer(asyncio.get_running_loop())
+        except OSError:
+            self._timer_failed = True
+            return None
+        return self._timer
+
+    def release(self) -> None:
+        """Close the clock's timer (the robot closed); later sleeps use ``asyncio.sleep``."""
+        self._timer_failed = True
+        if self._timer is not None:
+            self._timer.close()
+            self._timer = None
 
 
 class LockstepClock(Clock):

@@ -5,7 +5,7 @@ One tick, like ros2_control's read -> update -> write::
     COMMAND hooks   write the reference for time t (trajectories, stop ramps, replay)
     LIMIT hooks     filter it (the safety layer: limits, ramps)
     torque-off rule every joint disabled while an emergency stop holds
-    backend._write(setpoint view) -> await backend._step(dt) -> backend._read()
+    backend.write(setpoint view) -> await backend.step(dt) -> backend.read()
     OBSERVE hooks   see the fresh state and the setpoint that was written
                     (recorders first, watchdogs last: ``order``)
 
@@ -18,7 +18,9 @@ phases only) and the loop's own methods.
 
 Time models: in lockstep the loop advances the :class:`~agentsdk.clock.LockstepClock`
 by one control period per tick, only while every other task on the event loop
-is waiting (see :func:`_settle`); in realtime it runs paced to the wall clock.
+is waiting (see :func:`_settle`), many ticks per pass through the event loop
+while they wake nothing (see :meth:`ControlLoop._run_lockstep`); in realtime it
+runs paced to the wall clock.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import enum
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -36,9 +39,7 @@ import numpy as np
 from .backend import Backend, ModeCode, SetpointView
 from .clock import Clock, LockstepClock, RealtimeClock
 from .errors import (
-    AgentSDKError,
     BackendFault,
-    BackendStartError,
     InvalidValueError,
     RobotClosedError,
     UnknownJointError,
@@ -60,7 +61,8 @@ __all__ = [
 
 log = logging.getLogger("agentsdk.loop")
 
-_POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
+#: mode codes as plain ints (numpy compares arrays with an IntEnum member slowly, through enum attribute lookups)
+_POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.EFFORT)
 
 
 class Phase(enum.Enum):
@@ -76,16 +78,26 @@ class Phase(enum.Enum):
 
 
 class StateView:
-    """Read-only measured joint state: ``position``, ``velocity``, ``effort`` arrays in joint order."""
+    """Read-only measured joint state: ``position``, ``velocity``, ``effort`` arrays in joint order.
 
-    __slots__ = ("effort", "position", "velocity")
+    ``block`` is the three as the rows of one read-only ``(3, n)`` array (for reading
+    several of them in one numpy operation), or None for a view built from separate arrays.
+    """
+
+    __slots__ = ("block", "effort", "position", "velocity")
 
     position: FloatArray
     velocity: FloatArray
     effort: FloatArray
+    block: FloatArray | None
 
-    def __init__(self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray) -> None:
-        for name, arr in (("position", position), ("velocity", velocity), ("effort", effort)):
+    def __init__(
+        self, position: np.ndarray, velocity: np.ndarray, effort: np.ndarray, block: np.ndarray | None = None
+    ) -> None:
+        for name, arr in (("position", position), ("velocity", velocity), ("effort", effort), ("block", block)):
+            if arr is None:
+                object.__setattr__(self, name, None)
+                continue
             view = arr.view()
             view.flags.writeable = False
             object.__setattr__(self, name, view)
@@ -95,16 +107,18 @@ class StateView:
 
 
 class StateBuffer:
-    """The loop's measured-state arrays (written only by the loop, from ``Backend._read``)."""
+    """The loop's measured-state arrays (written only by the loop, from ``Backend.read``).
 
-    __slots__ = ("effort", "position", "velocity", "view")
+    ``position``, ``velocity`` and ``effort`` are the rows of ``block`` (shape ``(3, n)``).
+    """
+
+    __slots__ = ("block", "effort", "position", "velocity", "view")
 
     def __init__(self, n: int) -> None:
-        self.position = np.zeros(n)
-        self.velocity = np.zeros(n)
-        self.effort = np.zeros(n)
+        self.block = np.zeros((3, n))
+        self.position, self.velocity, self.effort = self.block
         #: a read-only view of these arrays (what hooks receive)
-        self.view = StateView(self.position, self.velocity, self.effort)
+        self.view = StateView(self.position, self.velocity, self.effort, self.block)
 
 
 class Setpoint:
@@ -115,19 +129,22 @@ class Setpoint:
     ``target`` (the last commanded value per joint, before any ramping: a
     position, velocity or effort according to ``mode``). ``view`` is the
     read-only :class:`~agentsdk.backend.SetpointView` backends and observers get.
+
+    The float fields are the rows of one array, :attr:`block` (shape ``(6, n)``,
+    rows in :attr:`FIELDS` order), so that a hook can write several fields of the
+    same joints in one numpy operation (e.g. ``sp.block[0:2, idx] = q_and_v``).
     """
 
-    __slots__ = ("effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity", "view")
+    __slots__ = ("block", "effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity", "view")
+
+    #: the rows of :attr:`block`
+    FIELDS = ("position", "velocity", "effort", "kp", "kd", "target")
 
     def __init__(self, n: int) -> None:
-        self.position = np.zeros(n)
-        self.velocity = np.zeros(n)
-        self.effort = np.zeros(n)
-        self.kp = np.zeros(n)
-        self.kd = np.zeros(n)
+        self.block = np.zeros((6, n))
+        self.position, self.velocity, self.effort, self.kp, self.kd, self.target = self.block
         self.enabled = np.ones(n, dtype=bool)
         self.mode = np.zeros(n, dtype=np.int8)
-        self.target = np.zeros(n)
         self.view = SetpointView(
             position=self.position, velocity=self.velocity, effort=self.effort, kp=self.kp, kd=self.kd,
             enabled=self.enabled, mode=self.mode, target=self.target,
@@ -241,6 +258,9 @@ class ControlLoop:
         self.gain_v = _readonly([g.d if g.v is None else g.v for g in gains])
         self.clock: Clock = RealtimeClock() if self.realtime else LockstepClock(self.period)
         self._hooks = {phase: _HookList() for phase in Phase}
+        self._command = self._hooks[Phase.COMMAND]
+        self._limit = self._hooks[Phase.LIMIT]
+        self._observe = self._hooks[Phase.OBSERVE]
         self._fault_listeners = _HookList()
         self._task: asyncio.Task[None] | None = None
         self._fault: BaseException | None = None
@@ -252,6 +272,10 @@ class ControlLoop:
         self.lock = asyncio.Lock()
         self.ticks = 0
         self.missed_deadlines = 0
+        #: lockstep only: wall time (s) a batch of ticks may run before the loop passes through the
+        #: event loop again (asyncio timers and I/O run between batches); 0 runs one tick per pass,
+        #: as before batching. Either way the ticks compute the same thing (see :meth:`_run_lockstep`).
+        self.batch_seconds = BATCH_SECONDS
 
     # ------------------------------------------------------------ views
     @property
@@ -314,20 +338,10 @@ class ControlLoop:
     async def start(self) -> None:
         """Open the backend, read the initial state, hold it, start the control loop task."""
         backend = self.backend
-        try:
-            await backend._open()
-        except asyncio.CancelledError:
-            await backend._close()
-            raise
-        except AgentSDKError:
-            await backend._close()
-            raise
-        except Exception as exc:
-            await backend._close()
-            raise BackendStartError(f"backend {backend.name!r} failed to start: {exc}") from exc
+        await backend.open()  # closes the backend again and raises BackendStartError on failure
         self._read()
         self.hold_current()
-        backend._write(self._sp.view)
+        backend.write(self._sp.view)
         self._spawn()
 
     def _spawn(self) -> None:
@@ -350,9 +364,11 @@ class ControlLoop:
             except asyncio.CancelledError:
                 cancelled = True
         self.clock.fail(RobotClosedError(f"robot on backend {self.backend.name!r} is closed"), final=True)
+        if isinstance(self.clock, RealtimeClock):
+            self.clock.release()  # its timerfd (after fail: the pending sleepers got the reason)
         self._hooks[Phase.COMMAND].clear()
         try:
-            await asyncio.shield(self.backend._close())
+            await asyncio.shield(self.backend.close())
         except asyncio.CancelledError:
             cancelled = True
         if cancelled:
@@ -362,11 +378,11 @@ class ControlLoop:
         """Thread-safe: remove torque now; every later write is torque-off until :meth:`enable`."""
         with self._torque_lock:
             self._torque_off = True
-        self.backend._emergency_stop(category)
+        self.backend.emergency_stop(category)
 
     async def enable(self) -> None:
         """Re-arm the backend and hold the measured position with torque on."""
-        await self.backend._enable()
+        await self.backend.enable()
         self._read()
         self.hold_current()
         with self._torque_lock:
@@ -376,7 +392,7 @@ class ControlLoop:
         """Recover from a fault: backend ``_recover``, then restart the loop holding position, torque off."""
         if self._fault is None:
             return
-        await self.backend._recover()
+        await self.backend.recover()
         self._fault = None
         self.clock.resume()
         self._read()
@@ -388,54 +404,112 @@ class ControlLoop:
 
     # ------------------------------------------------------------ the tick
     def _read(self) -> None:
-        q, v, e = self.backend._read()
+        q, v, e = self.backend.read()
         st = self._state
-        np.copyto(st.position, q)
-        np.copyto(st.velocity, v)
-        np.copyto(st.effort, e)
+        st.position[:] = q
+        st.velocity[:] = v
+        st.effort[:] = e
 
-    async def _tick(self) -> None:
+    def _before_step(self) -> None:
+        """The tick up to the step: COMMAND hooks, LIMIT hooks, the torque-off rule, ``backend.write``."""
         sp, stv, t = self._sp, self._state.view, self.stamp
-        command = self._hooks[Phase.COMMAND]
+        command = self._command
         if command.fns:
             for fn in command.fns:
                 if fn(t, stv, sp) is False:
                     command.remove_fn(fn)
-        for fn in self._hooks[Phase.LIMIT].fns:
+        for fn in self._limit.fns:
             fn(t, stv, sp)
         off = self._torque_off
         if off:
             sp.enabled[:] = False
         backend = self.backend
-        backend._write(sp.view)
+        backend.write(sp.view)
         if not off and self._torque_off:
-            # an emergency stop from another thread landed during _write: enforce it again
-            backend._emergency_stop(0)
-        await backend._step(self.period)
+            # an emergency stop from another thread landed during write: enforce it again
+            backend.emergency_stop(0)
+
+    async def _tick(self) -> None:
+        self._before_step()
+        await self.backend.step(self.period)
 
     def _after_tick(self) -> None:
         self._read()
         self.stamp = self.clock.now()
         self.ticks += 1
         t, stv, spv = self.stamp, self._state.view, self._sp.view
-        for fn in self._hooks[Phase.OBSERVE].fns:
+        for fn in self._observe.fns:
             fn(t, stv, spv)
 
     async def _run_lockstep(self) -> None:
+        """Lockstep: tick while every other task waits, many ticks per pass through the event loop.
+
+        After :func:`_settle` (nothing else runnable), ticks run back to back as a
+        *batch* without returning to the event loop, for as long as none of them makes
+        another task runnable: a batch ends after the tick that wakes a sleeper
+        (``clock.advance``), resolves a future someone awaits, schedules a callback or
+        a task (the event loop's ready queue grew), leaves the loop idle, or after
+        ``batch_seconds`` of wall time (asyncio timers and I/O, e.g. the stall
+        watchdog's heartbeat, still run). Every tick runs every phase, so a batch is
+        tick-for-tick what one tick per settle computes: nothing else could have run
+        in between.
+        """
         clock = self.clock
         assert isinstance(clock, LockstepClock)
         loop = asyncio.get_running_loop()
-        command = self._hooks[Phase.COMMAND]
+        ready = _ready_queue(loop)
+        command, limit, observe = self._command, self._limit, self._observe
+        backend = self.backend
+        write, step, read = backend.write, backend.step, backend.read
+        period = self.period
+        sp, spv = self._sp, self._sp.view
+        st, stv = self._state, self._state.view
+        position, velocity, effort = st.position, st.velocity, st.effort
+        advance, now = clock.advance, clock.now
+        perf_counter = time.perf_counter
         try:
             while True:
                 await _settle(loop)
-                if clock.next_deadline() is None and not command.fns:
+                idle_after = clock.next_deadline() is None
+                if idle_after and not command.fns:
                     clock.wakeup.clear()
                     await clock.wakeup.wait()
                     continue
-                await self._tick()
-                clock.advance()
-                self._after_tick()
+                budget = self.batch_seconds
+                # without a ready queue to watch (uvloop), or with batching off: one tick per pass
+                single = ready is None or budget <= 0.0
+                n_ready = -1 if single else len(ready)
+                end = perf_counter() + budget
+                while True:
+                    # one tick: _before_step, step, advance, _after_tick (inlined: this is the hot path)
+                    t = self.stamp
+                    if command.fns:
+                        for fn in command.fns:
+                            if fn(t, stv, sp) is False:
+                                command.remove_fn(fn)
+                    for fn in limit.fns:
+                        fn(t, stv, sp)
+                    off = self._torque_off
+                    if off:
+                        sp.enabled[:] = False
+                    write(spv)
+                    if not off and self._torque_off:
+                        backend.emergency_stop(0)  # an e-stop from another thread landed during write
+                    await step(period)
+                    woke = advance()
+                    q, v, e = read()
+                    position[...] = q  # [...] = is the cheapest in-place copy (np.copyto dispatches in Python)
+                    velocity[...] = v
+                    effort[...] = e
+                    self.stamp = t = now()
+                    self.ticks += 1
+                    for fn in observe.fns:
+                        fn(t, stv, spv)
+                    # end the batch when this tick made another task runnable, or went idle
+                    if woke or single or len(ready) != n_ready or perf_counter() >= end:
+                        break
+                    if idle_after and not command.fns:
+                        break
         except asyncio.CancelledError:
             raise
         except Exception as exc:
@@ -636,6 +710,17 @@ def _readonly(values: Any) -> FloatArray:
     return arr
 
 
+#: default :attr:`ControlLoop.batch_seconds`: wall time a lockstep batch may run before the
+#: control loop passes through the event loop again (s)
+BATCH_SECONDS = 0.001
+
+
+def _ready_queue(loop: asyncio.AbstractEventLoop) -> Any:
+    """The event loop's queue of runnable callbacks (``BaseEventLoop._ready``), or None (see :func:`_settle`)."""
+    ready = getattr(loop, "_ready", None)
+    return ready if hasattr(ready, "__len__") else None
+
+
 #: lockstep control loops currently settling, per event loop (their own yields are not "work")
 _settling: dict[asyncio.AbstractEventLoop, int] = {}
 
@@ -658,7 +743,7 @@ async def _settle(loop: asyncio.AbstractEventLoop) -> None:
     _settling[loop] = _settling.get(loop, 0) + 1
     try:
         await asyncio.sleep(0)
-        ready = getattr(loop, "_ready", None)
+        ready = _ready_queue(loop)
         if ready is None:
             for _ in range(64):
                 await asyncio.sleep(0)

@@ -65,7 +65,7 @@ if TYPE_CHECKING:
 
 __all__ = ["TRACKING_BAND", "Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
 
-_POS = ModeCode.POSITION
+_POS = int(ModeCode.POSITION)  # a plain int: numpy compares arrays with an IntEnum member slowly
 _TWO_PI = 2.0 * math.pi
 
 #: (position rad or m, velocity rad/s or m/s): a joint whose measured state is this close to its
@@ -336,6 +336,8 @@ class _Exec:
     reported_clip: bool = False
     #: (lower, upper, max step) of its joints, cached on the first tick
     limits: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
+    #: its joints as a slice when they are consecutive (basic indexing: ~4x cheaper than ``idx`` per write)
+    sel: Any = None
 
 
 class MotionManager:
@@ -1055,14 +1057,20 @@ class MotionManager:
         idx = ex.idx
         loop = self.loop
         ex.des_q, ex.des_v, ex.des_a = qc, v, a
-        sp.mode[idx] = _POS
-        sp.enabled[idx] = True
-        sp.position[idx] = qc
-        sp.velocity[idx] = v
-        sp.effort[idx] = 0.0
-        sp.kp[idx] = loop.gain_p[idx]
-        sp.kd[idx] = loop.gain_d[idx]
-        sp.target[idx] = qc
+        sel = ex.sel
+        if sel is None:
+            n = len(idx)
+            start = int(idx[0]) if n else 0
+            consecutive = n > 0 and bool(np.array_equal(idx, np.arange(start, start + n)))
+            sel = ex.sel = slice(start, start + n) if consecutive else idx
+        sp.mode[sel] = _POS
+        sp.enabled[sel] = True
+        sp.position[sel] = qc
+        sp.velocity[sel] = v
+        sp.effort[sel] = 0.0
+        sp.kp[sel] = loop.gain_p[sel]
+        sp.kd[sel] = loop.gain_d[sel]
+        sp.target[sel] = qc
         m = ex.motion
         if m is not None:
             dur = ex.sampler.duration

@@ -175,7 +175,8 @@ class SafetyEvent:
     detail: str
 
 
-_POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
+#: mode codes as plain ints (numpy compares arrays with an IntEnum member slowly, through enum attribute lookups)
+_POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.EFFORT)
 
 #: OBSERVE-phase order of the safety layer's watchdogs: after recorders and other observers
 SAFETY_OBSERVE_ORDER = 1000
@@ -246,11 +247,26 @@ class MeasuredPositionCheck:
         self._category = category
         self._armed = np.zeros(len(joints), dtype=bool)
         self._all_armed = False
+        n = len(joints)
+        # allocation-free per tick: [q, -q] >= [lo, -hi] in one comparison (NaN compares False: outside)
+        self._bounds = np.vstack([self._lo, -self._hi])
+        self._pm_q = np.zeros((2, n))
+        self._pm_rows = (self._pm_q[0], self._pm_q[1])  # views made once (a broadcast ufunc allocates an iterator)
+        self._ok = np.zeros((2, n), dtype=bool)
+        #: ``ok.tobytes()`` when every comparison holds (a bytes compare is ~5x cheaper than np.count_nonzero)
+        self._all_ok = np.ones((2, n), dtype=bool).tobytes()
 
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""
         q = state.position
-        inside = (q >= self._lo) & (q <= self._hi)  # (NaN is outside)
+        plus, minus = self._pm_rows
+        plus[...] = q
+        np.negative(q, out=minus)
+        ok = self._ok
+        np.greater_equal(self._pm_q, self._bounds, out=ok)
+        if self._all_armed and ok.tobytes() == self._all_ok:
+            return None
+        inside = ok[0] & ok[1]
         if not self._all_armed:
             self._armed |= inside
             self._all_armed = bool(self._armed.all())
@@ -300,6 +316,7 @@ class SafetyLayer:
             self._step = np.full(n, float(step))
         #: watched[mode code] -> True if the command watchdog applies to that mode
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
+        self._watch_position = "position" in config.watchdog_modes
         self._fed = np.zeros(n)  # robot time of the last command per joint
         #: the limiter's origin: the position setpoint written last tick (always updated in place)
         self._written = loop.state.position.copy()
@@ -314,6 +331,29 @@ class SafetyLayer:
         self._emax = np.where(np.isnan(emax), np.inf, emax)
         self._vmin = -self._vmax
         self._emin = -self._emax
+        #: the limits of the setpoint's velocity and effort rows (``Setpoint.block[1:3]``)
+        self._ff_min = np.vstack([self._vmin, self._emin])
+        self._ff_max = np.vstack([self._vmax, self._emax])
+        #: ... and with the position row (``Setpoint.block[0:3]``)
+        self._rows_min = np.vstack([self._lo, self._vmin, self._emin])
+        self._rows_max = np.vstack([self._hi, self._vmax, self._emax])
+        #: scratch of the per-tick filter: the step window [written - step, written + step]
+        self._window_lo = np.zeros(n)
+        self._window_hi = np.zeros(n)
+        #: scratch masks of the per-tick paths (joints in position mode with torque on; streamed joints;
+        #: stale streams) and the command age per joint: no arrays allocated per tick
+        self._n = n
+        #: ``tobytes()`` of a mode row with every joint in position mode, of an all-true / all-false mask:
+        #: the per-tick checks compare bytes (no array, ~5x cheaper than ufunc + np.count_nonzero)
+        self._all_position = np.full(n, _POS, dtype=np.int8).tobytes()
+        self._all_true = np.ones(n, dtype=bool).tobytes()
+        self._all_false = np.zeros(n, dtype=bool).tobytes()
+        self._streamed = np.zeros(n, dtype=bool)
+        self._stale = np.zeros(n, dtype=bool)
+        self._age = np.zeros(n)
+        #: views of the loop's setpoint rows (made once per setpoint object, not per tick)
+        self._rows_of: object = None
+        self._rows: np.ndarray | None = None
         #: deceleration available to stop a velocity stream before a position limit
         self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
@@ -587,18 +627,41 @@ class SafetyLayer:
         every other position-mode joint (trajectory, stop ramp, hold) is limited to what
         its writer put in the setpoint for this cycle. Feed-forward terms are clipped to
         the velocity and effort limits as a backstop.
+
+        Allocation-free: preallocated scratch arrays and ufuncs with ``out=`` (``np.clip``
+        and ``ndarray.any`` cost microseconds of dispatch on small arrays); the common case,
+        every joint in position mode with torque on and no ramp, skips the masks.
         """
         if self._latched.is_set() and not self._latch_handled:
             self._enforce_latch()
+        ramping = self._ramping
+        no_ramp = ramping.tobytes() == self._all_false
+        if not no_ramp:
+            np.greater(ramping, self.motions.owned_mask, out=ramping)  # ramping &= ~owned
+        if no_ramp and self._all_position_on(sp.mode, sp.enabled):
+            # position, velocity and effort (rows 0:3) into [lo, hi], +-max velocity, +-max effort at once
+            # (ufunc input and out are the same array object: a second view would cost an overlap check)
+            rows = self._rows
+            if self._rows_of is not sp or rows is None:
+                self._rows_of, self._rows = sp, sp.block[0:3]
+                rows = self._rows
+            np.maximum(rows, self._rows_min, out=rows)
+            np.minimum(rows, self._rows_max, out=rows)
+            pos, written, step = sp.position, self._written, self._step
+            if step is not None:
+                lo, hi = self._window_lo, self._window_hi
+                np.subtract(written, step, out=lo)
+                np.add(written, step, out=hi)
+                np.maximum(pos, lo, out=pos)
+                np.minimum(pos, hi, out=pos)
+            written[...] = pos
+            return
         pos_mode = (sp.mode == _POS) & sp.enabled
         written = self._written
         # joints not in position mode track the measured position (bumpless switch)
         np.copyto(written, st.position, where=~pos_mode)
-        ramping = self._ramping
         ramping &= pos_mode
-        ramping &= ~self.motions.owned_mask
         target = np.where(ramping, self._goal, sp.position)
-        # (ufuncs with out=: np.clip costs several µs of dispatch on small arrays)
         np.maximum(target, self._lo, out=target)
         np.minimum(target, self._hi, out=target)
         if self._step is not None:
@@ -621,13 +684,16 @@ class SafetyLayer:
         np.copyto(sp.position, out, where=pos_mode)
         ramping &= out != target
         np.copyto(written, out, where=pos_mode)
-        np.maximum(sp.velocity, self._vmin, out=sp.velocity)
-        np.minimum(sp.velocity, self._vmax, out=sp.velocity)
-        np.maximum(sp.effort, self._emin, out=sp.effort)
-        np.minimum(sp.effort, self._emax, out=sp.effort)
+        ff = sp.block[1:3]
+        np.maximum(ff, self._ff_min, out=ff)
+        np.minimum(ff, self._ff_max, out=ff)
         streamed = sp.enabled & (sp.mode != _POS)
         if streamed.any():
             self._limit_streams(st.position, sp, streamed)
+
+    def _all_position_on(self, mode: np.ndarray, enabled: np.ndarray) -> bool:
+        """Every joint in position mode with torque on (the common case)."""
+        return mode.tobytes() == self._all_position and enabled.tobytes() == self._all_true
 
     def _limit_streams(self, q: np.ndarray, sp: Setpoint, streamed: np.ndarray) -> None:
         """Keep velocity and effort streams from driving a joint through its position limits.
@@ -649,8 +715,10 @@ class SafetyLayer:
             sp.effort[eff & outward] = 0.0
 
     def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
-        # the ramp origin of joints outside position mode is their fresh measurement
-        np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
+        all_position = self._all_position_on(sp.mode, sp.enabled)
+        if not all_position:
+            # the ramp origin of joints outside position mode is their fresh measurement
+            np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
         if self._state is not SafetyState.OK and self._state is not SafetyState.HOLD:
             return
         if self._latched.is_set():
@@ -662,13 +730,23 @@ class SafetyLayer:
                 log.error("safety check: %s; e-stop category %d", violation.detail, violation.category)
                 self._begin_stop(violation.category, violation.kind)
                 return
+        if all_position and not self._watch_position:
+            return  # no joint is streamed: nothing for the command watchdog
         # in HOLD too: another joint's stream may go stale while the first one is held
-        streamed = self._watched[sp.mode] & sp.enabled & ~self._held
-        if not streamed.any():
+        # streamed = watched[mode] & enabled & ~held & ~owned, in place (a & ~b is a > b on bools)
+        streamed = self._streamed
+        np.take(self._watched, sp.mode, out=streamed)
+        np.logical_and(streamed, sp.enabled, out=streamed)
+        np.greater(streamed, self._held, out=streamed)
+        if streamed.tobytes() == self._all_false:
             return
-        streamed &= ~self.motions.owned_mask
-        stale = streamed & (t - self._fed > self.config.command_timeout)
-        if stale.any():
+        np.greater(streamed, self.motions.owned_mask, out=streamed)
+        # stale = streamed & (t - fed > command_timeout)
+        stale, age = self._stale, self._age
+        np.subtract(t, self._fed, out=age)
+        np.greater(age, self.config.command_timeout, out=stale)
+        np.logical_and(stale, streamed, out=stale)
+        if stale.tobytes() != self._all_false:
             idx = np.flatnonzero(stale)
             self._hold(idx)
             self._held[idx] = True
@@ -953,11 +1031,20 @@ class SafetyLayer:
         timeout = self.config.stall_timeout
         assert timeout is not None
         poll = min(0.002, timeout / 20)
-        while not self._thread_stop.wait(poll):
+        wait = poll
+        # The thread sleeps until the heartbeat it last saw would be ``timeout`` old (not a poll
+        # every few ms: with several robots in a process, each thread's wake-ups cost the loop
+        # thread a GIL hand-off); it polls only while torque is off (nothing to watch then).
+        while not self._thread_stop.wait(wait):
             last = self._beat
             now = time.monotonic()
+            wait = poll
             # watched as long as torque is on: a category 2 stop holds with torque on
-            if now - last <= timeout or self.loop.torque_off or self.loop.closed:
+            if self.loop.torque_off or self.loop.closed:
+                continue
+            if now - last <= timeout:
+                # (at most 1 s: a huge stall_timeout would overflow the wait; a wake-up a second is free)
+                wait = min(max(last + timeout - now, 0.0) + 1e-4, 1.0)
                 continue
             # the event loop is stuck: stop the actuators from this thread
             try:

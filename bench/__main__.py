@@ -62,19 +62,31 @@ Runner = Callable[[bool], list[Section]]
 
 
 def _overhead(quick: bool) -> list[Section]:
-    from bench import overhead
+    from agentsdk.bench import overhead
 
     return [overhead.run_overhead(quick)]
 
 
 def _rtf(quick: bool) -> list[Section]:
-    from bench import overhead
+    from agentsdk.bench import overhead
 
     return [overhead.run_rtf(quick)]
 
 
+def _realtime(quick: bool) -> list[Section]:
+    from agentsdk.bench import realtime
+
+    return [realtime.run(quick)]
+
+
+def _multi(quick: bool) -> list[Section]:
+    from agentsdk.bench import multi
+
+    return [multi.run(quick)]
+
+
 def _planning(quick: bool) -> list[Section]:
-    from bench import planning
+    from agentsdk.bench import planning
 
     return [planning.run(quick)]
 
@@ -463,14 +475,17 @@ def _can_cycle(quick: bool) -> list[Section]:
 BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "overhead": ("SDK overhead per control cycle vs raw MuJoCo / PyBullet loops", _overhead),
     "rtf": ("lockstep real-time factor vs the raw simulators", _rtf),
+    "multi": ("many lockstep robots in one event loop vs one robot", _multi),
+    "realtime": ("realtime control-loop pacing at 500 Hz / 1 kHz vs raw pacing loops", _realtime),
     "feedback_timing": ("realtime loop timing at 500 Hz / 1 kHz vs a raw asyncio loop", _feedback_timing),
     "can_cycle": ("CAN cycle rates on vcan0 vs raw python-can and the wire limit", _can_cycle),
     "safety_latency": ("e-stop and stall latency", _safety_latency),
     "planning": ("trajectory planning time vs raw ruckig", _planning),
 }
 ALIASES = {
-    "realtime": "feedback_timing",
     "feedback": "feedback_timing",
+    "pacing": "realtime",
+    "robots": "multi",
     "timing": "feedback_timing",
     "can": "can_cycle",
     "safety": "safety_latency",

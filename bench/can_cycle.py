@@ -12,9 +12,9 @@ raw sync           python-can alone, blocking: ``send`` N command frames, ``recv
 raw async          the same round trip the way the backend receives: a ``can.Notifier`` on the
                    asyncio loop (``add_reader`` on socketcan; a reader thread on ``virtual``), an
                    event set when the N-th reply is in.
-backend free-run   the CAN backend's own bus cycle, back to back: the controller's hooks
-                   ``_write`` (encode N commands) -> ``await _step(dt)`` (send, wait for the N replies
-                   via its Notifier) -> ``_read`` (decode into joint state), with ``dt = 50 ms`` so
+backend free-run   the CAN backend's own bus cycle, back to back: the backend's public methods
+                   ``write`` (encode N commands) -> ``await step(dt)`` (send, wait for the N replies
+                   via its Notifier) -> ``read`` (decode into joint state), with ``dt = 50 ms`` so
                    that the wait always ends at the last reply, never at the deadline. This is the
                    achievable closed-loop rate of the backend (no pacing, no safety layer).
 backend realtime   the whole stack: ``agentsdk.connect("can", ...)`` with ``update_rate`` set to
@@ -62,6 +62,7 @@ import agentsdk
 from agentsdk.backends.can.emulator import MotorEmulator
 from agentsdk.backends.can.mit import encode_command, profile_for, ranges_for
 from agentsdk.description import apply_overrides, resolve_robot
+from agentsdk.loop import Setpoint
 from agentsdk.registry import load_backend
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,15 +276,19 @@ def _missed(ctl: Any) -> tuple[int, int, int]:
 
 
 async def _backend_free_run(robot_yaml: Path, interface: str, channel: str, duration: float) -> dict[str, Any]:
-    """The backend's bus cycle back to back through its hooks (see the module docstring)."""
+    """The backend's bus cycle back to back through its public methods (see the module docstring)."""
     config, desc = resolve_robot(robot_yaml)
     joints = apply_overrides(desc, config)
     ctl = load_backend("can")(config, desc, joints, realtime=True, interface=interface, channel=channel,
-                              max_missed_replies=10**9)
-    await ctl._open()
+                              max_missed_replies=1000)
+    await ctl.open()
     try:
-        ctl._read(ctl.state)
-        ctl.hold_current()
+        # hold the measured position with the robot's gains, as the control loop would
+        sp = Setpoint(len(joints))
+        sp.position[:] = ctl.read()[0]
+        sp.kp[:] = [config.gains_for(j.name).p for j in joints]
+        sp.kd[:] = [config.gains_for(j.name).d for j in joints]
+        view = sp.view
         dt = 0.05
         lat: list[float] = []
         c0, m0, l0 = _missed(ctl)
@@ -292,15 +297,15 @@ async def _backend_free_run(robot_yaml: Path, interface: str, channel: str, dura
         end = t_start + duration
         while time.perf_counter() < end:
             t0 = time.perf_counter()
-            ctl._write(ctl.setpoint)
-            await ctl._step(dt)
-            ctl._read(ctl.state)
+            ctl.write(view)
+            await ctl.step(dt)
+            ctl.read()
             lat.append(time.perf_counter() - t0)
         elapsed = time.perf_counter() - t_start
         cpu = time.process_time() - cpu0
         c1, m1, l1 = _missed(ctl)
     finally:
-        await ctl._close()
+        await ctl.close()
     return {"cycles_per_s": len(lat) / elapsed, "missed_replies": m1 - m0, "late_replies": l1 - l0,
             "motor_cycles": c1 - c0, "cpu_percent": 100 * cpu / elapsed, **_stats(lat)}
 
@@ -308,7 +313,7 @@ async def _backend_free_run(robot_yaml: Path, interface: str, channel: str, dura
 async def _backend_realtime(robot_yaml: Path, interface: str, channel: str, duration: float) -> dict[str, Any]:
     """The whole stack at the robot.yaml's update_rate, holding position."""
     async with agentsdk.connect("can", robot=robot_yaml, interface=interface, channel=channel,
-                                max_missed_replies=10**9) as robot:
+                                max_missed_replies=1000) as robot:
         ctl = robot.controller
         await robot.clock.sleep(0.2)  # settle
         ticks0, skipped0 = robot.ticks, robot.missed_deadlines
@@ -465,7 +470,7 @@ def report(res: dict[str, Any]) -> str:
             f"{res['results'][0]['emulator'] if res['results'] else '-'}; load avg {res['loadavg']}, "
             f"{res['cpus']} CPU(s))")
     legend = ("wire max = 1 Mbit/s bound for 8-byte command + reply per motor (worst-case stuffing - none); "
-              "rt/s = round trips (all N replies) per second; free-run = backend _write/_step/_read back to back; "
+              "rt/s = round trips (all N replies) per second; free-run = backend write/step/read back to back; "
               f"realtime = agentsdk.connect at {res['realtime_rate_hz']:g} Hz, missed % of motor-cycles without "
               "a reply by the deadline, late % = replies after it; sustained = the same at "
               f"{res['sustain_fraction']:g} x the free-run rate")

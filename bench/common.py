@@ -192,7 +192,8 @@ class Comparison:
 
     ``diff`` is ``sdk - baseline`` (the SDK's cost when lower is better) and
     ``ratio`` is ``sdk / baseline``. ``target`` is an optional bound on ``diff``
-    (``diff_target``) or on ``sdk`` (``sdk_target``), reported as met or not.
+    (``diff_target``), on ``sdk`` (``sdk_target``) or on ``ratio`` (``ratio_target``),
+    reported as met or not.
     """
 
     figure: str
@@ -206,6 +207,7 @@ class Comparison:
     sdk_target: float | None = None
     note: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+    ratio_target: float | None = None
 
     @property
     def diff(self) -> float | None:
@@ -227,6 +229,9 @@ class Comparison:
             checks.append(d <= self.diff_target if self.lower_is_better else d >= self.diff_target)
         if self.sdk_target is not None and self.sdk is not None:
             checks.append(self.sdk <= self.sdk_target if self.lower_is_better else self.sdk >= self.sdk_target)
+        r = self.ratio
+        if self.ratio_target is not None and r is not None:
+            checks.append(r <= self.ratio_target if self.lower_is_better else r >= self.ratio_target)
         return all(checks) if checks else None
 
     def target_text(self) -> str:
@@ -234,8 +239,14 @@ class Comparison:
         if met is None:
             return ""
         op = "<=" if self.lower_is_better else ">="
-        bound = f"diff {op} {fmt(self.diff_target)}" if self.diff_target is not None else f"{op} {fmt(self.sdk_target)}"
-        return f"{bound} {self.unit}: {'MET' if met else 'NOT MET'}"
+        bounds = []
+        if self.diff_target is not None:
+            bounds.append(f"diff {op} {fmt(self.diff_target)} {self.unit}")
+        if self.sdk_target is not None:
+            bounds.append(f"{op} {fmt(self.sdk_target)} {self.unit}")
+        if self.ratio_target is not None:
+            bounds.append(f"ratio {op} {fmt(self.ratio_target)}x")
+        return f"{', '.join(bounds)}: {'MET' if met else 'NOT MET'}"
 
     def row(self) -> list[str]:
         r = self.ratio
@@ -263,6 +274,7 @@ class Comparison:
             "lower_is_better": self.lower_is_better,
             "diff_target": self.diff_target,
             "sdk_target": self.sdk_target,
+            "ratio_target": self.ratio_target,
             "target_met": self.target_met,
             "note": self.note,
             **({"extra": to_jsonable(self.extra)} if self.extra else {}),
@@ -280,6 +292,7 @@ class Comparison:
             lower_is_better=d.get("lower_is_better", True),
             diff_target=d.get("diff_target"),
             sdk_target=d.get("sdk_target"),
+            ratio_target=d.get("ratio_target"),
             note=d.get("note", ""),
             extra=d.get("extra", {}),
         )

@@ -87,7 +87,7 @@ async def measure(backend: str, robot_name: str, rates: list[float], duration: f
             for name, coro in loops:
                 stats = await coro
                 rows.append({"rate": rate, "loop": name, **stats.as_dict()})
-                missed_before = robot.controller.missed_deadlines
+                missed_before = robot.missed_deadlines
                 print(
                     f"  {rate:6g} Hz  {name:<24s} done ({stats.count} periods; control loop missed "
                     f"{missed_before} so far)",

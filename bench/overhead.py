@@ -10,8 +10,9 @@ in lockstep (one control tick per cycle: updaters -> safety filter -> ``_write``
 ``_step`` -> ``_read`` -> tick hooks). The raw loops do the same control without the
 SDK, on the same model built the same way:
 
-* raw MuJoCo: the URDF compiled through ``MjSpec`` with the same general actuators
-  (gain 1, affine bias ``[0, -kp, -kd]``, force-limited), same options; per cycle:
+* raw MuJoCo: the backend's own compiled model (built from the description with
+  ``build_spec``, the robot's self-collision model, the same options and general
+  actuators: gain 1, affine bias ``[0, -kp, -kd]``, force-limited); per cycle:
   read ``qpos/qvel/actuator_force``, write ``ctrl = kp*q_des + kd*v_des + ff``,
   ``mj_step(nstep)``.
 * raw PyBullet: the URDF loaded with the same flags, motors off, damping removed;
@@ -39,6 +40,7 @@ import os
 import pstats
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -82,6 +84,27 @@ class _Robot:
     period: float
 
 
+def _backend_model(rb: _Robot) -> tuple[Any, Any, int]:
+    """(model, data at the initial state, substeps per control period) built by the MuJoCo backend itself."""
+    from agentsdk.registry import load_backend
+
+    ctl = load_backend("mujoco")(rb.config, rb.description, rb.joints, realtime=False)
+
+    async def build() -> tuple[Any, Any, int]:
+        await ctl.open()
+        try:
+            return ctl.model, ctl.data, round(rb.period / ctl.options.timestep)
+        finally:
+            await ctl.close()  # releases nothing MuJoCo owns: the model and data stay valid
+
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:
+        return asyncio.run(build())
+    with ThreadPoolExecutor(1) as pool:  # called from a coroutine: build on a loop of its own
+        return pool.submit(asyncio.run, build()).result()
+
+
 def _load_robot(name: str) -> _Robot:
     from agentsdk.description import apply_overrides, resolve_robot
 
@@ -99,44 +122,23 @@ def _load_robot(name: str) -> _Robot:
 
 
 class RawMujoco:
-    """The MuJoCo backend's model and servo law, without the SDK."""
+    """The MuJoCo backend's model and servo law, without the SDK.
+
+    The model is the backend's own compiled ``MjModel`` (built by the backend from the
+    description with ``agentsdk.description.mjspec.build_spec``, the robot's
+    self-collision model, the same options and servo actuators) and its ``MjData`` at
+    the initial state: the backend is opened once to build them and closed again,
+    then this loop steps that very model with ``mj_step`` (the final states of the
+    raw and the SDK loop agree bit for bit).
+    """
 
     def __init__(self, rb: _Robot) -> None:
         import mujoco
 
-        from agentsdk.backends.mujoco import MujocoOptions
-
         self.mj = mujoco
-        opts = MujocoOptions(**rb.config.backend_options("mujoco"))
-        spec = mujoco.MjSpec.from_string(rb.description.urdf_xml)
-        files = {p.name: p for p in rb.description.mesh_files}
-        for mesh in spec.meshes:  # (the shipped robots have no meshes; same repointing as the backend)
-            path = files.get(Path(mesh.file).name)
-            if path is not None:
-                mesh.file = str(path)
-        spec.option.timestep = opts.timestep
-        spec.option.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{opts.integrator.upper()}")
-        spec.option.gravity = list(opts.gravity)
-        if opts.floating_base:
-            root = spec.worldbody.first_body()
-            if root is not None:
-                root.add_freejoint()
-        for j in rb.joints:
-            sj = spec.joint(j.name)
-            sj.damping = sj.damping + opts.joint_damping
-            sj.armature = sj.armature + opts.armature
-            act = spec.add_actuator()
-            act.name = f"{j.name}_servo"
-            act.target = j.name
-            act.trntype = mujoco.mjtTrn.mjTRN_JOINT
-            act.gaintype = mujoco.mjtGain.mjGAIN_FIXED
-            act.biastype = mujoco.mjtBias.mjBIAS_AFFINE
-            act.gainprm[0] = 1.0
-            act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
-            act.forcerange = [-j.max_effort, j.max_effort]
-        m = self.model = spec.compile()
-        d = self.data = mujoco.MjData(m)
-        self.nsub = round(rb.period / opts.timestep)
+        m, d, nsub = _backend_model(rb)
+        self.model, self.data = m, d
+        self.nsub = nsub
         self.period = rb.period
         jids = [m.joint(j.name).id for j in rb.joints]
         self.qadr = np.array([m.jnt_qposadr[i] for i in jids])
@@ -144,10 +146,6 @@ class RawMujoco:
         self.kp, self.kd = rb.kp, rb.kd
         m.actuator_biasprm[:, 1] = -rb.kp
         m.actuator_biasprm[:, 2] = -rb.kd
-        mujoco.mj_resetData(m, d)
-        for name, q in rb.config.initial_positions.items():
-            if name in [j.name for j in rb.joints]:
-                d.qpos[m.jnt_qposadr[m.joint(name).id]] = q
         mujoco.mj_forward(m, d)
         self.ctrl = np.zeros(m.nu)
         self.zero = np.zeros(m.nu)
@@ -207,7 +205,9 @@ class RawPybullet:
     def __init__(self, rb: _Robot, implicit: bool = True) -> None:
         import pybullet as p
 
-        from agentsdk.backends.pybullet import _SPEED_CAP, PybulletOptions
+        from agentsdk.backends.pybullet import SPEED_CAP, PybulletOptions
+        from agentsdk.description.collision import for_robot
+        from agentsdk.description.simurdf import simulator_urdf
 
         self.p = p
         opts = PybulletOptions(**rb.config.backend_options("pybullet"))
@@ -225,10 +225,12 @@ class RawPybullet:
             deterministicOverlappingPairs=1,
             physicsClientId=cid,
         )
-        urdf_xml = rb.description.urdf_xml.replace("><", ">\n<")
+        # the URDF the backend writes from the description, with the robot's one self-collision model
+        collision = for_robot(rb.description, rb.config, opts.self_collision)
+        urdf_xml = simulator_urdf(rb.description, collision.shapes, visuals=False)
         flags = p.URDF_USE_INERTIA_FROM_FILE | p.URDF_MAINTAIN_LINK_ORDER
-        if opts.self_collision:
-            flags |= p.URDF_USE_SELF_COLLISION | p.URDF_USE_SELF_COLLISION_EXCLUDE_PARENT
+        if collision.mode != "false":
+            flags |= p.URDF_USE_SELF_COLLISION
         fd, tmp = tempfile.mkstemp(suffix=".urdf", prefix="bench-raw-")
         try:
             with os.fdopen(fd, "w", encoding="utf-8") as f:
@@ -237,6 +239,12 @@ class RawPybullet:
         finally:
             Path(tmp).unlink(missing_ok=True)
         infos = [p.getJointInfo(body, i, physicsClientId=cid) for i in range(p.getNumJoints(body, physicsClientId=cid))]
+        if collision.mode != "false":
+            links = {p.getBodyInfo(body, physicsClientId=cid)[0].decode(): -1}
+            links.update({i[12].decode(): int(i[0]) for i in infos})
+            for a, b in sorted(collision.excluded):
+                if a in links and b in links:
+                    p.setCollisionFilterPair(body, body, links[a], links[b], 0, physicsClientId=cid)
         dofs = sorted((i for i in infos if i[2] != p.JOINT_FIXED), key=lambda i: i[4])
         self.dofs = [int(i[0]) for i in dofs]
         row = {int(i[0]): k for k, i in enumerate(dofs)}
@@ -248,13 +256,13 @@ class RawPybullet:
         for link in range(-1, len(infos)):
             p.changeDynamics(body, link, linearDamping=0.0, angularDamping=0.0, physicsClientId=cid)
         for j in self.dofs:
-            p.changeDynamics(body, j, jointDamping=0.0, maxJointVelocity=_SPEED_CAP, physicsClientId=cid)
+            p.changeDynamics(body, j, jointDamping=0.0, maxJointVelocity=SPEED_CAP, physicsClientId=cid)
         p.setJointMotorControlArray(
             body, self.dofs, p.VELOCITY_CONTROL, targetVelocities=[0.0] * nd, forces=friction, physicsClientId=cid
         )
         q0 = np.zeros(nd)
         names = [j.name for j in rb.joints]
-        for name, q in rb.config.initial_positions.items():
+        for name, q in {**rb.description.default_positions, **rb.config.initial_positions}.items():
             if name in names:
                 q0[self.sel[names.index(name)]] = q
         for k, j in enumerate(self.dofs):
@@ -262,49 +270,70 @@ class RawPybullet:
         self.implicit = implicit
         self.kp, self.kd = rb.kp, rb.kd
         self.lim = np.array([j.max_effort for j in rb.joints])
+        self.neg_lim = -self.lim
+        self.neg_damping = -self.damping
         n = len(rb.joints)
         self.q_all, self.v_all = np.zeros(nd), np.zeros(nd)
         self.f_all, self.d_all = np.zeros(nd), np.zeros(nd)
-        self.raw, self.tau = np.zeros(n), np.zeros(n)
+        self.hd, self.rhs = np.zeros(nd), np.zeros(nd)
+        self.q, self.v = np.zeros(n), np.zeros(n)
+        self.raw, self.tau, self.tmp, self.kdm = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+        self.mask = np.zeros(n, dtype=bool)
         self.zeros = [0.0] * nd
-        self.diag = np.diag_indices(nd)
         self._sense()
 
     def _sense(self) -> None:
         states = self.p.getJointStates(self.body, self.dofs, physicsClientId=self.cid)
-        q, v = self.q_all, self.v_all
-        for k, s in enumerate(states):
-            q[k] = s[0]
-            v[k] = s[1]
+        self.ql = [s[0] for s in states]
+        self.vl = [s[1] for s in states]
+        self.q_all[:] = self.ql
+        self.v_all[:] = self.vl
 
     def positions(self) -> np.ndarray:
         return self.q_all[self.sel].copy()
 
     def _cycle(self, qd: np.ndarray, vd: np.ndarray, ff: np.ndarray) -> None:
-        """One control period: the servo law at every physics substep, as the backend evaluates it."""
+        """One control period: the servo law at every physics substep, as the backend evaluates it.
+
+        The same arithmetic with the same numpy primitives (preallocated arrays, ufuncs with
+        ``out=``), so that the difference to the SDK loop is the SDK, not the way the law is coded.
+        """
         p, cid, body, dofs = self.p, self.cid, self.body, self.dofs
-        sel, kp, kd, lim, h = self.sel, self.kp, self.kd, self.lim, self.h
-        raw, tau, f_all, d_all = self.raw, self.tau, self.f_all, self.d_all
+        sel, kp, kd, lim, neg_lim, h = self.sel, self.kp, self.kd, self.lim, self.neg_lim, self.h
+        raw, tau, tmp, kdm, mask = self.raw, self.tau, self.tmp, self.kdm, self.mask
+        q_all, v_all, f_all, d_all = self.q_all, self.v_all, self.f_all, self.d_all
+        q, v = self.q, self.v
         for _ in range(self.nsub):
-            q = self.q_all[sel]
-            v = self.v_all[sel]
+            q_all.take(sel, out=q)
+            v_all.take(sel, out=v)
             np.subtract(qd, q, out=raw)
-            raw *= kp
-            raw += kd * (vd - v)
-            raw += ff
-            np.clip(raw, -lim, lim, out=tau)
-            np.multiply(self.damping, self.v_all, out=f_all)
-            np.negative(f_all, out=f_all)
+            np.multiply(raw, kp, out=raw)
+            np.subtract(vd, v, out=tmp)
+            np.multiply(kd, tmp, out=tmp)
+            np.add(raw, tmp, out=raw)
+            np.add(raw, ff, out=raw)
+            np.maximum(raw, neg_lim, out=tau)
+            np.minimum(tau, lim, out=tau)
+            np.multiply(self.neg_damping, v_all, out=f_all)
             f_all[sel] += tau
             if self.implicit:
+                np.abs(raw, out=tmp)
+                np.less(tmp, lim, out=mask)
+                kdm.fill(0.0)
+                np.copyto(kdm, kd, where=mask)
                 np.copyto(d_all, self.damping)
-                d_all[sel] += np.where(np.abs(raw) < lim, kd, 0.0)
-                q_list = self.q_all.tolist()
-                mass = np.array(p.calculateMassMatrix(body, q_list, physicsClientId=cid))
-                bias = p.calculateInverseDynamics(body, q_list, self.v_all.tolist(), self.zeros, physicsClientId=cid)
-                mass[self.diag] += h * d_all
-                qacc = np.linalg.solve(mass, f_all - bias)
-                f_all -= h * d_all * qacc
+                d_all[sel] += kdm
+                mass = np.array(p.calculateMassMatrix(body, self.ql, physicsClientId=cid))
+                bias = p.calculateInverseDynamics(body, self.ql, self.vl, self.zeros, physicsClientId=cid)
+                hd = self.hd
+                np.multiply(d_all, h, out=hd)
+                diag = mass.reshape(-1)[:: len(dofs) + 1]
+                np.add(diag, hd, out=diag)
+                rhs = self.rhs
+                np.subtract(f_all, bias, out=rhs)
+                qacc = np.linalg.solve(mass, rhs)
+                np.multiply(hd, qacc, out=rhs)
+                np.subtract(f_all, rhs, out=f_all)
             p.setJointMotorControlArray(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
             p.stepSimulation(physicsClientId=cid)
             self._sense()
@@ -392,7 +421,7 @@ async def _sdk_wave(
 
         try:
             await cycles(0, warmup)
-            ticks0 = r.controller.ticks
+            ticks0 = r.ticks
             if profiler is not None:
                 profiler.enable()
             t0 = time.perf_counter()
@@ -407,7 +436,7 @@ async def _sdk_wave(
                 profiler.disable()
             raise _Stalled(f"{robot} {backend}: {exc}") from exc
         _check_stall(r, f"{robot} {backend}")
-        ticks = r.controller.ticks - ticks0
+        ticks = r.ticks - ticks0
         final = (await r.read()).position.copy()
     return wall, cpu, final, ticks
 
@@ -461,7 +490,9 @@ def _waypoints(rb: _Robot, target_duration: float, seed: int = 1) -> tuple[np.nd
     for _ in range(100):
         wps.append(lo + (hi - lo) * (0.3 + 0.4 * rng.random(len(lo))))
         wps_arr = np.array(wps)
-        traj = plan(wps_arr, rb.joints, start=(q0, None, None))
+        # 1 % below the limits: plan() at the full limits can exceed them by float noise (~1e-4 relative
+        # in the interpolated acceleration), which follow()'s check (1e-6) rejects
+        traj = plan(wps_arr, rb.joints, start=(q0, None, None), velocity_scale=0.99, acceleration_scale=0.99)
         if traj.duration >= target_duration:
             break
     return np.array(wps), traj

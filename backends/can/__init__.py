@@ -63,7 +63,7 @@ from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 from .config import CanBusConfig
-from .mit import DISABLE, ENABLE, ZERO, decode_reply, encode_command
+from .mit import DISABLE, ENABLE, ZERO, encode_command_into, reply_error_code, reply_state
 
 __all__ = ["CanController", "CanOptions", "MotorStats"]
 
@@ -155,20 +155,31 @@ class CanController(Backend):
         self._motors = [opts.motors[j.name] for j in self.joints]
         self._ranges = [m.motor_ranges for m in self._motors]
         self._profile = opts.vendor_profile
-        self._dir = np.array([m.direction for m in self._motors], dtype=float)
-        self._gear = np.array([m.gear_ratio for m in self._motors])
-        self._zero = np.array([m.zero_offset for m in self._motors])
+        # joint <-> motor maps as Python floats: the cycle encodes and decodes a few motors one by one
+        self._dir = [float(m.direction) for m in self._motors]
+        self._gear = [float(m.gear_ratio) for m in self._motors]
+        self._zero = [float(m.zero_offset) for m in self._motors]
         mask = self._profile.id_mask
+        self._id_mask = mask
         self._by_reply_id = {m.id & mask: k for k, m in enumerate(self._motors)}
         self.stats = [MotorStats(j.name, m.id) for j, m in zip(self.joints, self._motors, strict=True)]
         self.unexpected_replies = 0
         n = len(self.joints)
-        self._reply: list[Any] = [None] * n
+        self._n = n
+        # the newest reply per motor: python-can's own data bytearray (decoded when read), its fault code
+        self._rx: list[bytearray | None] = [None] * n
+        self._err: list[int] = [0] * n
+        profile = self._profile
+        self._accepted_dlcs = profile.accepted_dlcs
+        self._temp_offset = None if profile.byte6 == "none" else profile.temperature_offset
         # the joint-frame state of the newest replies (what _read returns)
         self._q = np.zeros(n)
         self._v = np.zeros(n)
         self._tau = np.zeros(n)
-        self._got = np.zeros(n, dtype=bool)
+        #: which motors answered this cycle's command (plain lists: touched per frame)
+        self._got: list[bool] = [False] * n
+        self._none_got: list[bool] = [False] * n
+        self._n_got = 0
         self._all_in: asyncio.Event | None = None
         self._bus: can.BusABC | None = None
         self._estop_bus: can.BusABC | None = None
@@ -184,9 +195,16 @@ class CanController(Backend):
         self._window_start = 0.0  # time.time() just before the cycle's first send
         self._cycling = False  # the control loop has started its bus cycles
         #: when each motor's newest reply reached the bus (time.time())
-        self._reply_stamp = np.zeros(n)
+        self._reply_stamp: list[float] = [0.0] * n
         #: a special frame to this motor awaits its reply (not a late command reply)
-        self._special_wait = np.zeros(n, dtype=bool)
+        self._special_wait: list[bool] = [False] * n
+        #: the replies' receive timestamps are on this host's wall clock (socketcan, virtual): used as
+        #: they are, no clock read per frame; checked on the enable replies at open and every cycle
+        self._host_stamps = False
+        self._stamps_seen = 0
+        self._stamps_bad = 0
+        #: time.time() - time.monotonic(), for MotorStats.last_reply_time from a wall-clock stamp
+        self._clock_offset = time.time() - time.monotonic()
         #: unknown ids seen in reply byte 0 since the last fault check (id -> count)
         self._unexpected_ids: dict[int, int] = {}
         #: the emergency bus handle has no file descriptor (virtual): drain its rx queue each cycle
@@ -260,12 +278,16 @@ class CanController(Backend):
                         "check power, wiring, CAN id and bit rate"
                     )
                 enabled.append(k)
-                rep = self._reply[k]
-                if rep is not None and rep.error_code:
-                    raise BackendStartError(f"motor id {m.id} (joint {self.names[k]!r}) reports error {rep.error}")
+                if self._rx[k] is not None and self._err[k]:
+                    raise BackendStartError(
+                        f"motor id {m.id} (joint {self.names[k]!r}) reports error "
+                        f"{self._profile.error_name(self._err[k])}"
+                    )
         except BaseException:
             self._disable_all()
             raise
+        self._host_stamps = self._stamps_seen > 0 and self._stamps_bad == 0
+        self._clock_offset = time.time() - time.monotonic()
         self._fill_state()
 
     async def _special_and_wait(self, k: int, frame: bytes, wait: float, *, next_cycle: bool = False) -> bool:
@@ -380,89 +402,111 @@ class CanController(Backend):
     def _on_frame(self, msg: can.Message) -> None:
         """Notifier callback; python-can calls it on the event loop (add_reader, or
         call_soon_threadsafe from its reader thread on buses without a file descriptor).
+
+        Per frame: no decoding (the newest data is kept and decoded once per cycle in
+        ``read``), no Python objects beyond python-can's own message, no clock read when
+        the frame's receive timestamp is on this host's clock.
         """
         if msg.is_error_frame or msg.is_remote_frame or msg.dlc < 6:
             return
         data = msg.data
-        mask = self._profile.id_mask
-        k = self._by_reply_id.get(data[0] & mask)
+        k = self._by_reply_id.get(data[0] & self._id_mask)
         if k is None:
             self.unexpected_replies += 1
             ids = self._unexpected_ids
             if len(ids) < 16 or data[0] in ids:
                 ids[data[0]] = ids.get(data[0], 0) + 1
             return
-        try:
-            rep = decode_reply(data, self._ranges[k], self._profile)
-        except Exception as exc:  # malformed frame: count it, never crash the loop
+        if len(data) not in self._accepted_dlcs:  # malformed frame: count it, never crash the loop
             self.unexpected_replies += 1
-            log.debug("undecodable reply %s: %s", msg, exc)
+            log.debug("reply with an unexpected DLC for profile %s: %s", self._profile.name, msg)
             return
         st = self.stats[k]
         st.replies += 1
-        st.last_reply_time = time.monotonic()
-        st.temperature = rep.temperature
-        if rep.error_code:
-            st.last_error = rep.error
-        ts = self._reply_time(msg)
+        if self._host_stamps:
+            ts = msg.timestamp
+            ws = self._window_start
+            if not self._window_open or ws - 1.0 < ts < ws + 1.0:
+                st.last_reply_time = ts - self._clock_offset
+            else:  # the stamps left this host's clock: read the clock per frame from now on
+                self._host_stamps = False
+                ts = self._reply_time(msg)
+                st.last_reply_time = time.monotonic()
+        else:
+            ts = self._reply_time(msg)
+            st.last_reply_time = time.monotonic()
+        temp = self._temp_offset
+        if temp is not None and len(data) >= 7:
+            st.temperature = data[6] + temp
+        err = reply_error_code(data, self._profile)
+        if err:
+            st.last_error = self._profile.error_name(err)
         self._reply_stamp[k] = ts
         self._any_reply.set()
-        if not self._window_open or self._got[k] or ts < self._window_start:
+        got = self._got
+        if not self._window_open or got[k] or ts < self._window_start:
             # after the deadline, a second reply in one cycle, or sent before this cycle's
             # command: it answers an earlier command. Newest data, but not this cycle's reply.
             if self._cycling and not self._special_wait[k]:
                 st.late += 1
                 st.consecutive_late += 1
-            if not self._got[k]:
-                self._reply[k] = rep
+            if not got[k]:
+                self._rx[k] = data
+                self._err[k] = err
             return
-        self._reply[k] = rep
-        self._got[k] = True
-        if self._all_in is not None and self._got.all():
+        self._rx[k] = data
+        self._err[k] = err
+        got[k] = True
+        self._n_got += 1
+        if self._n_got == self._n and self._all_in is not None:
             self._all_in.set()
 
-    @staticmethod
-    def _reply_time(msg: can.Message) -> float:
+    def _reply_time(self, msg: can.Message) -> float:
         """When the reply reached the bus (wall clock): its timestamp if that is plausibly
         on our clock (socketcan, virtual), else now (interfaces with device timestamps).
         """
         now = time.time()
         ts = msg.timestamp
-        return ts if now - 1.0 < ts <= now + 0.001 else now
+        if now - 1.0 < ts <= now + 0.001:
+            self._stamps_seen += 1
+            return ts
+        self._stamps_bad += 1
+        return now
 
     def _fill_state(self) -> None:
-        for k, rep in enumerate(self._reply):
-            if rep is None:
+        rx, ranges = self._rx, self._ranges
+        q, v, tau = self._q, self._v, self._tau
+        for k in range(self._n):
+            data = rx[k]
+            if data is None:
                 continue
+            p, vel, t = reply_state(data, ranges[k])
             d, g = self._dir[k], self._gear[k]
-            self._q[k] = d * (rep.position - self._zero[k]) / g
-            self._v[k] = d * rep.velocity / g
-            self._tau[k] = d * rep.torque * g
+            q[k] = d * (p - self._zero[k]) / g
+            v[k] = d * vel / g
+            tau[k] = d * t * g
 
     # ------------------------------------------------------------- the cycle
     def _write(self, sp: SetpointView) -> None:
-        d, g, z = self._dir, self._gear, self._zero
-        pos = d * g * sp.position + z
-        vel = d * g * sp.velocity
-        if self._gc_model is not None:  # tau_model: g(q) at the last measured position
+        # encoded in place into the reused messages' data (no objects per frame)
+        pos, vel = sp.position.tolist(), sp.velocity.tolist()
+        if self._gc_model is not None:  # tau_model: g(q) at the last measured position (main's feedforward)
             gt = self._gc_model.gravity(self._q, self.gravity_torque)
             gt *= self._gc_mask
-            tau = d * (sp.effort + gt) / g
+            eff = (sp.effort + gt).tolist()
         else:
-            tau = d * sp.effort / g
-        kp = sp.kp / (g * g)
-        kd = sp.kd / (g * g)
-        en = sp.enabled
-        np.copyto(self._torque, en)
+            eff = sp.effort.tolist()
+        kp, kd, en = sp.kp.tolist(), sp.kd.tolist(), sp.enabled.tolist()
+        self._torque[...] = sp.enabled  # torque on per joint (set_zero needs it off)
         for k, msg in enumerate(self._msgs):
+            d, g, r = self._dir[k], self._gear[k], self._ranges[k]
+            p = d * g * pos[k] + self._zero[k]
             if en[k]:
-                msg.data = bytearray(
-                    encode_command(pos[k], vel[k], kp[k], kd[k], tau[k], self._ranges[k], policy="clamp")
-                )
+                g2 = g * g
+                encode_command_into(msg.data, p, d * g * vel[k], kp[k] / g2, kd[k] / g2, d * eff[k] / g, r,
+                                    policy="clamp")
             else:  # limp: zero gains and torque (motor stays in motor mode, still replies)
-                r = self._ranges[k]
-                p = min(max(pos[k], r.p_min), r.p_max)
-                msg.data = bytearray(encode_command(p, 0.0, 0.0, 0.0, 0.0, r, policy="clamp"))
+                encode_command_into(msg.data, min(max(p, r.p_min), r.p_max), 0.0, 0.0, 0.0, 0.0, r, policy="clamp")
 
     async def _step(self, dt: float) -> None:
         bus, ev = self._bus, self._all_in
@@ -473,34 +517,46 @@ class CanController(Backend):
             self._drain_estop_bus()
         ev.clear()
         self._cycling = True
-        self._got[:] = False
+        got = self._got
+        got[:] = self._none_got
+        self._n_got = 0
+        stats = self.stats
         self._window_start = time.time()
         self._window_open = True
         try:
+            # the commands go out back to back, before any reply is handled
             for k, msg in enumerate(self._msgs):
                 try:
                     bus.send(msg, timeout=0.0)
                 except can.CanOperationError as exc:  # TX buffer full: the bus is saturated
                     raise BackendFault(f"CAN transmit failed for motor id {self._motors[k].id}: {exc}") from exc
-                self.stats[k].commands += 1
+                stats[k].commands += 1
             await self._wait_replies(ev, dt * self.options.reply_deadline)
         finally:
             self._window_open = False
-        for k in np.flatnonzero(~self._got & ~self._special_wait).tolist():
-            s = self.stats[k]
-            s.missed += 1
-            s.consecutive_missed += 1
-            if s.consecutive_missed >= self.options.max_missed_replies:
-                raise BackendFault(self._missing_message(s, dt))
-        for k in np.flatnonzero(self._got).tolist():
-            s = self.stats[k]
-            s.consecutive_missed = s.consecutive_late = 0
-        if self._got.all():
-            self._unexpected_ids.clear()
-        for k, rep in enumerate(self._reply):  # this cycle's or a late reply: an error is an error
-            if rep is not None and rep.error_code:
-                s = self.stats[k]
-                raise BackendFault(f"motor id {s.motor_id} (joint {s.joint!r}) reports error: {rep.error}")
+        if self._n_got == self._n:
+            for s in stats:
+                s.consecutive_missed = s.consecutive_late = 0
+            if self._unexpected_ids:
+                self._unexpected_ids.clear()
+        else:
+            special = self._special_wait
+            for k, s in enumerate(stats):
+                if not got[k] and not special[k]:  # a special frame's pause is not a missed reply
+                    s.missed += 1
+                    s.consecutive_missed += 1
+                    if s.consecutive_missed >= self.options.max_missed_replies:
+                        raise BackendFault(self._missing_message(s, dt))
+            for k, s in enumerate(stats):
+                if got[k]:
+                    s.consecutive_missed = s.consecutive_late = 0
+        if any(self._err):  # this cycle's or a late reply: an error is an error
+            for k, code in enumerate(self._err):
+                if code and self._rx[k] is not None:
+                    s = stats[k]
+                    raise BackendFault(
+                        f"motor id {s.motor_id} (joint {s.joint!r}) reports error: {self._profile.error_name(code)}"
+                    )
 
     def _missing_message(self, s: MotorStats, dt: float) -> str:
         where = f"motor id {s.motor_id} (joint {s.joint!r})"
@@ -550,7 +606,7 @@ class CanController(Backend):
     @property
     def stale(self) -> np.ndarray:
         """Joints whose state did not refresh in the last cycle."""
-        return ~self._got
+        return np.logical_not(self._got)
 
     def _emergency_stop(self, category: int) -> None:
         self._torque[:] = False

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -54,11 +55,15 @@ __all__ = [
     "decode_command",
     "decode_reply",
     "encode_command",
+    "encode_command_into",
     "encode_reply",
     "float_to_uint",
     "is_special",
     "profile_for",
     "ranges_for",
+    "reply_error_code",
+    "reply_state",
+    "reply_temperature",
     "uint_to_float",
 ]
 
@@ -75,6 +80,9 @@ _MAX12: Final = (1 << 12) - 1
 #: LSB below the next integer is rounded up: it absorbs float noise, so that ``x_max``
 #: encodes to ``2**bits - 1`` and decode -> encode is the identity on codes.
 _GUARD: Final = 1e-6
+
+#: the command word, big-endian
+_WORD: Final = struct.Struct(">Q")
 
 LimitPolicy = Literal["reject", "clamp"]
 _POLICIES: Final = frozenset({"reject", "clamp"})
@@ -367,28 +375,8 @@ def _limit(name: str, x: float, lo: float, hi: float, policy: str) -> float:
     raise LimitViolation(f"{name}={x!r} outside the motor range [{lo}, {hi}]")
 
 
-def encode_command(
-    p: float,
-    v: float,
-    kp: float,
-    kd: float,
-    t: float,
-    ranges: MotorRanges,
-    *,
-    policy: LimitPolicy = "reject",
-) -> bytes:
-    """Pack one MIT command (position, velocity, kp, kd, feed-forward torque) into 8 bytes.
-
-    NaN/inf always raise :class:`~agentsdk.errors.InvalidValueError` naming the field.
-    Out-of-range values raise :class:`~agentsdk.errors.LimitViolation` (field, value and
-    range) under ``policy="reject"`` and are clamped to the range under ``policy="clamp"``.
-
-    Codes are truncated like the firmware's ``float_to_uint`` (plus a 1e-6 LSB guard
-    against float noise). A frame that would collide with a special frame (every field
-    at its maximum and ``t`` within 4 LSB of ``t_max``: ``FF..FB``-``FF..FE``) gets ``kd``
-    lowered by one LSB, so a command can never be read as enable/disable/zero.
-    """
-    r = ranges
+def _command_word(p: float, v: float, kp: float, kd: float, t: float, r: MotorRanges, policy: str) -> int:
+    """The 64-bit MIT command word (see :func:`encode_command`)."""
     if policy not in _POLICIES:
         raise ConfigurationError(f"unknown limit policy {policy!r}; use 'reject' or 'clamp'")
     # Comparisons are False for NaN, so one chained test per field is the whole fast path.
@@ -415,7 +403,48 @@ def encode_command(
     word = (up << 48) | (uv << 36) | (ukp << 24) | (ukd << 12) | ut
     if _SPECIAL_LOW <= word <= _SPECIAL_HIGH:
         word -= 1 << 12  # kd - 1 LSB: never emit enable/disable/zero/clear by accident
-    return word.to_bytes(8, "big")
+    return word
+
+
+def encode_command(
+    p: float,
+    v: float,
+    kp: float,
+    kd: float,
+    t: float,
+    ranges: MotorRanges,
+    *,
+    policy: LimitPolicy = "reject",
+) -> bytes:
+    """Pack one MIT command (position, velocity, kp, kd, feed-forward torque) into 8 bytes.
+
+    NaN/inf always raise :class:`~agentsdk.errors.InvalidValueError` naming the field.
+    Out-of-range values raise :class:`~agentsdk.errors.LimitViolation` (field, value and
+    range) under ``policy="reject"`` and are clamped to the range under ``policy="clamp"``.
+
+    Codes are truncated like the firmware's ``float_to_uint`` (plus a 1e-6 LSB guard
+    against float noise). A frame that would collide with a special frame (every field
+    at its maximum and ``t`` within 4 LSB of ``t_max``: ``FF..FB``-``FF..FE``) gets ``kd``
+    lowered by one LSB, so a command can never be read as enable/disable/zero.
+    """
+    return _command_word(p, v, kp, kd, t, ranges, policy).to_bytes(8, "big")
+
+
+def encode_command_into(
+    buffer: bytearray | memoryview,
+    p: float,
+    v: float,
+    kp: float,
+    kd: float,
+    t: float,
+    ranges: MotorRanges,
+    *,
+    policy: LimitPolicy = "reject",
+) -> None:
+    """:func:`encode_command` into the first 8 bytes of a writable ``buffer`` (e.g. a reused
+    ``can.Message.data``), like ``struct.pack_into``: no new bytes object per frame.
+    """
+    _WORD.pack_into(buffer, 0, _command_word(p, v, kp, kd, t, ranges, policy))
 
 
 def decode_command(
@@ -469,18 +498,45 @@ class MotorReply:
         return self.error_code == 0
 
 
+def reply_state(data: bytes | bytearray | memoryview, ranges: MotorRanges) -> tuple[float, float, float]:
+    """``(position, velocity, torque)`` of a reply frame (the motor frame), without building a :class:`MotorReply`.
+
+    The hot-path part of :func:`decode_reply`; the caller checks the DLC.
+    """
+    r = ranges
+    w = (data[1] << 32) | (data[2] << 24) | (data[3] << 16) | (data[4] << 8) | data[5]
+    return (
+        (w >> 24) * r._p_span / _MAX16 + r.p_min,
+        ((w >> 12) & _MAX12) * r._v_span / _MAX12 + r.v_min,
+        (w & _MAX12) * r._t_span / _MAX12 + r.t_min,
+    )
+
+
+def reply_error_code(data: bytes | bytearray | memoryview, profile: VendorProfile) -> int:
+    """The fault code a reply frame carries (0 when healthy), as :attr:`MotorReply.error_code`."""
+    if profile.id_byte == "status_id":
+        status = data[0] >> 4
+        return 0 if status in profile.ok_statuses else status
+    if len(data) == 8 and profile.byte7 == "error_code":
+        return data[7]
+    return 0
+
+
+def reply_temperature(data: bytes | bytearray | memoryview, profile: VendorProfile) -> float | None:
+    """The temperature a reply frame carries (byte 6 + the profile's offset) or None, as ``MotorReply.temperature``."""
+    if len(data) >= 7 and profile.byte6 != "none":
+        return data[6] + profile.temperature_offset
+    return None
+
+
 def decode_reply(data: bytes | bytearray | memoryview, ranges: MotorRanges, profile: VendorProfile) -> MotorReply:
     """Decode a reply frame laid out per ``profile``; a DLC the profile doesn't accept -> InvalidValueError."""
     n = len(data)
     if n not in profile.accepted_dlcs:
         dlcs = "/".join(map(str, sorted(profile.accepted_dlcs)))
         raise InvalidValueError(f"{profile.name} MIT reply must have {dlcs} data bytes, got {n}")
-    r = ranges
     b0 = data[0]
-    w = (data[1] << 32) | (data[2] << 24) | (data[3] << 16) | (data[4] << 8) | data[5]
-    position = (w >> 24) * r._p_span / _MAX16 + r.p_min
-    velocity = ((w >> 12) & _MAX12) * r._v_span / _MAX12 + r.v_min
-    torque = (w & _MAX12) * r._t_span / _MAX12 + r.t_min
+    position, velocity, torque = reply_state(data, ranges)
     temperature = None
     rotor_temperature = None
     status = None

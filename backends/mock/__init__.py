@@ -29,7 +29,8 @@ from agentsdk.types import MODES, CommandMode
 
 __all__ = ["MockController", "MockOptions"]
 
-_POS, _VEL, _EFF = ModeCode.POSITION, ModeCode.VELOCITY, ModeCode.EFFORT
+#: mode codes as plain ints (numpy compares arrays with an IntEnum member slowly, through enum attribute lookups)
+_POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.EFFORT)
 
 
 class MockOptions(BaseModel):

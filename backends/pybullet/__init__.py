@@ -79,14 +79,15 @@ from agentsdk.pose import BaseState, Pose
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
-__all__ = ["PybulletController", "PybulletOptions"]
+__all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
 
 log = logging.getLogger("agentsdk.backends.pybullet")
 
 #: joint speed above which the simulation is declared diverged (rad/s or m/s)
 MAX_SPEED = 1e4
-#: PyBullet clamps joint speeds to ``maxJointVelocity`` (default 100): lift it above MAX_SPEED
-_SPEED_CAP = 10.0 * MAX_SPEED
+#: PyBullet clamps joint speeds to ``maxJointVelocity`` (default 100): the backend lifts it to this, above MAX_SPEED
+SPEED_CAP = 10.0 * MAX_SPEED
+_MAX_SPEED_SQ = MAX_SPEED * MAX_SPEED
 
 _MOVABLE = {p.JOINT_REVOLUTE: "revolute", p.JOINT_PRISMATIC: "prismatic"}
 #: PyBullet's state queries (getBasePositionAndOrientation, getJointStates) fail beyond this many links
@@ -156,6 +157,10 @@ class PybulletController(Backend):
         self._tau = np.zeros(n)
         self._raw = np.zeros(n)
         self._neg_lim = -self.max_effort
+        self._tmp = np.zeros(n)
+        self._kdm = np.zeros(n)
+        self._mask = np.zeros(n, dtype=bool)
+        self._all_on = np.ones(n, dtype=bool).tobytes()
         self._q = np.zeros(n)
         self._v = np.zeros(n)
         # what _read returns (the substep scratch arrays above change inside _step)
@@ -356,7 +361,7 @@ class PybulletController(Backend):
             # two calls: given together with maxJointVelocity, PyBullet 3.2.7 ignores jointDamping (the URDF
             # damping then acts twice, explicitly in PyBullet and implicitly here: light damped links diverge)
             p.changeDynamics(body, dof, jointDamping=0.0, physicsClientId=cid)
-            p.changeDynamics(body, dof, maxJointVelocity=_SPEED_CAP, physicsClientId=cid)
+            p.changeDynamics(body, dof, maxJointVelocity=SPEED_CAP, physicsClientId=cid)
         # turn the default velocity motors off (they hold the joints otherwise); keep URDF friction
         if nd:
             p.setJointMotorControlArray(
@@ -379,10 +384,17 @@ class PybulletController(Backend):
         # preallocated work arrays
         self._q_all = np.zeros(nd)
         self._v_all = np.zeros(nd)
+        self._ql: list[float] = [0.0] * nd
+        self._vl: list[float] = [0.0] * nd
         self._f_all = np.zeros(nd)
         self._d_all = np.zeros(nd)
+        self._hd = np.zeros(nd)
+        self._rhs = np.zeros(nd)
         self._zeros = [0.0] * nd
         self._diag = np.diag_indices(nd)
+        self._neg_damping = -self._damping
+        #: every dof is a commanded joint, in command order (no gather/scatter per substep)
+        self._sel_all = bool(np.array_equal(self._sel, np.arange(nd)))
 
     def simulator_report(self) -> dict[str, Any]:
         """What the loaded PyBullet body holds: commanded joints, link masses, colliding link pairs.
@@ -536,47 +548,73 @@ class PybulletController(Backend):
         np.copyto(self._en, sp.enabled)
 
     async def _step(self, dt: float) -> None:
+        # Allocation-free per substep: preallocated arrays, ufuncs with out= (ufunc dispatch is
+        # the cost on arrays this small), joint states gathered from PyBullet's tuples once.
         cid, body, dofs = self._cid, self._body, self._dofs
         h = self.options.timestep
-        sel = self._sel
-        tau, raw = self._tau, self._raw
-        f_all, d_all = self._f_all, self._d_all
-        lim = self.max_effort
+        q_all, v_all, f_all, d_all = self._q_all, self._v_all, self._f_all, self._d_all
+        tau, raw, tmp, kdm, mask = self._tau, self._raw, self._tmp, self._kdm, self._mask
+        qd, vd, ff, kp, kd = self._qd, self._vd, self._ff, self._kp, self._kd
+        lim, neg_lim, neg_damping, damping = self.max_effort, self._neg_lim, self._neg_damping, self._damping
+        sel, every = self._sel, self._sel_all
+        q, v = (q_all, v_all) if every else (self._q, self._v)
+        set_motors, step = p.setJointMotorControlArray, p.stepSimulation
         for _ in range(self._nsub):
-            q = np.take(self._q_all, sel, out=self._q)
-            v = np.take(self._v_all, sel, out=self._v)
+            if not every:
+                q_all.take(sel, out=q)
+                v_all.take(sel, out=v)
             # the servo law, clamped; zero torque for disabled joints / torque off
-            np.subtract(self._qd, q, out=raw)
-            raw *= self._kp
-            raw += self._kd * (self._vd - v)
-            raw += self._ff
-            np.maximum(raw, self._neg_lim, out=tau)  # ufuncs: np.clip dispatch costs µs here
+            np.subtract(qd, q, out=raw)
+            np.multiply(raw, kp, out=raw)
+            np.subtract(vd, v, out=tmp)
+            np.multiply(kd, tmp, out=tmp)
+            np.add(raw, tmp, out=raw)
+            np.add(raw, ff, out=raw)
+            np.maximum(raw, neg_lim, out=tau)  # ufuncs: np.clip dispatch costs µs here
             np.minimum(tau, lim, out=tau)
             en = self._en  # cleared by _emergency_stop from any thread: takes effect at the next substep
-            if not en.all():
+            all_on = en.tobytes() == self._all_on
+            if not all_on:
                 tau[~en] = 0.0
             # generalized force on every dof: servo torque minus passive damping
-            np.multiply(self._damping, self._v_all, out=f_all)
-            np.negative(f_all, out=f_all)
-            f_all[sel] += tau
+            np.multiply(neg_damping, v_all, out=f_all)
+            if every:
+                np.add(f_all, tau, out=f_all)
+            else:
+                f_all[sel] += tau
             if self._implicit:
                 # velocity derivative of the forces: damping, plus kd of the unsaturated enabled servos
-                np.copyto(d_all, self._damping)
-                d_all[sel] += np.where(en & (np.abs(raw) < lim), self._kd, 0.0)
-                if d_all.any() or self._friction_any:
+                np.abs(raw, out=tmp)
+                np.less(tmp, lim, out=mask)
+                if not all_on:
+                    mask &= en
+                kdm.fill(0.0)
+                np.copyto(kdm, kd, where=mask)
+                if every:
+                    np.add(damping, kdm, out=d_all)
+                else:
+                    np.copyto(d_all, damping)
+                    d_all[sel] += kdm
+                if np.count_nonzero(d_all) or self._friction_any:
                     f_all = self._implicit_step(f_all, d_all, h)
-            p.setJointMotorControlArray(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
-            p.stepSimulation(physicsClientId=cid)
+            set_motors(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
+            step(physicsClientId=cid)
             self._time += h
             self._sense()
 
     def _sense(self) -> None:
-        states = p.getJointStates(self._body, self._dofs, physicsClientId=self._cid) if self._dofs else ()
+        if not self._dofs:
+            return
+        states = p.getJointStates(self._body, self._dofs, physicsClientId=self._cid)
+        ql = self._ql = [s[0] for s in states]
+        vl = self._vl = [s[1] for s in states]
         q, v = self._q_all, self._v_all
-        for k, s in enumerate(states):
-            q[k] = s[0]
-            v[k] = s[1]
-        # NaN in v makes the comparison False, so one max covers finiteness of v too
+        q[:] = ql
+        v[:] = vl
+        # fast path: |v|^2 <= MAX_SPEED^2 bounds every |v_i|, and q.q is finite iff every q_i is
+        # (NaN fails both comparisons); only a state that fails it gets the per-joint check
+        if v.dot(v) <= _MAX_SPEED_SQ and math.isfinite(q.dot(q)):
+            return
         if not (np.abs(v).max(initial=0.0) <= MAX_SPEED and np.isfinite(q).all()):
             bad = int(np.argmax(~np.isfinite(q) | ~np.isfinite(v) | (np.abs(v) > MAX_SPEED)))
             name = p.getJointInfo(self._body, self._dofs[bad], physicsClientId=self._cid)[1].decode()
@@ -586,8 +624,10 @@ class PybulletController(Backend):
             )
 
     def _read(self) -> JointReading:
-        np.take(self._q_all, self._sel, out=self._rq)
-        np.take(self._v_all, self._sel, out=self._rv)
+        if self._sel_all:  # the arrays change inside _step only, and the loop copies them at once
+            return self._q_all, self._v_all, self._tau
+        self._q_all.take(self._sel, out=self._rq)
+        self._v_all.take(self._sel, out=self._rv)
         return self._rq, self._rv, self._tau
 
     def _emergency_stop(self, category: int) -> None:

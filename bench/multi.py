@@ -63,9 +63,9 @@ async def _run_robots(n: int, scenario: str, sim_s: float, traj: Any) -> tuple[i
 
 def _raw(n: int, sim_s: float) -> tuple[int, float]:
     """(total steps, wall s) of ``n`` bare MuJoCo models (the backend's model), stepped round-robin."""
-    from agentsdk.bench.overhead import RawMujoco, _load_robot
+    from agentsdk.bench.overhead import RawMujoco, load_robot
 
-    rb = _load_robot(ROBOT)
+    rb = load_robot(ROBOT)
     sims = [RawMujoco(rb) for _ in range(n)]
     ticks = round(sim_s / rb.period)
     q0 = [s.positions() for s in sims]
@@ -83,10 +83,10 @@ def _raw(n: int, sim_s: float) -> tuple[int, float]:
 
 
 def measure(sim_s: float, repeats: int) -> dict[str, Any]:
-    from agentsdk.bench.overhead import _load_robot, _waypoints
+    from agentsdk.bench.overhead import load_robot, waypoints
 
-    rb = _load_robot(ROBOT)
-    _wps, traj = _waypoints(rb, sim_s)
+    rb = load_robot(ROBOT)
+    _wps, traj = waypoints(rb, sim_s)
     res: dict[str, dict[int, list[float]]] = {k: {n: [] for n in COUNTS} for k in ("hold", "track", "raw")}
     for rep in range(repeats):
         order = COUNTS if rep % 2 == 0 else tuple(reversed(COUNTS))

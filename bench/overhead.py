@@ -105,7 +105,7 @@ def _backend_model(rb: _Robot) -> tuple[Any, Any, int]:
         return pool.submit(asyncio.run, build()).result()
 
 
-def _load_robot(name: str) -> _Robot:
+def load_robot(name: str) -> _Robot:
     from agentsdk.description import apply_overrides, resolve_robot
 
     config, description = resolve_robot(name)
@@ -474,7 +474,7 @@ async def _sdk_track(backend: str, robot: str, traj: Any, tail: float) -> tuple[
         return sim, wall, res, (await r.read()).position.copy()
 
 
-def _waypoints(rb: _Robot, target_duration: float, seed: int = 1) -> tuple[np.ndarray, Any]:
+def waypoints(rb: _Robot, target_duration: float, seed: int = 1) -> tuple[np.ndarray, Any]:
     """Fixed-seed random waypoints in the middle of the joint ranges until the plan lasts ~target_duration."""
     from agentsdk.trajectory import plan
 
@@ -577,7 +577,7 @@ def run_overhead(quick: bool = False, profile: bool = True) -> Section:
     detail: list[list[Any]] = []
     cpu_rows: list[Comparison] = []
     for robot in ROBOTS:
-        rb = _load_robot(robot)
+        rb = load_robot(robot)
         for backend in BACKENDS:
             progress(f"overhead: {robot} on {backend} ({repeats} x {cycles} cycles, raw and SDK)")
             raw_us: list[float] = []
@@ -769,8 +769,8 @@ def run_rtf(quick: bool = False) -> Section:
     )
     detail: list[list[Any]] = []
     for robot in ROBOTS:
-        rb = _load_robot(robot)
-        wps, traj = _waypoints(rb, sim_s - tail)
+        rb = load_robot(robot)
+        wps, traj = waypoints(rb, sim_s - tail)
         # the setpoints the SDK's trajectory executor writes, tick by tick (precomputed for the raw loop)
         from agentsdk.trajectory import TrajectorySampler
 

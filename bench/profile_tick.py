@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 import agentsdk
-from agentsdk.bench.overhead import _load_robot, _waypoints
+from agentsdk.bench.overhead import load_robot, waypoints
 
 
 def _label(func: tuple[str, int, str]) -> str:
@@ -39,8 +39,8 @@ def _label(func: tuple[str, int, str]) -> str:
 
 
 async def _run(backend: str, robot: str, what: str, seconds: float, prof: cProfile.Profile) -> int:
-    rb = _load_robot(robot)
-    _wps, traj = _waypoints(rb, seconds)
+    rb = load_robot(robot)
+    _wps, traj = waypoints(rb, seconds)
     async with agentsdk.connect(backend, robot) as r:
         await r.clock.sleep(0.05)  # warm-up (first-tick views, caches)
         t0 = r.ticks

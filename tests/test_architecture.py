@@ -103,10 +103,11 @@ def test_no_merge_conflict_markers_are_committed() -> None:
     if not files:
         pytest.skip("not a git checkout")
     markers = re.compile(r"^(<{7} |>{7} |={7}$)", re.M)
+    text_suffixes = {".py", ".md", ".toml", ".yaml", ".yml", ".rst", ".sh", ".txt", ".cfg", ".urdf", ".xacro"}
     bad = []
     for name in files:
         path = ROOT / name
-        if path.suffix not in {".py", ".md", ".toml", ".yaml", ".yml", ".rst", ".sh", ".txt", ".cfg", ".urdf", ".xacro"}:
+        if path.suffix not in text_suffixes:
             continue
         if path.is_file() and markers.search(path.read_text(errors="replace")):
             bad.append(name)

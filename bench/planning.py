@@ -90,8 +90,9 @@ def _p2p_segments(wps: np.ndarray) -> float:
 def _record_plan_calls(wps: np.ndarray, joints: list[Any]) -> list[tuple[list[float], ...]] | None:
     """The inputs of every ruckig solve ``plan()`` makes (None if the internals changed)."""
     from agentsdk import trajectory as tr
+    from agentsdk.trajectory import _ruckig
 
-    cls = getattr(tr, "_Ruckig", None)
+    cls = getattr(_ruckig, "RuckigSolver", None)
     orig = getattr(cls, "solve", None)
     if cls is None or orig is None:
         return None
@@ -217,7 +218,7 @@ def run(quick: bool = False) -> Section:
             )
         )
     else:
-        sec.notes.append("agentsdk.trajectory._Ruckig not found: the replay baseline was skipped")
+        sec.notes.append("agentsdk.trajectory._ruckig.RuckigSolver not found: the replay baseline was skipped")
     sec.tables.append(
         Table(
             "planned motion",

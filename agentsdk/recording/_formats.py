@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
-    from .kinematics import Kinematics
+    from ..kinematics import Kinematics
 
 __all__ = ["FRAME_TRANSFORMS_SCHEMA", "ROS2_MSGDEFS", "STRING_SCHEMA", "Cdr", "TfLayout", "tf_batch"]
 
@@ -159,7 +159,7 @@ class Cdr:
         self.u32(nsec)
         self.string(frame_id)
 
-    def bytes(self) -> bytes:
+    def serialized(self) -> bytes:
         """The serialized message, encapsulation header first."""
         return self.HEADER + bytes(self.buf)
 
@@ -175,7 +175,7 @@ class Cdr:
         c.double_seq(q)
         c.double_seq(v)
         c.double_seq(e)
-        return c.bytes()
+        return c.serialized()
 
     @staticmethod
     def tf_message(ns: int, parents: list[str], children: list[str], trans: np.ndarray, quat: np.ndarray) -> bytes:
@@ -187,14 +187,14 @@ class Cdr:
             c.string(child)
             c.doubles(trans[k])
             c.doubles(quat[k])
-        return c.bytes()
+        return c.serialized()
 
     @staticmethod
     def string_message(s: str) -> bytes:
         """``std_msgs/msg/String``."""
         c = Cdr()
         c.string(s)
-        return c.bytes()
+        return c.serialized()
 
 
 # ------------------------------------------------------------------ TF from FK

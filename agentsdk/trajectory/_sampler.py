@@ -1,0 +1,355 @@
+"""JTC-style interpolation: per-segment polynomials and the :class:`TrajectorySampler`."""
+
+from __future__ import annotations
+
+import math
+from bisect import bisect_right
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from ..errors import InvalidValueError, UnknownJointError
+from ..types import FloatArray
+from ._peaks import MotionPeaks, poly_range
+from ._types import Interpolation, Trajectory, Values, vector
+
+
+def quintic(
+    q0: FloatArray, v0: FloatArray, a0: FloatArray, q1: FloatArray, v1: FloatArray, a1: FloatArray, T: FloatArray
+) -> FloatArray:
+    """Coefficients (segments, 6, joints) of quintic Hermite polynomials in local time.
+
+    Durations too short or too long to represent give non-finite coefficients (no warning), which
+    :func:`check_motion_limits` refuses.
+    """
+    T = T[:, None]
+    h = q1 - q0
+    c = np.empty((len(T), 6, q0.shape[1]))
+    c[:, 0] = q0
+    c[:, 1] = v0
+    c[:, 2] = 0.5 * a0
+    with np.errstate(all="ignore"):
+        c[:, 3] = (20.0 * h - (8.0 * v1 + 12.0 * v0) * T - (3.0 * a0 - a1) * T**2) / (2.0 * T**3)
+        c[:, 4] = (-30.0 * h + (14.0 * v1 + 16.0 * v0) * T + (3.0 * a0 - 2.0 * a1) * T**2) / (2.0 * T**4)
+        c[:, 5] = (12.0 * h - 6.0 * (v1 + v0) * T + (a1 - a0) * T**2) / (2.0 * T**5)
+    return c
+
+
+def _cubic(q0: FloatArray, v0: FloatArray, q1: FloatArray, v1: FloatArray, T: FloatArray) -> FloatArray:
+    T = T[:, None]
+    h = q1 - q0
+    c = np.zeros((len(T), 6, q0.shape[1]))
+    c[:, 0] = q0
+    c[:, 1] = v0
+    with np.errstate(all="ignore"):
+        c[:, 2] = (3.0 * h - (2.0 * v0 + v1) * T) / T**2
+        c[:, 3] = (-2.0 * h + (v0 + v1) * T) / T**3
+    return c
+
+
+def _linear(q0: FloatArray, q1: FloatArray, T: FloatArray) -> FloatArray:
+    c = np.zeros((len(T), 6, q0.shape[1]))
+    c[:, 0] = q0
+    with np.errstate(all="ignore"):
+        c[:, 1] = (q1 - q0) / T[:, None]
+    return c
+
+
+def _clamped_spline_velocities(t: FloatArray, q: FloatArray, v_start: FloatArray, v_end: FloatArray) -> FloatArray:
+    """Knot velocities of the C2 cubic spline through ``q`` at ``t`` with clamped end velocities."""
+    n = len(t)
+    m = np.empty_like(q)
+    m[0], m[-1] = v_start, v_end
+    if n <= 2:
+        return m
+    h = np.diff(t)
+    d = np.diff(q, axis=0) / h[:, None]
+    # row k (interior knot k=1..n-2): m[k-1]/h[k-1] + 2(1/h[k-1]+1/h[k]) m[k] + m[k+1]/h[k] = 3(d[k-1]/h[k-1]+d[k]/h[k])
+    sub = 1.0 / h[:-1]
+    sup = 1.0 / h[1:]
+    diag = 2.0 * (sub + sup)
+    rhs = 3.0 * (d[:-1] * sub[:, None] + d[1:] * sup[:, None])
+    rhs[0] -= sub[0] * m[0]
+    rhs[-1] -= sup[-1] * m[-1]
+    # Thomas algorithm (diagonally dominant, stable), vectorized over joints
+    k = n - 2
+    cp = np.empty(k)
+    dp = np.empty_like(rhs)
+    cp[0] = sup[0] / diag[0]
+    dp[0] = rhs[0] / diag[0]
+    for i in range(1, k):
+        den = diag[i] - sub[i] * cp[i - 1]
+        cp[i] = sup[i] / den
+        dp[i] = (rhs[i] - sub[i] * dp[i - 1]) / den
+    x = np.empty_like(rhs)
+    x[-1] = dp[-1]
+    for i in range(k - 2, -1, -1):
+        x[i] = dp[i] - cp[i] * x[i + 1]
+    m[1:-1] = x
+    return m
+
+
+class TrajectorySampler:
+    """Evaluates a :class:`Trajectory` against time, like JTC's ``Trajectory::sample``.
+
+    ``start_time`` is when the trajectory starts executing (``time_from_start``
+    is relative to it); ``start_positions``/``start_velocities``/``start_accelerations``
+    are the current desired state then. They are mappings by joint name or
+    sequences, in the trajectory's ``joint_names`` order or, when ``joint_order`` is
+    given, in that order (e.g. all of the robot's joint names). ``joint_order`` may also
+    be a sequence of ints: for each trajectory joint, its index in the start arrays.
+    :attr:`indices` maps trajectory joints to that order, so an executor can scatter
+    ``q_full[sampler.indices] = q``.
+
+    Segments: start state -> point 0 (only if ``points[0].time_from_start > 0``;
+    always quintic from the start velocity/acceleration), then point i -> i+1:
+    positions only: linear (``interpolation="linear"``, JTC's behaviour) or a C2
+    cubic spline through all knots (``"spline"``, clamped to the start velocity and
+    to rest at the end, whose last segment arrives with zero acceleration); +velocities: cubic Hermite;
+    +accelerations: quintic. When point 0 is at time 0 the start state is not used
+    and point 0 is output from ``start_time`` on (a jump if they differ, as in JTC).
+    After the end the last point is held: its positions, its velocities and
+    accelerations if given (as JTC), else zeros.
+
+    Construction does the work; :meth:`sample` is a bisect and one small matrix
+    product. A sampler is meant for one control loop (it reuses a scratch buffer).
+    """
+
+    __slots__ = (
+        "_B",
+        "_c",
+        "_end_state",
+        "_has_start",
+        "_knots",
+        "_n",
+        "_start_state",
+        "end_time",
+        "indices",
+        "joint_names",
+        "start_time",
+        "trajectory",
+    )
+
+    def __init__(
+        self,
+        trajectory: Trajectory,
+        start_time: float = 0.0,
+        start_positions: Values | None = None,
+        start_velocities: Values | None = None,
+        start_accelerations: Values | None = None,
+        *,
+        joint_order: Sequence[str] | Sequence[int] | None = None,
+        interpolation: Interpolation = "linear",
+    ) -> None:
+        if interpolation not in ("linear", "spline"):
+            raise InvalidValueError(f"interpolation must be 'linear' or 'spline', got {interpolation!r}")
+        if not math.isfinite(start_time):
+            raise InvalidValueError(f"start_time {start_time} is not finite")
+        self.trajectory = trajectory
+        self.joint_names = trajectory.joint_names
+        n = self._n = len(self.joint_names)
+        self.start_time = float(start_time)
+        self.end_time = self.start_time + trajectory.duration
+
+        # -- where the trajectory's joints are in the start arrays
+        exact_width: int | None = None  # start arrays must have this length (None: any length > max index)
+        if joint_order is None:
+            self.indices = np.arange(n)
+            exact_width = n
+        elif len(joint_order) > 0 and all(isinstance(i, int | np.integer) for i in joint_order):
+            self.indices = np.array(joint_order, dtype=np.intp)
+            if self.indices.shape != (n,):
+                raise InvalidValueError(f"joint_order: {len(joint_order)} indices for {n} trajectory joints")
+            if (self.indices < 0).any() or len(set(self.indices.tolist())) != n:
+                raise InvalidValueError(f"joint_order: indices {self.indices.tolist()} must be distinct and >= 0")
+        else:
+            order = list(joint_order)
+            pos = {nm: i for i, nm in enumerate(order)}
+            missing = [nm for nm in self.joint_names if nm not in pos]
+            if missing:
+                raise UnknownJointError(f"trajectory joint(s) {missing} are not in joint_order {order}")
+            self.indices = np.array([pos[nm] for nm in self.joint_names], dtype=np.intp)
+            exact_width = len(order)
+        self.indices.setflags(write=False)
+
+        def start_vec(values: Values | None, what: str, default: float | None) -> FloatArray:
+            if isinstance(values, Mapping):  # may name more joints than the trajectory's
+                missing = [nm for nm in self.joint_names if nm not in values]
+                if missing:
+                    raise InvalidValueError(f"{what}: missing joint(s) {missing}")
+                values = {nm: values[nm] for nm in self.joint_names}
+            elif values is not None:
+                arr = np.asarray(values, dtype=np.float64)
+                ok = arr.ndim == 1 and (
+                    len(arr) == exact_width if exact_width is not None else len(arr) > int(self.indices.max())
+                )
+                if not ok:
+                    raise InvalidValueError(
+                        f"{what}: got shape {arr.shape}, expected "
+                        + (f"{exact_width} values" if exact_width is not None else "values for joint_order indices")
+                    )
+                values = arr[self.indices]
+            return vector(values, self.joint_names, what, default)
+
+        pts = trajectory
+        t_pts = self.start_time + pts.times
+        has_start = pts.points[0].time_from_start > 0.0
+        if has_start:
+            if start_positions is None:
+                raise InvalidValueError(
+                    f"the first point is at time_from_start={pts.points[0].time_from_start} s > 0: "
+                    "start_positions (the current desired state) are required to interpolate to it"
+                )
+            q_s = start_vec(start_positions, "start_positions", None)
+            v_s = start_vec(start_velocities, "start_velocities", 0.0)
+            a_s = start_vec(start_accelerations, "start_accelerations", 0.0)
+        else:
+            q_s = pts.positions[0]
+            v_s = pts.velocities[0] if pts.velocities is not None else np.zeros(n)
+            a_s = np.zeros(n)
+
+        P = np.asarray(pts.positions)
+        m = len(P)
+        seg_coeffs: list[FloatArray] = []
+        knots = [self.start_time] if has_start else []
+        knots.extend(t_pts.tolist())
+        T = np.diff(t_pts)
+
+        if pts.accelerations is not None:
+            V = np.asarray(pts.velocities)
+            A = np.asarray(pts.accelerations)
+            body = quintic(P[:-1], V[:-1], A[:-1], P[1:], V[1:], A[1:], T) if m > 1 else None
+            v_end, a_end = V[-1], A[-1]
+            first_v, first_a = V[0], A[0]
+        elif pts.velocities is not None:
+            V = np.asarray(pts.velocities)
+            body = _cubic(P[:-1], V[:-1], P[1:], V[1:], T) if m > 1 else None
+            v_end, a_end = V[-1], np.zeros(n)
+            first_v = V[0]
+            first_a = 2.0 * body[0, 2] if body is not None else np.zeros(n)
+        elif interpolation == "linear":
+            body = _linear(P[:-1], P[1:], T) if m > 1 else None
+            v_end, a_end = np.zeros(n), np.zeros(n)
+            first_v = body[0, 1] if body is not None else np.zeros(n)
+            first_a = np.zeros(n)
+        else:  # C2 cubic spline through (start,) points, clamped to v_s at the start and 0 at the end;
+            # all segments quintic: the cubic spline exactly, except the first (from a_s) and the
+            # last (which arrives with zero acceleration, so holding the end is smooth)
+            tk = np.array(knots)
+            Qk = np.vstack([q_s[None, :], P]) if has_start else P
+            M = _clamped_spline_velocities(tk, Qk, v_s, np.zeros(n))
+            if len(tk) > 1:
+                h = np.diff(tk)[:, None]
+                d = np.diff(Qk, axis=0) / h
+                acc_left = (6.0 * d - 4.0 * M[:-1] - 2.0 * M[1:]) / h  # acceleration at each segment's start
+                Ak = np.vstack([acc_left, np.zeros((1, n))])  # arrive at rest: a = 0
+            else:
+                Ak = np.zeros((1, n))
+            off = 1 if has_start else 0
+            body = quintic(P[:-1], M[off:-1], Ak[off:-1], P[1:], M[off + 1 :], Ak[off + 1 :], T) if m > 1 else None
+            v_end, a_end = np.zeros(n), np.zeros(n)
+            first_v, first_a = M[off], Ak[off]
+        if has_start:
+            seg_coeffs.append(
+                quintic(
+                    q_s[None, :],
+                    v_s[None, :],
+                    a_s[None, :],
+                    P[:1],
+                    first_v[None, :],
+                    first_a[None, :],
+                    np.array([pts.points[0].time_from_start]),
+                )
+            )
+        if body is not None:
+            seg_coeffs.append(body)
+        self._c = np.concatenate(seg_coeffs, axis=0) if seg_coeffs else np.zeros((0, 6, n))
+        self._knots = knots
+        self._has_start = has_start
+        self._B = np.zeros((3, 6))
+        self._end_state = np.vstack([P[-1], v_end, a_end])
+        if len(self._c):  # the state at the start of the first segment
+            c0 = self._c[0]
+            self._start_state = np.vstack([c0[0], c0[1], 2.0 * c0[2]])
+        else:
+            self._start_state = self._end_state
+        self._start_state.setflags(write=False)
+        self._end_state.setflags(write=False)
+
+    @property
+    def duration(self) -> float:
+        """Seconds from ``start_time`` to the last point."""
+        return self.end_time - self.start_time
+
+    @property
+    def final_positions(self) -> FloatArray:
+        """Joint positions at the end of the trajectory (full joint order)."""
+        positions: FloatArray = self._end_state[0]
+        return positions
+
+    def finished(self, t: float) -> bool:
+        """True once ``t`` is at or past the last point's time."""
+        return t >= self.end_time
+
+    def sample_into(self, t: float, out: FloatArray) -> FloatArray:
+        """Write ``[q, qd, qdd]`` at absolute time ``t`` into ``out`` (shape (3, joints)) and return it."""
+        knots = self._knots
+        i = bisect_right(knots, t) - 1
+        if i >= len(self._c):
+            out[...] = self._end_state
+            return out
+        if i < 0:
+            out[...] = self._start_state
+            return out
+        tau = t - knots[i]
+        t2 = tau * tau
+        t3 = t2 * tau
+        B = self._B
+        B[0] = (1.0, tau, t2, t3, t3 * tau, t3 * t2)
+        B[1, 1:] = (1.0, 2.0 * tau, 3.0 * t2, 4.0 * t3, 5.0 * t3 * tau)
+        B[2, 2:] = (2.0, 6.0 * tau, 12.0 * t2, 20.0 * t3)
+        np.dot(B, self._c[i], out=out)
+        return out
+
+    def sample(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """``(q, qd, qdd)`` at absolute time ``t``, in the trajectory's joint order (fresh arrays)."""
+        out = self.sample_into(t, np.empty((3, self._n)))
+        return out[0], out[1], out[2]
+
+    def segment_label(self, i: int) -> str:
+        """Human name of segment ``i``: ``"start state -> point 0"`` or ``"point k -> point k+1"``."""
+        if self._has_start:
+            return "start state -> point 0" if i == 0 else f"point {i - 1} -> point {i}"
+        return f"point {i} -> point {i + 1}"
+
+    def peaks(self) -> MotionPeaks:
+        """Exact extremes of the interpolated motion, per segment and joint (see :class:`MotionPeaks`).
+
+        Every segment is a polynomial of degree <= 5 per joint; the extremes are its values at
+        the segment ends and at the roots of its derivative inside the segment (sign changes on a
+        16-cell grid bisected to machine precision, plus the companion-matrix roots, which also
+        find two extrema inside one cell). Velocity steps at the points of a
+        positions-only (linear) trajectory are not motion inside a segment and are not counted.
+        """
+        c = self._c
+        n_seg = len(c)
+        n = self._n
+        if n_seg == 0:
+            empty = np.zeros((0, n))
+            return MotionPeaks(np.array(self._knots[:1] or [self.start_time]), empty, empty, empty, empty, empty, empty)
+        T = np.diff(np.array(self._knots, dtype=np.float64))
+        with np.errstate(all="ignore"):
+            kk = np.arange(6, dtype=np.float64)
+            cq = c
+            cv = c[:, 1:] * kk[1:, None]  # degree 4
+            ca = cv[:, 1:] * kk[1:5, None]  # degree 3 (2*c2, 6*c3, ...)
+            cj = ca[:, 1:] * np.arange(1.0, 4.0)[:, None]  # degree 2
+            q_lo, q_hi, _ = poly_range(cq, cv, T)
+            v_lo, v_hi, v_at = poly_range(cv, ca, T)
+            a_lo, a_hi, a_at = poly_range(ca, cj, T)
+        v_abs = np.maximum(np.abs(v_lo), np.abs(v_hi))
+        a_abs = np.maximum(np.abs(a_lo), np.abs(a_hi))
+        v_t = np.where(np.abs(v_hi) >= np.abs(v_lo), v_at[1], v_at[0])
+        a_t = np.where(np.abs(a_hi) >= np.abs(a_lo), a_at[1], a_at[0])
+        knots = np.array(self._knots, dtype=np.float64)
+        return MotionPeaks(knots, q_lo, q_hi, v_abs, a_abs, knots[:-1, None] + v_t, knots[:-1, None] + a_t)

@@ -69,7 +69,7 @@ _POS = int(ModeCode.POSITION)  # a plain int: numpy compares arrays with an IntE
 _TWO_PI = 2.0 * math.pi
 
 #: (position rad or m, velocity rad/s or m/s): a joint whose measured state is this close to its
-#: setpoint (plus the servo's lag kd/kp * |v| at speed) is tracking it; an abort then starts its
+#: setpoint (plus the servo's lag ``kd/kp * |v|`` at speed) is tracking it; an abort then starts its
 #: stop from the setpoint (the same state up to servo accuracy, no jump), else from the measured state
 TRACKING_BAND = (0.02, 0.2)
 #: relative slack of the per-tick step check (float noise of trajectories planned at the limits)

@@ -28,6 +28,9 @@ fi
 
 "$PY" -m ruff check .
 
+# Static types: mypy --strict over agentsdk and the backends (as installed: see the script).
+"$PY" scripts/typecheck.py
+
 # The API reference (docs/, Sphinx autodoc): docstring or cross-reference problems fail the build.
 "$PY" -m sphinx -W --keep-going -q -b html docs build/docs
 

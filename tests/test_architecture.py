@@ -112,3 +112,22 @@ def test_no_merge_conflict_markers_are_committed() -> None:
         if path.is_file() and markers.search(path.read_text(errors="replace")):
             bad.append(name)
     assert not bad, f"merge conflict markers in {bad}"
+
+
+def test_every_package_is_installed() -> None:
+    """pyproject lists packages explicitly (the backends/ → agentsdk.backends mapping needs it): every
+    folder with an ``__init__.py`` must be in the list, or a wheel install silently lacks it."""
+    import tomllib
+
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    listed = set(cfg["packages"])
+    folders = {"agentsdk": ROOT / "agentsdk"}
+    folders.update({name: ROOT / path for name, path in cfg["package-dir"].items()})
+    found = set()
+    for name, folder in folders.items():
+        for init in folder.rglob("__init__.py"):
+            rel = init.parent.relative_to(folder).parts
+            if "__pycache__" not in rel:
+                found.add(".".join((name, *rel)))
+    missing = sorted(found - listed)
+    assert not missing, f"packages missing from [tool.setuptools] packages: {missing}"

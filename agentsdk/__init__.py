@@ -62,7 +62,7 @@ from .errors import (
     UnreachablePoseError,
     UnsupportedModeError,
 )
-from .feedback import FeedbackAgent, LoopStats, run_feedback
+from .feedback import FeedbackAgent, FeedbackState, LoopStats, run_feedback
 from .loop import HookHandle, Phase, Setpoint, StateView
 from .motion import Feedback, Motion, MotionResult, ResultCode, Tolerances
 from .pose import Pose
@@ -96,6 +96,7 @@ __all__ = [
     "EStopActive",
     "Feedback",
     "FeedbackAgent",
+    "FeedbackState",
     "HookHandle",
     "InvalidValueError",
     "JointCommand",

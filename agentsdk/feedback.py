@@ -42,6 +42,19 @@ on control ticks, so the period must be a whole multiple of the control period
 :class:`~agentsdk.errors.ConfigurationError` instead of silently running at a
 different rate. In lockstep the period errors are exactly zero.
 
+Link poses. ``links=("tool0",)`` (or the agent's ``links`` class attribute) hands
+``update`` a :class:`FeedbackState` instead of the plain :class:`JointState`: the same
+state plus ``poses``, ``{link: Pose}`` of the chosen links at that state, computed
+host-side by ``robot.kinematics`` (one forward-kinematics pass per link; the other links
+are not computed). An unknown link raises :class:`~agentsdk.errors.UnknownLinkError`
+before ``setup`` runs::
+
+    async def update(state: FeedbackState) -> JointCommand | None:
+        z = state.poses["tool0"].position[2]
+        ...
+
+    await run_feedback(robot, update, 100.0, links=("tool0",), duration=2.0)
+
 Ending. ``duration`` (robot seconds; the call returns after that long),
 ``stop`` (an :class:`asyncio.Event`; a sleeping loop is woken at once), an
 exception in ``update``/``command`` (propagates), or cancelling the awaiting task.
@@ -60,8 +73,9 @@ import logging
 import math
 from abc import ABC, abstractmethod
 from array import array
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
 import numpy as np
@@ -71,9 +85,11 @@ from .errors import AgentSDKError, ConfigurationError, InvalidValueError, RobotC
 from .types import JointCommand, JointState
 
 if TYPE_CHECKING:
+    from .kinematics import Kinematics
+    from .pose import Pose
     from .robot import Robot
 
-__all__ = ["FeedbackAgent", "LoopStats", "UpdateFn", "run_feedback"]
+__all__ = ["FeedbackAgent", "FeedbackState", "LoopStats", "UpdateFn", "run_feedback"]
 
 log = logging.getLogger("agentsdk.feedback")
 
@@ -83,6 +99,49 @@ _POS = ModeCode.POSITION
 UpdateFn = Callable[[JointState], Awaitable[JointCommand | None] | JointCommand | None]
 
 EndReason = Literal["duration", "stop", "error", "cancelled"]
+
+
+# --------------------------------------------------------------------------- the per-period input
+
+
+@dataclass(frozen=True, slots=True)
+class FeedbackState(JointState):
+    """The measured state handed to ``update`` when link poses were asked for (``links=``).
+
+    A :class:`~agentsdk.types.JointState` (same arrays, same ``stamp``) plus ``poses``:
+    ``{link: Pose}`` of the chosen links in the root frame at exactly this state, as
+    ``robot.kinematics.fk(link, state)`` gives them.
+    """
+
+    #: ``{link: Pose}`` of the chosen links (read-only mapping)
+    poses: Mapping[str, Pose]
+
+
+def _pose_links(robot: Robot, links: Sequence[str] | str) -> tuple[tuple[str, ...], Kinematics | None]:
+    """The chosen links as a tuple, checked against the robot's kinematics (None when no links)."""
+    if isinstance(links, str):
+        names: tuple[str, ...] = (links,)
+    else:
+        try:
+            names = tuple(links)
+        except TypeError:
+            raise InvalidValueError(
+                f"links must be a link name or a sequence of link names, got {links!r}"
+            ) from None
+    if not names:
+        return (), None
+    for link in names:
+        if not isinstance(link, str):
+            raise InvalidValueError(f"links must be link names (str), got {link!r}")
+    kin = robot.kinematics
+    for link in names:
+        kin.body_id(link)  # UnknownLinkError naming the link and the valid ones
+    return names, kin
+
+
+def _with_poses(state: JointState, links: tuple[str, ...], kin: Kinematics) -> FeedbackState:
+    poses = MappingProxyType({link: kin.fk(link, state) for link in links})
+    return FeedbackState(state.names, state.position, state.velocity, state.effort, state.stamp, poses)
 
 
 # --------------------------------------------------------------------------- statistics
@@ -285,11 +344,14 @@ class _Recorder:
 class FeedbackAgent(ABC):
     """Base class of fixed-rate feedback agents; implement :meth:`update`.
 
-    ``rate`` (Hz) is the default rate of :func:`run_feedback`. After a run,
+    ``rate`` (Hz) is the default rate of :func:`run_feedback` and ``links`` its default
+    ``links`` (link poses carried by the state, see :class:`FeedbackState`). After a run,
     :attr:`stats` holds its :class:`LoopStats`.
     """
 
     rate: ClassVar[float] = 500.0
+    #: links whose poses ``update`` receives (a :class:`FeedbackState`); default of ``run_feedback(links=)``
+    links: ClassVar[tuple[str, ...]] = ()
     stats: LoopStats | None = None
 
     async def setup(self, robot: Robot) -> None:  # noqa: B027 - optional hook
@@ -314,9 +376,12 @@ class FeedbackAgent(ABC):
         duration: float | None = None,
         stop: asyncio.Event | None = None,
         hold_on_exit: bool = True,
+        links: Sequence[str] | str | None = None,
     ) -> LoopStats:
         """Shorthand for ``await run_feedback(robot, self, rate, ...)``."""
-        return await run_feedback(robot, self, rate, duration=duration, stop=stop, hold_on_exit=hold_on_exit)
+        return await run_feedback(
+            robot, self, rate, duration=duration, stop=stop, hold_on_exit=hold_on_exit, links=links
+        )
 
 
 class _FunctionAgent(FeedbackAgent):
@@ -387,15 +452,19 @@ async def run_feedback(
     stop: asyncio.Event | None = None,
     hold_on_exit: bool = True,
     max_samples: int = 1_000_000,
+    links: Sequence[str] | str | None = None,
 ) -> LoopStats:
     """Run ``agent`` at ``rate`` Hz (default ``agent.rate``) until ``duration``, ``stop`` or an error.
 
     ``agent`` is a :class:`FeedbackAgent` or a plain ``update(state)`` function (async or not).
     ``duration`` is in robot seconds; ``None`` runs until ``stop`` is set or the
-    task is cancelled. Returns the :class:`LoopStats` (also set as ``agent.stats``).
+    task is cancelled. ``links`` (default ``agent.links``) names links whose poses
+    every period's state carries: ``update`` then receives a :class:`FeedbackState`.
+    Returns the :class:`LoopStats` (also set as ``agent.stats``).
 
-    Raises :class:`~agentsdk.errors.InvalidValueError` for a bad rate or duration
-    and :class:`~agentsdk.errors.ConfigurationError` in lockstep when the period is
+    Raises :class:`~agentsdk.errors.InvalidValueError` for a bad rate or duration,
+    :class:`~agentsdk.errors.UnknownLinkError` for a link the robot does not have (before
+    ``setup``), and :class:`~agentsdk.errors.ConfigurationError` in lockstep when the period is
     not a whole multiple of the control period. Errors from ``update`` and from
     ``robot.command`` (e.g. :class:`~agentsdk.errors.EStopActive`) propagate after
     the exit hold and ``teardown``.
@@ -417,6 +486,7 @@ async def run_feedback(
         raise InvalidValueError(f"max_samples must be >= 1, got {max_samples!r}")
     if robot.closed:
         raise RobotClosedError(f"robot {robot.name!r} is closed")
+    pose_links, kin = _pose_links(robot, agent.links if links is None else links)
 
     clock = robot.clock
     realtime = not clock.lockstep
@@ -474,6 +544,8 @@ async def run_feedback(
                 break
             wake = clock.now()
             state = await robot.read()
+            if kin is not None:
+                state = _with_poses(state, pose_links, kin)
             t_update = clock.now()
             cmd = await agent.update(state)
             update_time = clock.now() - t_update

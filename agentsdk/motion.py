@@ -37,10 +37,12 @@ FollowJointTrajectory action:
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import enum
 import math
-from collections.abc import AsyncIterator, Callable, Generator, Mapping
+from collections.abc import AsyncIterator, Callable, Generator, Mapping, Sequence
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -48,7 +50,7 @@ import numpy as np
 from . import scope
 from .backend import ModeCode
 from .config import format_value
-from .errors import CommandRejected, InvalidValueError, LimitViolation, UnknownJointError
+from .errors import CommandRejected, ConfigurationError, InvalidValueError, LimitViolation, UnknownJointError
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .trajectory import (
     MAX_TIME_FROM_START,
@@ -61,6 +63,8 @@ from .trajectory import (
 )
 
 if TYPE_CHECKING:
+    from .kinematics import Kinematics
+    from .pose import Pose
     from .safety import PositionBounds
 
 __all__ = ["TRACKING_BAND", "Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
@@ -77,6 +81,8 @@ _STEP_RTOL = 1e-5
 #: fraction of max_acceleration the speed-scaling ramp may add to a trajectory's own acceleration
 _SCALE_ACC_MARGIN = 0.95
 _MAX_STRETCH_ITERATIONS = 12
+#: the ``poses`` of a feedback message nobody asked link poses for (shared, immutable)
+_NO_POSES: Mapping[str, Pose] = MappingProxyType({})
 #: a planned position beyond the bounds by more than this is not float noise (rad or m)
 _BOUND_TOL = 2e-6
 
@@ -182,7 +188,11 @@ class Tolerances:
 
 @dataclass(frozen=True, slots=True)
 class Feedback:
-    """Like FollowJointTrajectory feedback: desired, actual and error at ``time``."""
+    """Like FollowJointTrajectory feedback: desired, actual and error at ``time``.
+
+    ``poses`` and ``desired_poses`` hold the poses (root frame) of the links chosen with
+    ``motion.feedback(links=...)``; empty when no links were chosen.
+    """
 
     time: float
     joint_names: tuple[str, ...]
@@ -194,6 +204,26 @@ class Feedback:
     error: np.ndarray
     #: 0.0 at the start, 1.0 at the end of the trajectory (in trajectory time)
     progress: float
+    #: ``{link: Pose}`` of the chosen links at the measured state of ``time`` (all joints' measured
+    #: positions), computed host-side by ``robot.kinematics``
+    poses: Mapping[str, Pose] = field(default_factory=lambda: _NO_POSES)
+    #: ``{link: Pose}`` of the chosen links with the motion's joints at their desired positions
+    #: (the robot's other joints at their measured positions)
+    desired_poses: Mapping[str, Pose] = field(default_factory=lambda: _NO_POSES)
+
+
+def _link_names(links: Sequence[str] | str) -> tuple[str, ...]:
+    """``links`` as a tuple of names: one name, or a sequence of names."""
+    if isinstance(links, str):
+        return (links,)
+    try:
+        names = tuple(links)
+    except TypeError:
+        raise InvalidValueError(f"links must be a link name or a sequence of link names, got {links!r}") from None
+    for link in names:
+        if not isinstance(link, str):
+            raise InvalidValueError(f"links must be link names (str), got {link!r}")
+    return names
 
 
 def _per_joint(value: float | Mapping[str, float] | None, names: tuple[str, ...], what: str) -> np.ndarray:
@@ -241,6 +271,10 @@ class Motion:
         self.start_time = start_time
         self._future: asyncio.Future[MotionResult] = asyncio.get_running_loop().create_future()
         self._feedback: Feedback | None = None
+        #: measured positions of every joint at ``_feedback.time``, kept only while a feedback
+        #: stream with link poses runs (``_pose_streams > 0``)
+        self._feedback_q: np.ndarray | None = None
+        self._pose_streams = 0
         self._cancel_requested = False
 
     # awaitable ------------------------------------------------------------
@@ -274,23 +308,67 @@ class Motion:
         self._cancel_requested = True
         self._mgr._request_stop(self, ResultCode.CANCELED, "canceled")
 
-    async def feedback(self, rate: float = 50.0) -> AsyncIterator[Feedback]:
-        """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included)."""
+    def feedback(self, rate: float = 50.0, *, links: Sequence[str] | str = ()) -> AsyncIterator[Feedback]:
+        """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included).
+
+        ``links`` (a link name or a sequence of them, e.g. ``("tool0",)``) adds their poses to
+        every message: :attr:`Feedback.poses` at the measured state of the message's ``time``
+        and :attr:`Feedback.desired_poses` at the desired positions, computed host-side by
+        ``robot.kinematics`` (the same on every backend). Checked here, at the call: a bad
+        rate raises :class:`~agentsdk.errors.InvalidValueError`, an unknown link
+        :class:`~agentsdk.errors.UnknownLinkError` naming it and listing the robot's links.
+        """
         if not (rate > 0 and math.isfinite(rate)):
             raise InvalidValueError(f"feedback rate must be a positive number of Hz, got {format_value(rate)}")
+        names = _link_names(links)
+        kin: Kinematics | None = None
+        if names:
+            kin = self._mgr.kinematics()
+            for link in names:
+                kin.body_id(link)  # UnknownLinkError naming the link and the valid ones
+        return self._feedback_stream(1.0 / rate, names, kin)
+
+    async def _feedback_stream(
+        self, period: float, links: tuple[str, ...], kin: Kinematics | None
+    ) -> AsyncIterator[Feedback]:
         clock = self._mgr.loop.clock
-        period = 1.0 / rate
         next_t = clock.now()
         last: Feedback | None = None
-        while True:
-            fb = self._feedback
-            if fb is not None and fb is not last:
-                last = fb
-                yield fb
-            if self._future.done():
-                return
-            next_t += period
-            await clock.sleep_until(next_t)
+        if kin is not None:
+            self._pose_streams += 1  # from now on every tick keeps the full measured state
+        try:
+            while True:
+                fb = self._feedback
+                if fb is not None and fb is not last:
+                    if kin is None:
+                        last = fb
+                        yield fb
+                    else:
+                        q = self._feedback_q
+                        if q is not None or self._future.done():
+                            last = fb
+                            yield self._with_poses(fb, q, links, kin)
+                        # else: published before this stream asked for the full state; the next tick's will do
+                if self._future.done():
+                    return
+                next_t += period
+                await clock.sleep_until(next_t)
+        finally:
+            if kin is not None:
+                self._pose_streams -= 1
+
+    def _with_poses(self, fb: Feedback, q: np.ndarray | None, links: tuple[str, ...], kin: Kinematics) -> Feedback:
+        """``fb`` plus the poses of ``links`` at its measured state and at its desired positions."""
+        if q is None:
+            # the motion ended before a tick kept the full state: its own joints as measured at
+            # fb.time, the others (not driven by it) as measured now
+            q = self._mgr.loop.snapshot().position.copy()
+            q[self.idx] = fb.actual_positions
+        qd = q.copy()
+        qd[self.idx] = fb.desired_positions
+        poses = MappingProxyType({link: kin.fk(link, q) for link in links})
+        desired = MappingProxyType({link: kin.fk(link, qd) for link in links})
+        return dataclasses.replace(fb, poses=poses, desired_poses=desired)
 
     def __repr__(self) -> str:
         state = self._future.result().code.name if self._future.done() else "running"
@@ -369,6 +447,8 @@ class MotionManager:
         self._step: np.ndarray | None = None
         self._rebase: Callable[[np.ndarray, np.ndarray], None] | None = None
         self._report: Callable[[str, str, str | None], Any] | None = None
+        #: the robot's kinematics (set by the Robot), for link poses in motion feedback
+        self.kinematics_source: Callable[[], Kinematics] | None = None
 
     # ------------------------------------------------------------ wiring
     def attach_limiter(
@@ -387,6 +467,12 @@ class MotionManager:
         self._step = step
         self._rebase = rebase
         self._report = report
+
+    def kinematics(self) -> Kinematics:
+        """The robot's :class:`~agentsdk.kinematics.Kinematics` (raises if it has none)."""
+        if self.kinematics_source is None:
+            raise ConfigurationError("link poses need the robot's kinematics; this motion manager has no robot")
+        return self.kinematics_source()
 
     # ------------------------------------------------------------ speed scaling
     @property
@@ -1080,6 +1166,7 @@ class MotionManager:
                 progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
             m._feedback = Feedback(t, m.joint_names, qc, v, st.position[idx].copy(), st.velocity[idx].copy(), err,
                                    progress)
+            m._feedback_q = st.position.copy() if m._pose_streams else None
 
     def _activate(self, ex: _Exec, t: float) -> bool:
         """A scheduled motion's start time has come: take over its joints from whatever drives them."""

@@ -59,6 +59,7 @@ class Robot:
         self._motions = motions
         self._kinematics: Kinematics | None = None
         self._kinematics_error: Exception | None = None
+        motions.kinematics_source = lambda: self.kinematics  # link poses in motion feedback
 
     # ------------------------------------------------------------ metadata
     @property

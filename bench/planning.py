@@ -88,26 +88,11 @@ def _p2p_segments(wps: np.ndarray) -> float:
 
 
 def _record_plan_calls(wps: np.ndarray, joints: list[Any]) -> list[tuple[list[float], ...]] | None:
-    """The inputs of every ruckig solve ``plan()`` makes (None if the internals changed)."""
+    """The inputs of every ruckig solve ``plan()`` makes."""
     from agentsdk import trajectory as tr
-    from agentsdk.trajectory import _ruckig
 
-    cls = getattr(_ruckig, "RuckigSolver", None)
-    orig = getattr(cls, "solve", None)
-    if cls is None or orig is None:
-        return None
-    calls: list[tuple[list[float], ...]] = []
-
-    def solve(self: Any, q0: Any, v0: Any, a0: Any, q1: Any, v1: Any, min_duration: Any = None) -> Any:
-        if q1 is not None and min_duration is None:
-            calls.append((q0.tolist(), v0.tolist(), a0.tolist(), q1.tolist(), v1.tolist()))
-        return orig(self, q0, v0, a0, q1, v1, min_duration)
-
-    cls.solve = solve
-    try:
+    with tr.recording_solves() as calls:
         tr.plan(wps, joints)
-    finally:
-        cls.solve = orig
     return calls
 
 

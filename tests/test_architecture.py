@@ -71,6 +71,8 @@ def _problems(path: Path) -> list[str]:
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
+            if node.level > 0 and node.module is None:
+                continue  # ``from . import _part``: a package importing its own private submodule
             for alias in node.names:
                 if alias.name.startswith("_") and not alias.name.startswith("__"):
                     out.append(f"{rel}:{node.lineno}: imports private {alias.name!r} from {node.module}")

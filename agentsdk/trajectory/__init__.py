@@ -43,6 +43,7 @@ from ._limits import check_motion_limits, time_scale_for_limits
 from ._peaks import MotionPeaks
 from ._planning import plan, plan_point_to_point, plan_stop
 from ._ruckig import MAX_PROFILE_DURATION as MAX_PROFILE_DURATION
+from ._ruckig import recording_solves
 from ._sampler import TrajectorySampler
 from ._types import Interpolation, Trajectory, TrajectoryPoint
 from ._types import Values as Values
@@ -69,6 +70,7 @@ __all__ = [
     "plan",
     "plan_point_to_point",
     "plan_stop",
+    "recording_solves",
     "time_scale_for_limits",
 ]
 

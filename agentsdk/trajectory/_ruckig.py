@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,6 +16,27 @@ from ..errors import CommandRejected, ConfigurationError, InvalidValueError, Lim
 from ..types import FloatArray, JointInfo
 from ._sampler import quintic
 from ._types import Trajectory, TrajectoryPoint
+
+#: the ruckig problems solved while :func:`recording_solves` is active (benchmarks replay them raw)
+_solve_log: contextvars.ContextVar[list[tuple[list[float], ...]] | None] = contextvars.ContextVar(
+    "agentsdk_ruckig_solve_log", default=None
+)
+
+
+@contextlib.contextmanager
+def recording_solves() -> Iterator[list[tuple[list[float], ...]]]:
+    """Collect the point-to-point ruckig problems solved inside the block.
+
+    Yields a list that fills with ``(q0, v0, a0, q1, v1)`` per solve; ``bench/planning.py``
+    replays them on raw ruckig to measure the planner's own overhead against the same problems.
+    """
+    log: list[tuple[list[float], ...]] = []
+    token = _solve_log.set(log)
+    try:
+        yield log
+    finally:
+        _solve_log.reset(token)
+
 
 #: the longest profile ruckig computes (its ``ErrorTrajectoryDuration``, result -101, beyond 7.6e3 s)
 MAX_PROFILE_DURATION = 7.6e3
@@ -111,6 +134,9 @@ class RuckigSolver:
         v1: FloatArray,
         min_duration: float | None = None,
     ) -> _RuckigTrajectory:
+        log = _solve_log.get()
+        if log is not None and q1 is not None and min_duration is None:
+            log.append((q0.tolist(), v0.tolist(), a0.tolist(), q1.tolist(), v1.tolist()))
         inp = self.inp
         inp.current_position = q0.tolist()
         inp.current_velocity = v0.tolist()

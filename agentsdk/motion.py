@@ -338,8 +338,28 @@ class _FeedbackSnapshot:
 class _TickBuffers:
     """Preallocated arrays of one executor's tick path (a tick allocates no arrays)."""
 
-    __slots__ = ("a", "act", "actual", "actual_v", "at", "dev", "err", "gain", "mask", "o", "out", "q", "sample",
-                 "sel", "tmp", "v", "views", "vt")
+    __slots__ = (
+        "a",
+        "act",
+        "actual",
+        "actual_v",
+        "at",
+        "bound",
+        "dev",
+        "err",
+        "gain",
+        "mask",
+        "o",
+        "out",
+        "q",
+        "sample",
+        "sel",
+        "sp_views",
+        "st_views",
+        "tmp",
+        "v",
+        "vt",
+    )
 
     def __init__(self, n: int) -> None:
         self.sample = np.zeros((3, n))
@@ -348,21 +368,13 @@ class _TickBuffers:
         self.v, self.a, self.err, self.actual, self.out = (np.zeros(n) for _ in range(5))
         self.tmp, self.o, self.dev, self.gain, self.act, self.actual_v = (np.zeros(n) for _ in range(6))
         self.mask = np.zeros(n, dtype=bool)
-        #: cached views of source arrays (state, limiter origin) by id: a view per tick would allocate
-        self.views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         #: the joints as a slice when they are consecutive, else their index array
         self.sel: Any = None
-
-    def view(self, src: np.ndarray, sel: slice) -> np.ndarray:
-        """``src[sel]`` as a view made once per source array (basic indexing makes a new view each time)."""
-        hit = self.views.get(id(src))
-        if hit is not None and hit[0] is src:
-            return hit[1]
-        view = src[sel]
-        if len(self.views) >= 32:  # sources that are not stable arrays: never grow without bound
-            self.views.clear()
-        self.views[id(src)] = (src, view)  # the reference keeps ``src`` alive: its id is not reused
-        return view
+        #: views of the setpoint, state and limiter arrays made once (basic indexing makes a view each
+        #: time), for the (setpoint, state, origin) objects they were made from
+        self.bound: tuple[Any, Any, Any] | None = None
+        self.sp_views: tuple[np.ndarray, ...] = ()
+        self.st_views: tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None] = (None, None, None)
 
     def selection(self, idx: np.ndarray) -> Any:
         """The joints ``idx`` as a slice when they are consecutive (basic indexing is ~4x cheaper), else ``idx``."""
@@ -373,12 +385,17 @@ class _TickBuffers:
             self.sel = slice(start, start + n) if consecutive else idx
         return self.sel
 
-    def gather(self, src: np.ndarray, idx: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """``src[idx]`` (consecutive joints: a cached view; else gathered into ``out``)."""
+    def bind(self, idx: np.ndarray, sp: Setpoint, st: StateView, origin: np.ndarray | None, loop: ControlLoop) -> None:
+        """Make the views of consecutive joints ``idx`` into ``sp``, ``st``, ``origin`` and the loop's gains."""
         sel = self.selection(idx)
+        self.bound = (sp, st, origin)
         if isinstance(sel, slice):
-            return self.view(src, sel)
-        return np.take(src, idx, out=out, mode="clip")  # indices are valid: "clip" is not buffered
+            self.sp_views = (sp.mode[sel], sp.enabled[sel], sp.position[sel], sp.velocity[sel], sp.effort[sel],
+                             sp.kp[sel], sp.kd[sel], sp.target[sel], loop.gain_p[sel], loop.gain_d[sel])
+            self.st_views = (st.position[sel], st.velocity[sel], None if origin is None else origin[sel])
+        else:
+            self.sp_views = ()
+            self.st_views = (None, None, None)
 
 
 def _wrap_into(x: np.ndarray, wrap: np.ndarray, tmp: np.ndarray) -> None:
@@ -1025,7 +1042,11 @@ class MotionManager:
             np.multiply(vt, sdot, out=w.tmp)
             np.add(a, w.tmp, out=a)
         ex.vt, ex.at = vt, at
-        actual = w.gather(st.position, idx, w.actual)
+        bound = w.bound
+        if bound is None or bound[0] is not sp or bound[1] is not st or bound[2] is not self._step_origin:
+            w.bind(idx, sp, st, self._step_origin, self.loop)
+        pos_view = w.st_views[0]
+        actual = pos_view if pos_view is not None else np.take(st.position, idx, out=w.actual, mode="clip")
         err = np.subtract(q, actual, out=w.err)
         if ex.wrap is not None:
             _wrap_into(err, ex.wrap, w.tmp)
@@ -1114,7 +1135,9 @@ class MotionManager:
             what = "bounds"
         origin = self._step_origin
         if step is not None and step_tol is not None and origin is not None:
-            o = w.gather(origin, ex.idx, w.o)
+            o = w.st_views[2]
+            if o is None or w.bound is None or w.bound[2] is not origin:
+                o = np.take(origin, ex.idx, out=w.o, mode="clip")
             dev = np.abs(np.subtract(out, o, out=w.dev), out=w.dev)
             # beyond the limiter's window: float noise is clamped, more aborts
             if np.count_nonzero(np.greater(dev, step, out=w.mask)):
@@ -1170,17 +1193,20 @@ class MotionManager:
         w = ex.work
         if w is None:
             w = ex.work = _TickBuffers(len(idx))
-        sel = ex.sel = w.selection(idx)
-        if isinstance(sel, slice):  # through cached views: basic indexing would make a view per write
-            view = w.view
-            view(sp.mode, sel).fill(_POS)
-            view(sp.enabled, sel).fill(True)
-            np.copyto(view(sp.position, sel), qc)
-            np.copyto(view(sp.velocity, sel), v)
-            view(sp.effort, sel).fill(0.0)
-            np.copyto(view(sp.kp, sel), view(loop.gain_p, sel))
-            np.copyto(view(sp.kd, sel), view(loop.gain_d, sel))
-            np.copyto(view(sp.target, sel), qc)
+        bound = w.bound
+        if bound is None or bound[0] is not sp or bound[1] is not st:
+            w.bind(idx, sp, st, self._step_origin, loop)
+        sel = ex.sel = w.sel
+        if w.sp_views:  # consecutive joints, through views made once (basic indexing makes a view per write)
+            mode, enabled, position, velocity, effort, kp, kd, target, gain_p, gain_d = w.sp_views
+            mode.fill(_POS)
+            enabled.fill(True)
+            np.copyto(position, qc)
+            np.copyto(velocity, v)
+            effort.fill(0.0)
+            np.copyto(kp, gain_p)
+            np.copyto(kd, gain_d)
+            np.copyto(target, qc)
         else:
             sp.mode[sel] = _POS
             sp.enabled[sel] = True
@@ -1201,10 +1227,14 @@ class MotionManager:
                 snap.progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
             snap.time = t
             snap.q, snap.v, snap.err = qc, v, err
-            snap.actual_q = w.act
-            np.copyto(w.act, w.gather(st.position, idx, w.act))
-            snap.actual_v = w.actual_v
-            np.copyto(w.actual_v, w.gather(st.velocity, idx, w.actual_v))
+            pos_view, vel_view, _ = w.st_views
+            if pos_view is not None and vel_view is not None:
+                np.copyto(w.act, pos_view)
+                np.copyto(w.actual_v, vel_view)
+            else:
+                np.take(st.position, idx, out=w.act, mode="clip")
+                np.take(st.velocity, idx, out=w.actual_v, mode="clip")
+            snap.actual_q, snap.actual_v = w.act, w.actual_v
             snap.seq += 1
 
     def _activate(self, ex: _Exec, t: float) -> bool:

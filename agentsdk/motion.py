@@ -1028,8 +1028,17 @@ class MotionManager:
         w = ex.work
         if w is None:
             w = ex.work = _TickBuffers(len(idx))
-        tau, s, sdot = self._advance(ex, t)
-        ex.tau, ex.s, ex.sdot, ex.t_last = tau, s, sdot, t
+        dt = t - ex.t_last
+        s = ex.s
+        if dt > 0.0 and s == self._speed and ex.phase != MotionPhase.STOPPING:  # _advance's common case, inline
+            if dt > self.loop.period:
+                dt = self.loop.period
+            tau = ex.tau = ex.tau + s * dt
+            sdot = ex.sdot = 0.0
+        else:
+            tau, s, sdot = self._advance(ex, t)
+            ex.tau, ex.s, ex.sdot = tau, s, sdot
+        ex.t_last = t
         ex.sampler.sample_into(tau, w.sample)
         q, vt, at = w.q, w.vt, w.at
         stopping = ex.phase == MotionPhase.STOPPING
@@ -1201,12 +1210,12 @@ class MotionManager:
             mode, enabled, position, velocity, effort, kp, kd, target, gain_p, gain_d = w.sp_views
             mode.fill(_POS)
             enabled.fill(True)
-            np.copyto(position, qc)
-            np.copyto(velocity, v)
+            position[...] = qc
+            velocity[...] = v
             effort.fill(0.0)
-            np.copyto(kp, gain_p)
-            np.copyto(kd, gain_d)
-            np.copyto(target, qc)
+            kp[...] = gain_p
+            kd[...] = gain_d
+            target[...] = qc
         else:
             sp.mode[sel] = _POS
             sp.enabled[sel] = True
@@ -1229,8 +1238,8 @@ class MotionManager:
             snap.q, snap.v, snap.err = qc, v, err
             pos_view, vel_view, _ = w.st_views
             if pos_view is not None and vel_view is not None:
-                np.copyto(w.act, pos_view)
-                np.copyto(w.actual_v, vel_view)
+                w.act[...] = pos_view
+                w.actual_v[...] = vel_view
             else:
                 np.take(st.position, idx, out=w.act, mode="clip")
                 np.take(st.velocity, idx, out=w.actual_v, mode="clip")

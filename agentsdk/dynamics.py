@@ -99,16 +99,32 @@ class GravityTerm:
         self._data = mujoco.MjData(model)  # qvel stays 0: mj_rne gives the bias at rest, g(q)
         self._st = np.ascontiguousarray(coupling_matrix(model, joints).T)
         self._all = np.zeros(model.nv)
+        #: the last result and the bytes of the ``qpos`` it is for: a robot at rest has the same
+        #: ``qpos`` bit for bit tick after tick, and g(q) is a pure function of it (same result)
+        self._g = np.zeros(len(joints))
+        self._key = b""
 
     def compute(self, qpos: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """Write the joint torques that hold the robot against gravity at ``qpos`` into ``out``."""
-        m, d = self.model, self._data
-        np.copyto(d.qpos, qpos)
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_comPos(m, d)
-        mujoco.mj_rne(m, d, 0, self._all)
-        np.dot(self._st, self._all, out=out)
+        """Write the joint torques that hold the robot against gravity at ``qpos`` into ``out``.
+
+        The result for the previous ``qpos`` is reused when ``qpos`` is bit for bit the same
+        (the model is not meant to change between calls; :meth:`invalidate` after changing it).
+        """
+        key = qpos.tobytes()
+        if key != self._key:
+            m, d = self.model, self._data
+            d.qpos[:] = qpos
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_comPos(m, d)
+            mujoco.mj_rne(m, d, 0, self._all)
+            np.dot(self._st, self._all, out=self._g)
+            self._key = key
+        out[:] = self._g
         return out
+
+    def invalidate(self) -> None:
+        """Forget the cached result (after changing the model's masses, inertias or gravity)."""
+        self._key = b""
 
 
 def _description_spec(description: RobotDescription) -> mujoco.MjSpec:

@@ -127,11 +127,7 @@ class _Probes:
     "what",
     [
         "hold",
-        pytest.param("trajectory", marks=pytest.mark.xfail(
-            strict=True,
-            reason="the trajectory executor rewritten for speed scaling, wrap-around and limit checks samples "
-                   "into fresh arrays every tick; not yet allocation-free (known gap, issue 16)",
-        )),
+        "trajectory",
     ],
 )
 async def test_mujoco_tick_allocates_no_arrays(what: str) -> None:

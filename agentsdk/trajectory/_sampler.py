@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from bisect import bisect_right
 from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -117,11 +118,13 @@ class TrajectorySampler:
 
     __slots__ = (
         "_B",
+        "_Bm",
         "_c",
         "_end_state",
         "_has_start",
         "_knots",
         "_n",
+        "_segs",
         "_start_state",
         "end_time",
         "indices",
@@ -267,6 +270,11 @@ class TrajectorySampler:
         self._knots = knots
         self._has_start = has_start
         self._B = np.zeros((3, 6))
+        # the tick path allocates nothing: B's entries are written through a flat memoryview, and
+        # each segment's coefficient matrix is a view made once
+        flat: Any = self._B.reshape(-1)  # numpy arrays are buffers; its stubs do not say so
+        self._Bm: Any = memoryview(flat)
+        self._segs = list(self._c)
         self._end_state = np.vstack([P[-1], v_end, a_end])
         if len(self._c):  # the state at the start of the first segment
             c0 = self._c[0]
@@ -304,11 +312,24 @@ class TrajectorySampler:
         tau = t - knots[i]
         t2 = tau * tau
         t3 = t2 * tau
-        B = self._B
-        B[0] = (1.0, tau, t2, t3, t3 * tau, t3 * t2)
-        B[1, 1:] = (1.0, 2.0 * tau, 3.0 * t2, 4.0 * t3, 5.0 * t3 * tau)
-        B[2, 2:] = (2.0, 6.0 * tau, 12.0 * t2, 20.0 * t3)
-        np.dot(B, self._c[i], out=out)
+        # B = [[1, tau, t2, t3, t3 tau, t3 t2], [0, 1, 2 tau, 3 t2, 4 t3, 5 t3 tau], [0, 0, 2, 6 tau, 12 t2, 20 t3]]
+        m = self._Bm
+        m[0] = 1.0
+        m[1] = tau
+        m[2] = t2
+        m[3] = t3
+        m[4] = t3 * tau
+        m[5] = t3 * t2
+        m[7] = 1.0
+        m[8] = 2.0 * tau
+        m[9] = 3.0 * t2
+        m[10] = 4.0 * t3
+        m[11] = 5.0 * t3 * tau
+        m[14] = 2.0
+        m[15] = 6.0 * tau
+        m[16] = 12.0 * t2
+        m[17] = 20.0 * t3
+        np.dot(self._B, self._segs[i], out=out)
         return out
 
     def sample(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:

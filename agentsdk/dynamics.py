@@ -129,19 +129,10 @@ class GravityTerm:
 
 def _description_spec(description: RobotDescription) -> mujoco.MjSpec:
     """The description as a MuJoCo spec without geometry (URDF) or the MJCF as written, no actuators."""
-    if description.format == "mjcf":
-        spec = mujoco.MjSpec.from_file(str(description.source))
-        for sensor in list(spec.sensors):
-            if sensor.objtype == mujoco.mjtObj.mjOBJ_ACTUATOR:
-                spec.delete(sensor)
-        for act in list(spec.actuators):
-            spec.delete(act)
-        for key in spec.keys:
-            key.ctrl = []
-            key.act = []
-        return spec
-    from .description.mjspec import build_spec
+    from .description.mjspec import build_spec, mjcf_spec_without_actuators
 
+    if description.format == "mjcf":
+        return mjcf_spec_without_actuators(str(description.source))
     return build_spec(description, {}).spec
 
 

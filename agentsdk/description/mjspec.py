@@ -167,3 +167,21 @@ def build_spec(
         data[0], data[1] = mimic.offset, mimic.multiplier
         eq.data = data.tolist()
     return build
+
+
+def mjcf_spec_without_actuators(path: str) -> mujoco.MjSpec:
+    """An MJCF model as written (includes, assets, defaults, contacts) with its actuators removed.
+
+    The simulators drive the joints with the SDK's own servo law, and the dynamics model needs
+    none: actuator sensors and keyframe controls go with the actuators.
+    """
+    spec = mujoco.MjSpec.from_file(path)
+    for sensor in list(spec.sensors):
+        if sensor.objtype == mujoco.mjtObj.mjOBJ_ACTUATOR:
+            spec.delete(sensor)
+    for act in list(spec.actuators):
+        spec.delete(act)
+    for key in spec.keys:
+        key.ctrl = []
+        key.act = []
+    return spec

@@ -38,7 +38,7 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description.collision import SelfCollision, for_robot, standing_height
 from agentsdk.description.mjcf import colliding_body_pairs
-from agentsdk.description.mjspec import build_spec
+from agentsdk.description.mjspec import build_spec, mjcf_spec_without_actuators
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.dynamics import GravityTerm
 from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
@@ -257,16 +257,7 @@ class MujocoController(Backend):
 
     def _mjcf_spec(self) -> mujoco.MjSpec:
         """The MJCF model as written (includes, assets, defaults, contacts), its actuators replaced by servos."""
-        spec = mujoco.MjSpec.from_file(str(self.description.source))
-        for sensor in list(spec.sensors):
-            if sensor.objtype == mujoco.mjtObj.mjOBJ_ACTUATOR:
-                spec.delete(sensor)
-        for act in list(spec.actuators):
-            spec.delete(act)
-        for key in spec.keys:
-            key.ctrl = []
-            key.act = []
-        return spec
+        return mjcf_spec_without_actuators(str(self.description.source))
 
     def simulator_report(self) -> dict[str, Any]:
         """What the compiled MuJoCo model holds: commanded joints, link masses, colliding link pairs.

@@ -93,12 +93,6 @@ def leg_copy(directory: Path, **changes: Any) -> str:
     return str(dst)
 
 
-@pytest.fixture(scope="module")
-def free_leg(tmp_path_factory: pytest.TempPathFactory) -> str:
-    """mit_leg without gravity compensation, for the free-motor emulator (which has no gravity)."""
-    return leg_copy(tmp_path_factory.mktemp("free"), gravity_compensation=False)
-
-
 # --------------------------------------------------------------------- processes
 class Proc:
     """A child process whose stdout+stderr go to a file (nothing to drain, nothing to block)."""
@@ -228,8 +222,8 @@ class TestCanConformanceVcan(BackendConformance):
     connect_options: ClassVar[dict[str, Any]] = {}
 
     @pytest.fixture(autouse=True)
-    def _robot_at_vcan_rate(self, free_leg: str) -> None:
-        type(self).robot = free_leg  # the free-motor emulator has no gravity to compensate
+    def _robot_at_vcan_rate(self, leg: str) -> None:
+        type(self).robot = leg  # the free-motor emulator has no gravity to compensate
 
     @contextlib.asynccontextmanager
     async def open_robot(self, **overrides: Any) -> AsyncIterator[Robot]:

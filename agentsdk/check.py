@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .errors import AgentSDKError
+from .errors import AgentSDKError, BackendUnavailableError
 
 __all__ = ["CheckReport", "check_robot"]
 
@@ -51,11 +51,26 @@ def _wrap(items: Sequence[str], indent: str = "    ", width: int = 110) -> list[
     return out
 
 
-def _installed(names: Sequence[str]) -> list[str]:
-    from .registry import available_backends
+def _installed(names: Sequence[str], notes: list[str]) -> list[str]:
+    """The backends among ``names`` that import here; the others are noted with their install hint."""
+    from .registry import load_backend
 
-    known = set(available_backends())
-    return [n for n in names if n in known]
+    usable = []
+    for name in names:
+        try:
+            load_backend(name)
+        except BackendUnavailableError as exc:
+            notes.append(f"  {name:9s} – {exc}")
+        else:
+            usable.append(name)
+    return usable
+
+
+def _broken_plugins() -> list[str]:
+    """Third-party backends (entry points other than the project's own) that fail to import."""
+    from .registry import BUILTIN_BACKENDS, broken_backends
+
+    return [reason for name, reason in broken_backends().items() if name not in BUILTIN_BACKENDS]
 
 
 def check_robot(
@@ -149,10 +164,13 @@ def check_robot(
 
     from .probe import ProbePool
 
-    chosen = list(backends) if backends else _installed(SIMULATORS)
+    not_installed: list[str] = []
+    chosen = list(backends) if backends else _installed(SIMULATORS, not_installed)
     out.append("simulators (each in its own process):")
     if not chosen:
         out.append("  none installed")
+    out.extend(not_installed)
+    report.problems.extend(_broken_plugins())
     jobs = [{"robot": str(robot), "backend": b, "duration": 0.05, "options": {}} for b in chosen]
     if strict is not None:
         for job in jobs:

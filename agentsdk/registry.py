@@ -15,23 +15,23 @@ from .errors import BackendUnavailableError
 if TYPE_CHECKING:
     from .backend import Backend
 
-__all__ = ["available_backends", "load_backend", "register_backend", "unregister_backend"]
+__all__ = ["available_backends", "broken_backends", "load_backend", "register_backend", "unregister_backend"]
 
 GROUP = "agentsdk.backends"
 
 #: backends registered in-process (tests, notebooks); take precedence over entry points
 _local: dict[str, type[Backend]] = {}
 
-#: distribution extras hinted at when a backend's import fails
+#: install commands hinted at when a backend's optional dependency is missing (the extras in pyproject.toml)
 _HINTS = {
-    "mujoco": "pip install mujoco",
-    "pybullet": "pip install pybullet",
-    "can": "pip install python-can",
+    "mujoco": "pip install 'agentsdk[mujoco]'",
+    "pybullet": "pip install 'agentsdk[pybullet]'",
+    "can": "pip install 'agentsdk[can]'",
 }
 
 # Fallback when the distribution metadata is not installed (e.g. running from a
 # source tree without `pip install -e .`): our own backends by module path.
-_BUILTIN = {
+BUILTIN_BACKENDS = {
     "mock": "agentsdk.backends.mock:MockController",
     "mujoco": "agentsdk.backends.mujoco:MujocoController",
     "pybullet": "agentsdk.backends.pybullet:PybulletController",
@@ -41,7 +41,7 @@ _BUILTIN = {
 
 def _entry_points() -> dict[str, str]:
     found = {ep.name: ep.value for ep in entry_points(group=GROUP)}
-    return {**_BUILTIN, **found}
+    return {**BUILTIN_BACKENDS, **found}
 
 
 def available_backends() -> list[str]:
@@ -57,6 +57,21 @@ def register_backend(name: str, cls: type[Backend]) -> None:
 def unregister_backend(name: str) -> None:
     """Remove a backend registered with :func:`register_backend` (no error when absent)."""
     _local.pop(name, None)
+
+
+def broken_backends() -> dict[str, str]:
+    """Registered backends that cannot be imported here, each with the reason (an install hint or the error).
+
+    Imports every registered backend (the simulators and bus libraries included): meant for
+    diagnostics (``agentsdk check``, ``agentsdk backends``), not for the hot path.
+    """
+    broken: dict[str, str] = {}
+    for name in available_backends():
+        try:
+            load_backend(name)
+        except BackendUnavailableError as exc:
+            broken[name] = str(exc)
+    return broken
 
 
 def load_backend(name: str) -> type[Backend]:
@@ -77,6 +92,11 @@ def load_backend(name: str) -> type[Backend]:
         hint = _HINTS.get(name, f"install the package that provides {module_name!r}")
         raise BackendUnavailableError(
             f"backend {name!r} is not available: {exc.name or exc} is not installed ({hint})"
+        ) from exc
+    except Exception as exc:
+        # a broken plugin (any error while importing it) is isolated and named; the others still load
+        raise BackendUnavailableError(
+            f"backend {name!r} ({eps[name]}) failed to import: {type(exc).__name__}: {exc}"
         ) from exc
     cls = getattr(module, attr, None)
     if not (isinstance(cls, type) and issubclass(cls, Backend)):

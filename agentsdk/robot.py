@@ -406,7 +406,7 @@ class Robot:
 
     # ----------------------------------------------------------- lifecycle
     async def close(self) -> None:
-        """Leave the robot safe and release the backend. Idempotent; runs to completion if cancelled.
+        """Leave the robot safe and release the backend. Idempotent; completes even if cancelled, then re-raises.
 
         A controlled stop (e-stop category 1 or 2) in progress is completed first, so
         a category 1 stop reaches rest before torque is removed; then motions end,
@@ -414,11 +414,12 @@ class Robot:
         """
         if self._loop.closed:
             return
+        # Cancelled while waiting for the stop to finish: the cleanup below still runs to the end
+        # (the backend's close leaves the actuators safe), then the cancellation propagates
+        # (trio's ``aclose`` contract: never swallow it).
         try:
             if self.safety.stop_in_progress and self._loop.fault is None:
                 await asyncio.shield(self.safety.wait_stopped())
-        except asyncio.CancelledError:
-            pass  # closing anyway: the backend's close leaves the actuators safe
         finally:
             try:
                 self._motions.abort_all()

@@ -38,3 +38,54 @@ async def test_an_entry_point_backend_is_listed_and_connects(third_party: str) -
         assert robot.backend == "tiny"  # the class's own name; the entry point's name selects it
         await robot.move_to({"joint1": 0.2}, duration=0.5)
         assert abs((await robot.read()).positions()["joint1"] - 0.2) < 0.01
+
+
+@pytest.fixture
+def broken_plugin(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str]:
+    """A third-party backend whose import raises RuntimeError (not ImportError)."""
+    (tmp_path / "acme_broken_backend.py").write_text("raise RuntimeError('firmware blob missing')\n")
+    dist = tmp_path / "acme_broken-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: acme-broken\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text("[agentsdk.backends]\nbroken = acme_broken_backend:Broken\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    yield "broken"
+    sys.modules.pop("acme_broken_backend", None)
+
+
+async def test_a_plugin_that_raises_at_import_is_named_and_the_others_still_load(broken_plugin: str) -> None:
+    assert broken_plugin in available_backends()
+    with pytest.raises(agentsdk.BackendUnavailableError, match=r"'broken'.*RuntimeError: firmware blob missing"):
+        await agentsdk.connect(broken_plugin, robot="arm3")
+    async with agentsdk.connect("mujoco", robot="arm3") as robot:
+        await robot.move_to({"joint1": 0.1})
+
+
+def test_check_reports_a_broken_plugin(broken_plugin: str) -> None:
+    from agentsdk.check import check_robot
+
+    report = check_robot("arm3", backends=["mujoco"])
+    assert any("'broken'" in p and "RuntimeError" in p for p in report.problems), report.problems
+    assert any("mujoco" in line and "✓" in line for line in report.lines), report.lines
+
+
+def test_a_missing_optional_dependency_gives_the_install_command() -> None:
+    import subprocess
+
+    code = (
+        "import sys; sys.modules['pybullet'] = None\n"  # as if the pybullet extra were not installed
+        "import asyncio, agentsdk\n"
+        "async def fails():\n"
+        "    try:\n"
+        "        await agentsdk.connect('pybullet', robot='arm3')\n"
+        "    except agentsdk.BackendUnavailableError as exc:\n"
+        "        print('ERR', exc)\n"
+        "asyncio.run(fails())\n"
+        "async def main():\n"
+        "    async with agentsdk.connect('mujoco', robot='arm3') as robot:\n"
+        "        await robot.clock.sleep(0.01)\n"
+        "asyncio.run(main()); print('MUJOCO OK')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
+    assert "ERR backend 'pybullet' is not available" in out and "pip install 'agentsdk[pybullet]'" in out, out
+    assert "MUJOCO OK" in out

@@ -192,3 +192,19 @@ def _burn(seconds: float) -> None:
     n = 0
     while time.perf_counter() < end:
         n += sum(range(100))
+
+
+@pytest.mark.parametrize("backend", LOCKSTEP)
+async def test_close_cancelled_while_a_stop_runs_closes_then_reraises(backend: str) -> None:
+    """trio's ``aclose`` contract: a cancelled close still leaves the robot closed and safe, then re-raises."""
+    robot = await agentsdk.connect(backend, robot="arm3")
+    await robot.command(JointCommand("velocity", {"joint1": 1.0}))
+    await robot.clock.sleep(0.2)
+    robot.estop_threadsafe(1)  # a category 1 stop: close waits for it to reach rest
+    closing = asyncio.create_task(robot.close())
+    await asyncio.sleep(0)
+    closing.cancel()
+    async with asyncio.timeout(HANG_GUARD):
+        with pytest.raises(asyncio.CancelledError):
+            await closing
+    assert robot.closed

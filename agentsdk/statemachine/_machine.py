@@ -6,14 +6,14 @@ import asyncio
 import functools
 import inspect
 import logging
-from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, MutableMapping, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Mapping, MutableMapping, Sequence
 from types import MappingProxyType
 from typing import Any, ClassVar, Literal
 
 from ..errors import AgentSDKError
 from ..loop import HookHandle, Phase
 from ..scope import DEFAULT_STOP_TIMEOUT, ClockLike, LoopClock, MotionScope, MotionStopTimeoutError
-from ._declaration import Action, Edge, Guard, Spec, State
+from ._declaration import Action, Edge, Guard, Spec, State, region_names
 from ._errors import EventNotAllowed, RobotStoppedError, StateMachineDefinitionError, StateMachineError
 from ._runtime import (
     EMPTY,
@@ -430,7 +430,7 @@ class StateMachine:
         while True:
             state = spec.states[name]
             if state.final:
-                step = await self._sm_reach_final(state)
+                step = await self._sm_reach_final(state, event, data)
                 if step is None:
                     self._sm_finished = True
                     return name
@@ -452,11 +452,11 @@ class StateMachine:
             self._sm_record(name, step.target, step.event, time=step.time, duration=step.time - left_at)
             name, event, data = step.target, step.event, step.data
 
-    async def _sm_reach_final(self, state: State) -> Step | None:
+    async def _sm_reach_final(self, state: State, event: str | None, data: Mapping[str, Any]) -> Step | None:
         """Enter a final state: entry/exit actions, done data. A Step (to the fault path) if they fail."""
         assert state.name is not None
         path = f"{self._sm_path}/{state.name}"
-        ctx = StateContext(robot=self.robot, machine=self, state=path, clock=self.clock)
+        ctx = StateContext(robot=self.robot, machine=self, state=path, clock=self.clock, event=event, data=data)
         try:
             for kind in ("enter", "exit"):
                 await self._sm_call_action(kind, state, ctx)
@@ -854,39 +854,55 @@ class StateMachine:
     # ----------------------------------------------------------------- Mermaid
 
     @classmethod
-    def mermaid(cls) -> str:
-        """A Mermaid ``stateDiagram-v2`` of the machine (nested machines as composite states)."""
+    def mermaid(cls, visited: Iterable[str] | None = None) -> str:
+        """A Mermaid ``stateDiagram-v2`` of the machine (nested machines as composite states).
+
+        ``visited``: full state paths (``"Patrol/moving"``, ``"Patrol/picking/Approach/grasp"``,
+        e.g. :meth:`visited` of a run, or ``machine/target`` of a recording's transitions)
+        are highlighted with the ``visited`` class; paths of other machines are ignored.
+        """
         lines = ["stateDiagram-v2"]
-        cls._mermaid_into(lines, "    ", "")
+        ids: dict[str, str] = {}
+        cls._mermaid_into(lines, "    ", "", cls.__name__, ids)
+        if visited is not None:
+            hit = sorted({ids[p] for p in visited if p in ids})
+            lines.append("    classDef visited fill:#ffd966,stroke:#b45f06,stroke-width:2px")
+            if hit:
+                lines.append(f"    class {','.join(hit)} visited")
         return "\n".join(lines) + "\n"
 
+    def mermaid_run(self) -> str:
+        """The diagram of this machine with every state this run has entered highlighted."""
+        return type(self).mermaid(visited=self.visited())
+
     @classmethod
-    def _mermaid_into(cls, lines: list[str], indent: str, prefix: str) -> None:
+    def _mermaid_into(cls, lines: list[str], indent: str, prefix: str, path: str, ids: dict[str, str]) -> None:
         spec = cls._require_spec()
 
         def sid(name: str) -> str:
             return f"{prefix}{name}"
 
         for name, st in spec.states.items():
+            ids[f"{path}/{name}"] = sid(name)
             notes = []
             if st.timeout is not None:
                 notes.append(f"timeout {st.timeout:g}s")
             if st.fault:
                 notes.append("fault handler")
+            if st.history is not None:
+                notes.append(f"{st.history} history")
             if prefix:
                 lines.append(f'{indent}state "{name}" as {sid(name)}')
             if st.machine is not None or st.parallel is not None:
                 regions = (st.machine,) if st.machine is not None else st.parallel or ()
+                tags = region_names(regions)
                 lines.append(f"{indent}state {sid(name)} {{")
-                seen: dict[str, int] = {}
-                for i, region in enumerate(regions):
+                for i, (region, tag) in enumerate(zip(regions, tags, strict=True)):
                     if i:
                         lines.append(f"{indent}    --")
                     lines.append(f"{indent}    %% {region.__name__}")
-                    n = seen[region.__name__] = seen.get(region.__name__, 0) + 1
-                    tag = region.__name__ if n == 1 else f"{region.__name__}{n}"
                     inner = f"{sid(name)}__" if st.machine is not None else f"{sid(name)}__{tag}__"
-                    region._mermaid_into(lines, indent + "    ", inner)
+                    region._mermaid_into(lines, indent + "    ", inner, f"{path}/{name}/{region.__name__}", ids)
                 lines.append(f"{indent}}}")
             elif not prefix and not notes:
                 lines.append(f"{indent}{name}")
@@ -895,6 +911,8 @@ class StateMachine:
         lines.append(f"{indent}[*] --> {sid(spec.initial)}")
         for e in spec.edges:
             label = e.event if e.guard is None else f"{e.event} [{e.guard_label}]"
+            if e.internal:
+                label += " (internal)"
             lines.append(f"{indent}{sid(e.source)} --> {sid(e.target)} : {label}")
         for name, st in spec.states.items():
             if st.final:

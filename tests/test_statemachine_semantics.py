@@ -10,7 +10,9 @@ the machines are ours.
 from __future__ import annotations
 
 import asyncio
+import re
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -860,3 +862,36 @@ async def test_a_body_ignoring_an_aborted_motion_cannot_take_its_transition(robo
     again = Ignorant(robot)
     again.retry = True
     assert await again.run() == "arrived_state"
+
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+async def test_the_readme_patrol_block_with_an_estop_ends_in_fault_at_rest(robot: agentsdk.Robot) -> None:
+    """Issue 20 acceptance 7, on the README's own block: its ``Patrol`` (whose ``on_moving`` awaits
+    ``move_to`` and returns "arrived") with an e-stop injected mid-move ends in the fault state, and the
+    fault body starts with the robot at rest."""
+    block = next(b for b in re.findall(r"```python\n(.*?)```", README.read_text(), flags=re.S) if "class Patrol(" in b)
+    namespace: dict[str, Any] = {"__name__": "readme_patrol"}
+    exec(compile(block, "README.md[Patrol]", "exec"), namespace)
+
+    class Observed(namespace["Patrol"]):  # type: ignore[misc, name-defined]
+        async def on_fault(self, ctx: StateContext) -> Any:
+            self.at_fault = (ctx.robot.safety.stop_in_progress, speed(ctx.robot), ctx.error, ctx.clock.now())
+            return await super().on_fault(ctx)
+
+    m = Observed(robot)
+
+    async def estop_mid_move() -> None:
+        await m.wait_state("moving")
+        await robot.clock.sleep(0.1)
+        assert speed(robot) > 0.3
+        await robot.estop(category=2)
+
+    stopper = asyncio.create_task(estop_mid_move())
+    assert await m.run() == "done"
+    await stopper
+    stopping, v, error, _ = m.at_fault
+    assert not stopping and v < robot.safety.config.rest_velocity
+    assert isinstance(error, RobotStoppedError) and error.reason == "estop"
+    assert [r.target for r in m.history if r.target] == ["idle", "moving", "fault", "done"]

@@ -1146,7 +1146,7 @@ def test_issue26_options_are_validated_at_class_definition() -> None:
                 {"s": (s := State(initial=True, **kw)), "end": (e := State(final=True)), "go": s.to(e),
                  "done_s": s.to(e), "ok": s.to(e)},
             )
-    with pytest.raises(StateMachineDefinitionError, match="data= .* is only for final states"):
+    with pytest.raises(StateMachineDefinitionError, match=r"data= .* is only for final states"):
 
         class NotFinal(StateMachine):
             s = State(initial=True, data=("x",))

@@ -1152,3 +1152,44 @@ def test_issue26_options_are_validated_at_class_definition() -> None:
             s = State(initial=True, data=("x",))
             end = State(final=True)
             go = s.to(end)
+
+
+async def test_preemption_of_a_composite_state_reaches_its_nested_active_state(
+    robot: FakeRobot, clock: FakeClock
+) -> None:
+    """SMACH: ``request_preempt()`` on a container is passed to its running children; the nested
+    machine winds down (here through its own ``park`` state) within the composite's bound."""
+
+    class Tool(StateMachine):
+        working = State(initial=True)
+        parking = State()
+        parked = State(final=True)
+        park = working.to(parking)
+        stowed = parking.to(parked)
+
+        async def on_working(self, ctx: StateContext) -> str:
+            await ctx.wait_preempt()
+            return "park"
+
+        async def on_parking(self, ctx: StateContext) -> str:
+            assert not ctx.preempt_requested()  # a new state: not asked to stop
+            await ctx.sleep(0.3)
+            return "stowed"
+
+    class Cell(StateMachine):
+        tool = State(initial=True, machine=Tool, preempt_timeout=1.0)
+        off = State(final=True)
+        stop = tool.to(off)
+        done_tool = tool.to(off)
+
+    m = Cell(robot)
+    runner = asyncio.create_task(m.run())
+    await m.wait_state("working")
+    m.send("stop")
+    await m.wait_state("parking")
+    await clock.wait_sleepers(2)  # parking's sleep and the bound
+    clock.advance(0.3)
+    assert await runner == "off"
+    tool = [t for mach, t in ((r.machine, r.target) for r in m.history) if mach == "Cell/tool/Tool" and t]
+    assert tool == ["working", "parking", "parked"]
+    assert not any(r.note.startswith("preempted: body cancelled") for r in m.history)

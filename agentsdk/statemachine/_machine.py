@@ -110,6 +110,7 @@ class StateMachine:
         self._sm_start: str | None = None  # history: the state a nested machine resumes in
         self._sm_deep = False
         self._sm_subscribers: list[asyncio.Queue[HistoryRecord | None]] = []
+        self._sm_preempt = asyncio.Event()
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.state_path}>"
@@ -518,6 +519,12 @@ class StateMachine:
             pass
         return handles
 
+    def _sm_request_preempt(self) -> None:
+        """SMACH ``request_preempt``: the active state and its nested machines' active states."""
+        self._sm_preempt.set()
+        for child in self._sm_children:
+            child._sm_request_preempt()
+
     def _sm_poke(self) -> None:
         self._sm_queue.put_nowait(Poke())
         for child in self._sm_children:
@@ -555,7 +562,7 @@ class StateMachine:
         self._sm_baseline = self._sm_safety_cursor()
         self._sm_entered_at = self.clock.now()
         scope = MotionScope(path, clock=self.clock, stop_timeout=self.stop_timeout)
-        preempt = asyncio.Event() if state.preempt_timeout is not None else None
+        preempt = self._sm_preempt = asyncio.Event()
         ctx = StateContext(
             robot=self.robot,
             machine=self,
@@ -584,8 +591,8 @@ class StateMachine:
                     tasks.append(tg.create_task(self._sm_timer(state.timeout, token), name=f"{path} timeout"))
                 try:
                     step = await self._sm_dispatch(state, path, token, scope)
-                    if step.preemptive and preempt is not None and body_task is not None:
-                        await self._sm_grace(state, body_task, preempt, step)
+                    if step.preemptive and state.preempt_timeout is not None and body_task is not None:
+                        await self._sm_grace(state, body_task, step)
                 finally:
                     scope.cancel_all()  # decelerate-and-hold requested before anything else
                     for task in tasks:
@@ -612,12 +619,13 @@ class StateMachine:
                 step = await self._sm_fail(state, Failure(token, exc, path))
         return step
 
-    async def _sm_grace(self, state: State, body: asyncio.Task[None], preempt: asyncio.Event, step: Step) -> None:
-        """Graceful preemption: the body sees ``ctx.preempt_requested()`` and gets ``preempt_timeout`` to end."""
+    async def _sm_grace(self, state: State, body: asyncio.Task[None], step: Step) -> None:
+        """Graceful preemption: the body (or the nested machines' active states) see
+        ``ctx.preempt_requested()`` and get ``preempt_timeout`` to end by themselves."""
         assert state.preempt_timeout is not None
         if body.done():
             return
-        preempt.set()
+        self._sm_request_preempt()
         timer = asyncio.ensure_future(self.clock.sleep(state.preempt_timeout))
         try:
             await asyncio.wait((body, timer), return_when=asyncio.FIRST_COMPLETED)

@@ -116,11 +116,15 @@ class StateContext:
         return self.machine.userdata
 
     def preempt_requested(self) -> bool:
-        """True once the state is being left and the body may wind down (``State(preempt_timeout=...)``)."""
+        """True once the state is being left and the body may wind down.
+
+        Requested by this state's ``State(preempt_timeout=...)``, or an enclosing
+        composite state's (which asks its nested machines' active states).
+        """
         return self.preempt is not None and self.preempt.is_set()
 
     async def wait_preempt(self) -> None:
-        """Return when preemption is requested (never, for a state without ``preempt_timeout``)."""
+        """Return when preemption is requested (see :meth:`preempt_requested`)."""
         if self.preempt is None:
             await asyncio.get_running_loop().create_future()  # forever; cancelled when the state is left
         else:

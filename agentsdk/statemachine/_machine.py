@@ -621,7 +621,8 @@ class StateMachine:
 
     async def _sm_grace(self, state: State, body: asyncio.Task[None], step: Step) -> None:
         """Graceful preemption: the body (or the nested machines' active states) see
-        ``ctx.preempt_requested()`` and get ``preempt_timeout`` to end by themselves."""
+        ``ctx.preempt_requested()`` and get ``preempt_timeout`` to end by themselves.
+        """
         assert state.preempt_timeout is not None
         if body.done():
             return

@@ -1193,3 +1193,92 @@ async def test_preemption_of_a_composite_state_reaches_its_nested_active_state(
     tool = [t for mach, t in ((r.machine, r.target) for r in m.history) if mach == "Cell/tool/Tool" and t]
     assert tool == ["working", "parking", "parked"]
     assert not any(r.note.startswith("preempted: body cancelled") for r in m.history)
+
+
+# --------------------------------------------------------------------------- random machines (nobody named them)
+
+
+def _random_machine(rng: Any, depth: int, log: list[tuple[str, str]], tag: str) -> type[StateMachine]:
+    n = rng.randint(2, 4)
+    ns: dict[str, Any] = {"event_priority": rng.choice(["outer", "inner"])}
+    names = [f"s{i}" for i in range(n)]
+    for i, name in enumerate(names):
+        kw: dict[str, Any] = {"initial": i == 0}
+        if depth > 0 and rng.random() < 0.5:
+            if rng.random() < 0.7:
+                kw["machine"] = _random_machine(rng, depth - 1, log, f"{tag}{i}")
+            else:
+                kw["parallel"] = [_random_machine(rng, depth - 1, log, f"{tag}{i}p{k}") for k in range(2)]
+            kw["history"] = rng.choice([None, "shallow", "deep"])
+        ns[name] = State(**kw)
+    ns["end"] = State(final=True)
+    lists: dict[str, Any] = {}
+    for i, name in enumerate(names):
+        target = names[i + 1] if i + 1 < n else "end"
+        lists.setdefault("next", []).append(ns[name].to(ns[target]))
+        if ns[name].is_composite:
+            lists.setdefault(f"done_{name}", []).append(ns[name].to(ns[target]))
+        for event in ("back", "jump", "poke"):
+            if rng.random() < 0.4:
+                other = rng.choice(names)
+                internal = event == "poke" and rng.random() < 0.5
+                lists.setdefault(event, []).append(ns[name].to(ns[name] if internal else ns[other], internal=internal))
+    for event, tls in lists.items():
+        combined = tls[0]
+        for tl in tls[1:]:
+            combined = combined | tl
+        ns[event] = combined
+
+    def actions(state: str) -> tuple[Callable[..., None], Callable[..., None]]:
+        return (lambda self, ctx: log.append(("enter", ctx.state)), lambda self, ctx: log.append(("exit", ctx.state)))
+
+    for name in [*names, "end"]:
+        ns[f"on_enter_{name}"], ns[f"on_exit_{name}"] = actions(name)
+    return type(f"M{tag}", (StateMachine,), ns)
+
+
+@pytest.mark.parametrize("seed", range(40))
+async def test_random_machines_keep_entry_exit_nesting_and_a_consistent_configuration(
+    robot: FakeRobot, seed: int
+) -> None:
+    """SCXML §3.13 on machines nobody named: every exit follows its entry, a state is entered only
+    inside its active parent and exits only after its active descendants, and the configuration is
+    the set of entered-but-not-exited states (checked after every event and after cancellation)."""
+    import random
+
+    rng = random.Random(seed)
+    log: list[tuple[str, str]] = []
+    cls = _random_machine(rng, 2, log, "")
+    m = cls(robot)
+    runner = asyncio.create_task(m.run())
+
+    def active() -> set[str]:
+        open_: set[str] = set()
+        for kind, path in log:
+            if kind == "enter":
+                assert path not in open_, f"{path} entered twice: {log}"
+                parent = path.rsplit("/", 2)[0]  # ".../state/Machine/child" -> ".../state"
+                assert path.count("/") == 1 or parent in open_, f"{path} entered outside {parent}: {log}"
+                open_.add(path)
+            else:
+                assert path in open_, f"{path} exited without entry: {log}"
+                assert not any(p.startswith(path + "/") for p in open_), f"{path} exited before its children"
+                open_.discard(path)
+        return open_
+
+    for _ in range(25):
+        if runner.done():
+            break
+        m.send(rng.choice(["next", "back", "jump", "poke", "next"]))
+        for _ in range(30):
+            await asyncio.sleep(0)
+        still = active()
+        if not runner.done():
+            assert still == set(m.configuration), (still, m.configuration)
+    if not runner.done():
+        runner.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await runner
+    else:
+        assert await runner == "end"
+    assert active() == set(), log

@@ -459,8 +459,9 @@ class StateMachine:
         path = f"{self._sm_path}/{state.name}"
         ctx = StateContext(robot=self.robot, machine=self, state=path, clock=self.clock, event=event, data=data)
         try:
-            for kind in ("enter", "exit"):
-                await self._sm_call_action(kind, state, ctx)
+            await self._sm_call_action("enter", state, ctx)
+            if self.parent is None:  # the machine ends here: its final state exits (SCXML §3.13 exitInterpreter)
+                await self._sm_call_action("exit", state, ctx)
             if state.data is not None:
                 if callable(state.data):
                     values = state.data(self)
@@ -584,12 +585,15 @@ class StateMachine:
             async with asyncio.TaskGroup() as tg:
                 tasks: list[asyncio.Task[None]] = []
                 body_task: asyncio.Task[None] | None = None
+                entered = asyncio.Event()
                 if body is not None or self._sm_children or has_enter:
-                    body_task = tg.create_task(self._sm_body(state, body, ctx, scope, token), name=path)
+                    body_task = tg.create_task(self._sm_body(state, body, ctx, scope, token, entered), name=path)
                     tasks.append(body_task)
                 if state.timeout is not None:
                     tasks.append(tg.create_task(self._sm_timer(state.timeout, token), name=f"{path} timeout"))
                 try:
+                    if has_enter:
+                        await entered.wait()  # no event is handled before the entry action has run
                     step = await self._sm_dispatch(state, path, token, scope)
                     if step.preemptive and state.preempt_timeout is not None and body_task is not None:
                         await self._sm_grace(state, body_task, step)
@@ -599,18 +603,20 @@ class StateMachine:
                         task.cancel()
         except BaseException:
             # cancelled (or a BaseException from a body): stop the motions, then propagate
-            self._sm_children = []
+            children, self._sm_children = self._sm_children, []
             await self._sm_close_scope(scope, path, None)
             await self._sm_wait_rest()
             try:
+                await self._sm_exit_finished_children(children)
                 await self._sm_call_action("exit", state, ctx)
             except Exception:
                 _log.exception("%s: exit action failed while the state was cancelled", path)
             raise
-        self._sm_children = []
+        children, self._sm_children = self._sm_children, []
         await self._sm_close_scope(scope, path, step)
         await self._sm_wait_rest()  # a state is left at rest, whatever ends it
         try:
+            await self._sm_exit_finished_children(children)
             await self._sm_call_action("exit", state, ctx)
         except Exception as exc:
             if step.error is not None:
@@ -618,6 +624,14 @@ class StateMachine:
             else:
                 step = await self._sm_fail(state, Failure(token, exc, path))
         return step
+
+    async def _sm_exit_finished_children(self, children: list[StateMachine]) -> None:
+        """Exit actions of nested machines' final states: they stay active until their parent exits."""
+        for child in children:
+            final = child._sm_state
+            if child._sm_finished and final is not None:
+                ctx = StateContext(robot=self.robot, machine=child, state=f"{child._sm_path}/{final}", clock=self.clock)
+                await child._sm_call_action("exit", child._require_spec().states[final], ctx)
 
     async def _sm_grace(self, state: State, body: asyncio.Task[None], step: Step) -> None:
         """Graceful preemption: the body (or the nested machines' active states) see
@@ -662,12 +676,16 @@ class StateMachine:
         ctx: StateContext,
         scope: MotionScope,
         token: object,
+        entered: asyncio.Event,
     ) -> None:
         scope.activate()  # this task's context is private
         put = self._sm_queue.put_nowait
         data: Mapping[str, Any] = EMPTY
         try:
-            await self._sm_call_action("enter", state, ctx)  # entry action: in the state's scope, before its body
+            try:
+                await self._sm_call_action("enter", state, ctx)  # in the state's scope, before its body
+            finally:
+                entered.set()
             result: object = None
             if body is not None:
                 result = await body(ctx)

@@ -895,3 +895,34 @@ async def test_the_readme_patrol_block_with_an_estop_ends_in_fault_at_rest(robot
     assert not stopping and v < robot.safety.config.rest_velocity
     assert isinstance(error, RobotStoppedError) and error.reason == "estop"
     assert [r.target for r in m.history if r.target] == ["idle", "moving", "fault", "done"]
+
+
+async def test_the_fault_state_may_stop_and_reset_the_robot_itself(robot: agentsdk.Robot) -> None:
+    """The fault state handles stops: an e-stop its own body requests (to be safe, then reset and
+    enable) does not send the machine round the fault path again; it still exits at rest."""
+
+    class Careful(StateMachine):
+        work = State(initial=True)
+        fault = State(fault=True)
+        again = State()
+        end = State(final=True)
+        recovered = fault.to(again)
+        ok = again.to(end)
+
+        async def on_work(self, ctx: StateContext) -> None:
+            raise RuntimeError("gripper jammed")
+
+        async def on_fault(self, ctx: StateContext) -> str:
+            await ctx.robot.estop(category=2)
+            await ctx.robot.reset()
+            await ctx.robot.enable()
+            return "recovered"
+
+        async def on_again(self, ctx: StateContext) -> str:
+            self.moved = (await ctx.robot.move_to({"joint1": 0.2}, duration=0.5)).ok
+            return "ok"
+
+    m = Careful(robot)
+    assert await m.run() == "end"
+    assert [r.target for r in m.history if r.target] == ["work", "fault", "again", "end"]
+    assert m.moved  # type: ignore[attr-defined]

@@ -457,6 +457,7 @@ class StateMachine:
         """Enter a final state: entry/exit actions, done data. A Step (to the fault path) if they fail."""
         assert state.name is not None
         path = f"{self._sm_path}/{state.name}"
+        self._sm_entered_at = self.clock.now()
         ctx = StateContext(robot=self.robot, machine=self, state=path, clock=self.clock, event=event, data=data)
         try:
             await self._sm_call_action("enter", state, ctx)
@@ -756,7 +757,9 @@ class StateMachine:
 
     async def _sm_dispatch(self, state: State, path: str, token: object, scope: MotionScope) -> Step:
         assert state.name is not None
-        leaf = not self._sm_children  # a composite state's nested machines answer for their own states
+        # a composite state's nested machines answer for their own states; the fault state is where
+        # stops are handled (its body may e-stop or reset the robot itself), so it is not left for one
+        leaf = not self._sm_children and not state.fault
         while True:
             item = await self._sm_queue.get()
             data: Mapping[str, Any] = EMPTY

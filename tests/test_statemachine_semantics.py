@@ -390,7 +390,7 @@ def concurrent(finish: Any, miss: bool, arm_time: float = 0.6, grip_time: float 
 
 @pytest.mark.parametrize("miss", [False, True])
 async def test_concurrence_outcome_map(robot: agentsdk.Robot, miss: bool) -> None:
-    """SMACH Concurrence (executive_smach smach/test: concurrence outcome_map tests): the outcome is the
+    """SMACH Concurrence (executive_smach smach_ros/test/concurrence.py, test_concurrence): the outcome is the
     first map entry whose region outcomes all hold once every region ended; the result per region is
     the event's data."""
     m = concurrent("all", miss)(robot)
@@ -399,7 +399,8 @@ async def test_concurrence_outcome_map(robot: agentsdk.Robot, miss: bool) -> Non
 
 
 async def test_first_region_to_finish_preempts_the_others(robot: agentsdk.Robot) -> None:
-    """SMACH Concurrence ``child_termination_cb`` returning True: the first child to terminate preempts
+    """SMACH Concurrence ``child_termination_cb`` returning True (smach_ros/test/concurrence.py,
+    test_preempt): the first child to terminate preempts
     the rest; the preempted region's state exits (its exit action runs, its motion stops)."""
     m = concurrent("first", False, arm_time=2.0, grip_time=0.1)(robot)
     assert await m.run() == "partial"  # the default outcome: Arm never reached
@@ -409,7 +410,8 @@ async def test_first_region_to_finish_preempts_the_others(robot: agentsdk.Robot)
 
 
 async def test_termination_callback_decides_when_a_parallel_state_ends(robot: agentsdk.Robot) -> None:
-    """SMACH ``child_termination_cb(outcome_map) -> bool``, called each time a child terminates."""
+    """SMACH ``child_termination_cb(outcome_map) -> bool``, called each time a child terminates
+    (smach_ros/test/concurrence.py, test_no_preempt / test_outcome_cb)."""
     calls: list[dict[str, str | None]] = []
 
     def arm_done(results: Any) -> bool:
@@ -480,7 +482,8 @@ async def test_event_data_reaches_the_state_it_enters(robot: agentsdk.Robot) -> 
 
 
 async def test_data_flows_through_remapped_userdata(robot: agentsdk.Robot) -> None:
-    """SMACH remapping: the nested machine's ``goal``/``reached`` are the parent's ``target``/``result``,
+    """SMACH remapping (smach_ros/test/state_machine.py, test_userdata_remapping, test_userdata_nesting):
+    the nested machine's ``goal``/``reached`` are the parent's ``target``/``result``,
     its other keys are its own; ``args=`` seeds its userdata on entry; the final state's ``data=``
     is the done event's data (SCXML <donedata>)."""
 
@@ -580,8 +583,8 @@ class Grasp(StateMachine):
 
 @pytest.mark.parametrize("wind_down", [True, False])
 async def test_graceful_preemption_with_a_bound(robot: agentsdk.Robot, wind_down: bool) -> None:
-    """SMACH ``request_preempt()`` / ``preempt_requested()`` / ``service_preempt()`` (executive_smach
-    smach/test: preemption tests): the state is asked to wind down; here bounded by
+    """SMACH ``request_preempt()`` / ``preempt_requested()`` / ``service_preempt()`` (smach_ros/test/
+    concurrence.py: the Getter state polls ``preempt_requested()``): the state is asked to wind down; here bounded by
     ``preempt_timeout``, after which it is cancelled anyway (motions decelerate and hold)."""
     m = Grasp(robot, wind_down=wind_down)
     runner = asyncio.create_task(m.run())

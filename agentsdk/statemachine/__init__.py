@@ -73,7 +73,8 @@ Semantics:
   ``run()``), never by the transition its body or an event asked for; a body that
   returns an event although a motion it started was ``ABORTED`` (and no later one
   succeeded) goes the same way.  Every exit waits for a safety stop in progress
-  to reach rest before the next state's entry action or body starts.
+  to reach rest before the next state's entry action or body starts.  The fault
+  state itself is not left for a stop (its body may e-stop, reset and enable).
 * Entry/exit actions ``on_enter_<state>(self, ctx)`` / ``on_exit_<state>(self, ctx)``
   (sync or async) on any state, nested, parallel and final ones included; entry
   runs in the state's motion scope before the body, exit after the state's

@@ -929,3 +929,53 @@ async def test_the_fault_state_may_stop_and_reset_the_robot_itself(robot: agents
     assert await m.run() == "end"
     assert [r.target for r in m.history if r.target] == ["work", "fault", "again", "end"]
     assert m.moved  # type: ignore[attr-defined]
+
+
+async def test_an_estop_in_parallel_regions_reaches_the_fault_state_at_rest(robot: agentsdk.Robot) -> None:
+    """Issue 20 item 10 with parallel regions: both regions' moving states are left through the fault
+    path (their failures merged), and the enclosing fault body starts with the robot at rest."""
+
+    class J1(StateMachine):
+        go = State(initial=True)
+        end = State(final=True)
+        ok = go.to(end)
+
+        async def on_go(self, ctx: StateContext) -> str:
+            await ctx.robot.move_to({"joint1": 1.2})
+            return "ok"
+
+    class J3(StateMachine):
+        go = State(initial=True)
+        end = State(final=True)
+        ok = go.to(end)
+
+        async def on_go(self, ctx: StateContext) -> str:
+            await ctx.robot.move_to({"joint3": -1.0})
+            return "ok"
+
+    class Both(StateMachine):
+        work = State(initial=True, parallel=[J1, J3])
+        fault = State(fault=True)
+        end = State(final=True)
+        done_work = work.to(end)
+        out = fault.to(end)
+
+        async def on_fault(self, ctx: StateContext) -> str:
+            self.at_fault = (ctx.robot.safety.stop_in_progress, speed(ctx.robot), ctx.error)
+            return "out"
+
+    m = Both(robot)
+
+    async def estop_soon() -> None:
+        await m.wait_state("J3/go")
+        await robot.clock.sleep(0.3)
+        await robot.estop(category=2)
+
+    stopper = asyncio.create_task(estop_soon())
+    assert await m.run() == "end"
+    await stopper
+    stopping, v, error = m.at_fault  # type: ignore[attr-defined]
+    assert not stopping and v < robot.safety.config.rest_velocity
+    causes = list(error.exceptions) if isinstance(error, ExceptionGroup) else [error]
+    assert causes and all(isinstance(c, RobotStoppedError) for c in causes)
+    assert ("Both", "work", "end", "done_work") not in moves(m)

@@ -10,11 +10,12 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Mappin
 from types import MappingProxyType
 from typing import Any, ClassVar, Literal
 
-from ..errors import AgentSDKError
-from ..loop import HookHandle, Phase
+from ..loop import HookHandle
 from ..scope import DEFAULT_STOP_TIMEOUT, ClockLike, LoopClock, MotionScope, MotionStopTimeoutError
-from ._declaration import Action, Edge, Guard, Spec, State, region_names
+from ._declaration import Action, Edge, Guard, Spec, State
 from ._errors import EventNotAllowed, RobotStoppedError, StateMachineDefinitionError, StateMachineError
+from ._mermaid import render_mermaid
+from ._rest import ignored_abort, safety_cursor, stop_since, wait_rest, watch_safety
 from ._runtime import (
     EMPTY,
     Completion,
@@ -498,28 +499,7 @@ class StateMachine:
 
     def _sm_watch_safety(self) -> list[HookHandle]:
         """Wake the active states whenever the robot's safety layer records something (an e-stop, a fault)."""
-        safety = getattr(self.robot, "safety", None)
-        add_hook = getattr(self.robot, "add_tick_hook", None)
-        if safety is None or add_hook is None or not hasattr(safety, "event_count"):
-            return []
-        seen = [safety.event_count]
-
-        def on_tick(t: float, state: object, setpoint: object) -> None:
-            n = safety.event_count
-            if n != seen[0]:
-                seen[0] = n
-                self._sm_poke()
-
-        def on_fault(exc: BaseException) -> None:
-            self._sm_poke()
-
-        handles: list[HookHandle] = []
-        try:
-            handles.append(add_hook(Phase.OBSERVE, on_tick, order=2000))  # after the safety layer's watchdogs
-            handles.append(self.robot.add_fault_listener(on_fault))
-        except AgentSDKError:  # a closed robot: nothing to watch (its commands raise)
-            pass
-        return handles
+        return watch_safety(self.robot, self._sm_poke)
 
     def _sm_request_preempt(self) -> None:
         """SMACH ``request_preempt``: the active state and its nested machines' active states."""
@@ -534,34 +514,14 @@ class StateMachine:
 
     def _sm_stopped(self, path: str) -> RobotStoppedError | None:
         """The e-stop / safety fault recorded since the current state was entered, if any."""
-        safety = getattr(self.robot, "safety", None)
-        events_since = getattr(safety, "events_since", None)
-        if events_since is None:
-            return None
-        stops = [e for e in events_since(self._sm_baseline) if e.kind in ("estop", "fault")]
-        if not stops:
-            return None
-        reason = "fault" if any(e.kind == "fault" for e in stops) else "estop"
-        detail = "; ".join(f"{e.kind}: {e.detail}" for e in stops[:3])
-        message = f"{path}: the robot was stopped while the state ran ({detail})"
-        return RobotStoppedError(message, reason=reason, path=path)
-
-    def _sm_safety_cursor(self) -> int:
-        count = getattr(getattr(self.robot, "safety", None), "event_count", 0)
-        return count if isinstance(count, int) else 0
-
-    async def _sm_wait_rest(self) -> None:
-        """Wait until a safety stop in progress has brought the robot to rest."""
-        safety = getattr(self.robot, "safety", None)
-        if safety is not None and getattr(safety, "stop_in_progress", False) is True:
-            await safety.wait_stopped()
+        return stop_since(self.robot, self._sm_baseline, path)
 
     async def _sm_run_state(self, state: State, event: str | None, data: Mapping[str, Any], resume_deep: bool) -> Step:
         assert state.name is not None
         path = f"{self._sm_path}/{state.name}"
         token = object()
         self._sm_token = token
-        self._sm_baseline = self._sm_safety_cursor()
+        self._sm_baseline = safety_cursor(self.robot)
         self._sm_entered_at = self.clock.now()
         scope = MotionScope(path, clock=self.clock, stop_timeout=self.stop_timeout)
         preempt = self._sm_preempt = asyncio.Event()
@@ -606,7 +566,7 @@ class StateMachine:
             # cancelled (or a BaseException from a body): stop the motions, then propagate
             children, self._sm_children = self._sm_children, []
             await self._sm_close_scope(scope, path, None)
-            await self._sm_wait_rest()
+            await wait_rest(self.robot)
             try:
                 await self._sm_exit_finished_children(children)
                 await self._sm_call_action("exit", state, ctx)
@@ -615,7 +575,7 @@ class StateMachine:
             raise
         children, self._sm_children = self._sm_children, []
         await self._sm_close_scope(scope, path, step)
-        await self._sm_wait_rest()  # a state is left at rest, whatever ends it
+        await wait_rest(self.robot)  # a state is left at rest, whatever ends it
         try:
             await self._sm_exit_finished_children(children)
             await self._sm_call_action("exit", state, ctx)
@@ -823,7 +783,7 @@ class StateMachine:
                 f"state body of {path} returned {event!r}, not one of its declared outcomes {sorted(declared)}"
             )
         if scope is not None:
-            aborted = _ignored_abort(scope)
+            aborted = ignored_abort(scope)
             if aborted is not None:
                 message = f"{path}: body returned {event!r} but its motion was aborted ({aborted})"
                 return RobotStoppedError(message, reason="aborted", path=path)
@@ -891,86 +851,16 @@ class StateMachine:
         e.g. :meth:`visited` of a run, or ``machine/target`` of a recording's transitions)
         are highlighted with the ``visited`` class; paths of other machines are ignored.
         """
-        lines = ["stateDiagram-v2"]
-        ids: dict[str, str] = {}
-        cls._mermaid_into(lines, "    ", "", cls.__name__, ids)
-        if visited is not None:
-            hit = sorted({ids[p] for p in visited if p in ids})
-            lines.append("    classDef visited fill:#ffd966,stroke:#b45f06,stroke-width:2px")
-            if hit:
-                lines.append(f"    class {','.join(hit)} visited")
-        return "\n".join(lines) + "\n"
+        return render_mermaid(cls, visited)
 
     def mermaid_run(self) -> str:
         """The diagram of this machine with every state this run has entered highlighted."""
-        return type(self).mermaid(visited=self.visited())
-
-    @classmethod
-    def _mermaid_into(cls, lines: list[str], indent: str, prefix: str, path: str, ids: dict[str, str]) -> None:
-        spec = cls._require_spec()
-
-        def sid(name: str) -> str:
-            return f"{prefix}{name}"
-
-        for name, st in spec.states.items():
-            ids[f"{path}/{name}"] = sid(name)
-            notes = []
-            if st.timeout is not None:
-                notes.append(f"timeout {st.timeout:g}s")
-            if st.fault:
-                notes.append("fault handler")
-            if st.history is not None:
-                notes.append(f"{st.history} history")
-            if prefix:
-                lines.append(f'{indent}state "{name}" as {sid(name)}')
-            if st.machine is not None or st.parallel is not None:
-                regions = (st.machine,) if st.machine is not None else st.parallel or ()
-                tags = region_names(regions)
-                lines.append(f"{indent}state {sid(name)} {{")
-                for i, (region, tag) in enumerate(zip(regions, tags, strict=True)):
-                    if i:
-                        lines.append(f"{indent}    --")
-                    lines.append(f"{indent}    %% {region.__name__}")
-                    inner = f"{sid(name)}__" if st.machine is not None else f"{sid(name)}__{tag}__"
-                    region._mermaid_into(lines, indent + "    ", inner, f"{path}/{name}/{region.__name__}", ids)
-                lines.append(f"{indent}}}")
-            elif not prefix and not notes:
-                lines.append(f"{indent}{name}")
-            for note in notes:
-                lines.append(f"{indent}{sid(name)} : {note}")
-        lines.append(f"{indent}[*] --> {sid(spec.initial)}")
-        for e in spec.edges:
-            label = e.event if e.guard is None else f"{e.event} [{e.guard_label}]"
-            if e.internal:
-                label += " (internal)"
-            lines.append(f"{indent}{sid(e.source)} --> {sid(e.target)} : {label}")
-        for name, st in spec.states.items():
-            if st.final:
-                lines.append(f"{indent}{sid(name)} --> [*]")
+        return render_mermaid(type(self), self.visited())
 
 
 async def _maybe_await(result: object) -> None:
     if inspect.isawaitable(result):
         await result
-
-
-def _ignored_abort(scope: MotionScope) -> str | None:
-    """The last ABORTED motion of ``scope`` if no motion started after it succeeded (the body ignored it)."""
-    aborted: str | None = None
-    for motion in scope.motions:
-        if not motion.done():
-            continue
-        get = getattr(motion, "result", None)
-        try:
-            result = get() if callable(get) else None
-        except BaseException:  # a motion that failed with an exception: the body saw it raise
-            continue
-        code = getattr(getattr(result, "code", None), "name", None)
-        if code == "ABORTED":
-            aborted = str(getattr(result, "message", "") or "ABORTED")
-        elif code == "SUCCESSFUL":
-            aborted = None
-    return aborted
 
 
 @functools.cache

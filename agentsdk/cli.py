@@ -8,6 +8,7 @@
 ``agentsdk check ROBOT``        check_urdf plus a doctor: repairs, masses, start pose, self-collision,
                                 and a load on each installed simulator (each in its own process)
 ``agentsdk graph BEHAVIOR``     print the Mermaid diagram of the behavior's state machines
+                                (``--run run.mcap``: the states that run entered highlighted)
 ``agentsdk emulate-can ...``    run the MIT motor emulator on a CAN bus
 ``agentsdk bench ...``          run the benchmarks, each figure beside its raw baseline
 ``agentsdk vcan -- CMD``        run CMD inside user-mode Linux with a SocketCAN vcan0
@@ -636,10 +637,16 @@ def _cmd_graph(args: argparse.Namespace) -> int:
     machines = find_machines(module)
     if not machines:
         raise ConfigurationError(f"{args.behavior} defines no StateMachine")
+    visited: list[str] | None = None
+    if args.run is not None:  # highlight the states a recorded run entered
+        from .recording import read_recording
+
+        transitions = read_recording(args.run).transitions
+        visited = [f"{t['machine']}/{t['target']}" for t in transitions if t.get("target")]
     for i, machine in enumerate(machines):
         if i:
             print()
-        print(machine.mermaid())
+        print(machine.mermaid(visited=visited))
     return 0
 
 
@@ -724,6 +731,8 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--timeout", type=float, default=300.0, help="seconds allowed per simulator load")
     g = sub.add_parser("graph", help="print the Mermaid diagram of a behavior's state machines")
     g.add_argument("behavior")
+    g.add_argument("--run", metavar="RECORDING", default=None,
+                   help="a recording (--record) of the behavior: highlight the states the run entered")
     sub.add_parser("emulate-can", help="run the MIT motor emulator (see `agentsdk emulate-can --help`)",
                    add_help=False)
     sub.add_parser("bench", help="run the benchmarks against their raw baselines (see `agentsdk bench --help`)",

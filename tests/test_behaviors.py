@@ -74,3 +74,14 @@ def test_patrol_graph(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["graph", str(BEHAVIORS_DIR / "patrol.py")]) == 0
     out = capsys.readouterr().out
     assert "stateDiagram-v2" in out and "moving --> fault : timeout" in out
+
+
+@pytest.mark.parametrize("backend", ["mock", "mujoco", "pybullet"])
+def test_pick_place_state_machine_resumes_where_it_was_paused(
+    backend: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 26 acceptance 2: the Concurrence/history/userdata pick-and-place on both simulators."""
+    assert cli_main(["run", str(BEHAVIORS_DIR / "pick_place_sm.py"), "--backend", backend, "--quiet"]) == 0
+    out = capsys.readouterr().out
+    assert "-> pause" in out and "-> resume" in out
+    assert "ended in 'done'" in out and "grasps 1, resumed" in out and "placed 'cube'" in out

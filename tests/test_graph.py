@@ -40,3 +40,44 @@ def test_patrol_mermaid_matches_declared_graph(capsys: pytest.CaptureFixture[str
     assert "    [*] --> start" in lines
     assert {"    done --> [*]", "    failed --> [*]"} <= set(lines)
     assert sum("[*] -->" in ln for ln in lines) == 1
+
+
+RUN_BEHAVIOR = '''
+from agentsdk.statemachine import State, StateMachine
+
+
+class Hop(StateMachine):
+    start = State(initial=True)
+    hop = State()
+    landed = State(final=True)
+    crashed = State(final=True)
+    go = start.to(hop)
+    down = hop.to(landed)
+    fall = hop.to(crashed)
+
+    async def on_start(self, ctx):
+        return "go"
+
+    async def on_hop(self, ctx):
+        await ctx.robot.move_to({"joint1": 0.2}, duration=0.5)
+        return "down"
+
+
+async def main(robot):
+    await Hop(robot).run()
+'''
+
+
+def test_graph_of_a_recorded_run_highlights_the_visited_states(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Issue 26 (introspection): `agentsdk graph BEHAVIOR --run RUN.mcap` draws the run on the diagram."""
+    behavior = tmp_path / "hop.py"
+    behavior.write_text(RUN_BEHAVIOR)
+    run = tmp_path / "hop.mcap"
+    assert cli_main(["run", str(behavior), "--backend", "mock", "--record", str(run), "-q"]) == 0
+    capsys.readouterr()
+    assert cli_main(["graph", str(behavior), "--run", str(run)]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln]
+    assert "    classDef visited fill:#ffd966,stroke:#b45f06,stroke-width:2px" in lines
+    assert lines[-1] == "    class hop,landed,start visited"  # not "crashed": the run never entered it

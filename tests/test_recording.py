@@ -138,6 +138,9 @@ def test_safety_events_and_state_machine_transitions_are_recorded(tmp_path: Path
     assert moves == [(None, "idle", None), ("idle", "reach", "go"), ("reach", "done", "finish")]
     assert [tr["time"] for tr in data.transitions] == pytest.approx([0.0, 0.1, 0.3])
     assert {tr["machine"] for tr in data.transitions} == {"Reach"}
+    # introspection (issue 26): the active configuration after each record and the time spent in the source
+    assert [tr["configuration"] for tr in data.transitions] == ["Reach/idle", "Reach/reach", "Reach/done"]
+    assert [tr["duration"] for tr in data.transitions] == [None, pytest.approx(0.1), pytest.approx(0.2)]
 
 
 # ----------------------------------------------------------------- replay

@@ -9,6 +9,7 @@ yields to the event loop).
 from __future__ import annotations
 
 import asyncio
+import functools
 import sys
 from collections.abc import AsyncIterator, Callable, Generator
 from typing import Any
@@ -919,3 +920,365 @@ def test_find_machines_lists_module_machines_in_order(tmp_path: Any) -> None:
         "    go = start.to(end)\n"
     )
     assert [m.__name__ for m in find_machines(str(behavior))] == ["Walk"]
+
+
+# --------------------------------------------------------------------------- issue 26 constructs (virtual time)
+
+
+@functools.cache
+def regions() -> tuple[type[StateMachine], type[StateMachine]]:
+    """Two region machines (built once, not at module level: find_machines' test lists those)."""
+
+    class RegionA(StateMachine):
+        a1 = State(initial=True)
+        a2 = State()
+        a_end = State(final=True)
+        step = a1.to(a2) | a2.to(a_end)
+
+    class RegionB(StateMachine):
+        b1 = State(initial=True)
+        b2 = State()
+        b_end = State(final=True)
+        step = b1.to(b2) | b2.to(b_end)
+
+    return RegionA, RegionB
+
+
+async def test_history_of_a_parallel_state_resumes_every_region(robot: FakeRobot) -> None:
+    """SCXML §3.10 with a <parallel> parent: the history holds every region's active state."""
+
+    RegionA, RegionB = regions()
+
+    class Par(StateMachine):
+        both = State(initial=True, parallel=[RegionA, RegionB], history="shallow")
+        away = State()
+        end = State(final=True)
+        leave = both.to(away)
+        back = away.to(both)
+        done_both = both.to(end)
+
+    m = Par(robot)
+    runner = asyncio.create_task(m.run())
+    await m.wait_state("a1")
+    m.send("step")  # forwarded to both regions: a1 -> a2, b1 -> b2
+    await m.wait_state("a2")
+    await m.wait_state("b2")
+    m.send("leave")
+    await m.wait_state("away")
+    m.send("back")
+    await m.wait_state("both")
+    await until(lambda: m.state_path == "Par/both/[RegionA/a2|RegionB/b2]")
+    m.send("step")
+    assert await runner == "end"
+
+
+async def test_entry_and_exit_action_errors_go_to_the_fault_state(robot: FakeRobot) -> None:
+    """python-statemachine tests/machines/error/error_in_on_enter_sc.py: an error in an action is an
+    error of the state (SCXML §5.10 error.execution), routed to the fault state."""
+
+    class Boom(StateMachine):
+        a = State(initial=True)
+        b = State()
+        end = State(final=True)
+        fault = State(fault=True)
+        go = a.to(b)
+        fin = b.to(end)
+        recover = fault.to(end)
+
+        def __init__(self, robot: Any, where: str) -> None:
+            super().__init__(robot)
+            self.where = where
+            self.errors: list[str] = []
+
+        async def on_a(self, ctx: StateContext) -> str:
+            return "go"
+
+        def on_exit_a(self, ctx: StateContext) -> None:
+            if self.where == "exit":
+                raise ValueError("exit failed")
+
+        async def on_enter_b(self, ctx: StateContext) -> None:
+            if self.where == "enter":
+                raise ValueError("enter failed")
+
+        async def on_fault(self, ctx: StateContext) -> str:
+            self.errors.append(str(ctx.error))
+            return "recover"
+
+    for where in ("exit", "enter"):
+        m = Boom(robot, where)
+        assert await m.run() == "end"
+        assert m.errors == [f"{where} failed"]
+        assert [t for _, t, _ in moves(m)][-2] == "fault"
+
+
+async def test_transition_action_runs_between_exit_and_entry_with_the_event_data(robot: FakeRobot) -> None:
+    """SCXML §3.13 (executable content of a transition runs after the exits and before the entries)."""
+    log: list[str] = []
+
+    class Act(StateMachine):
+        a = State(initial=True)
+        b = State(final=True)
+        go = a.to(b, action=lambda m, event, data: log.append(f"action {event} {dict(data)}"))
+
+        def on_exit_a(self, ctx: StateContext) -> None:
+            log.append("exit a")
+
+        def on_enter_b(self, ctx: StateContext) -> None:
+            log.append(f"enter b {dict(ctx.data)}")
+
+    m = Act(robot)
+    runner = asyncio.create_task(m.run())
+    await m.wait_state("a")
+    m.send("go", {"n": 1})
+    assert await runner == "b"
+    assert log == ["exit a", "action go {'n': 1}", "enter b {'n': 1}"]
+
+
+async def test_guarded_internal_transition_and_inner_priority_two_levels_deep(robot: FakeRobot) -> None:
+    """transitions tests/test_nesting.py (the deepest state's trigger wins) and SCXML §3.13; a blocked
+    guard on the inner transitions hands the event to the outer machine."""
+    counted: list[str] = []
+
+    class Leaf(StateMachine):
+        x = State(initial=True)
+        y = State(final=True)
+        poke = x.internal(lambda m, e, d: counted.append("leaf"), guard=lambda m: m.armed)
+        finish = x.to(y)
+        armed = True
+
+    class Mid(StateMachine):
+        event_priority = "inner"
+        inner = State(initial=True, machine=Leaf)
+        out = State(final=True)
+        done_inner = inner.to(out)
+
+    class Top(StateMachine):
+        event_priority = "inner"
+        mid = State(initial=True, machine=Mid)
+        stopped = State(final=True)
+        poke = mid.to(stopped)
+        done_mid = mid.to(stopped)
+
+    m = Top(robot)
+    runner = asyncio.create_task(m.run())
+    await m.wait_state("x")
+    m.send("poke")  # the leaf takes it in place
+    await until(lambda: counted == ["leaf"])
+    assert m.state_path == "Top/mid/Mid/inner/Leaf/x"
+    m.children[0].children[0].armed = False  # type: ignore[attr-defined]
+    m.send("poke")  # the leaf's guard blocks: the top takes it
+    assert await runner == "stopped"
+    assert counted == ["leaf"]
+
+
+async def test_preemption_grace_applies_to_the_timeout_and_done_data_callable(
+    robot: FakeRobot, clock: FakeClock
+) -> None:
+    """SMACH preemption with a bound, triggered by the state's own timeout; SCXML <donedata> computed."""
+
+    class Slow(StateMachine):
+        work = State(initial=True, timeout=1.0, preempt_timeout=0.5)
+        end = State(final=True, data=lambda m: {"wound_down": m.wound_down})
+        timeout = work.to(end)
+        wound_down = False
+
+        async def on_work(self, ctx: StateContext) -> None:
+            await ctx.wait_preempt()
+            await ctx.sleep(0.2)  # wind down within the bound
+            self.wound_down = True
+
+    m = Slow(robot)
+    runner = asyncio.create_task(m.run())
+    await clock.wait_sleepers(1)
+    clock.advance(1.0)  # the timeout: preemption requested
+    await clock.wait_sleepers(2)  # the body's wind-down sleep and the bound
+    clock.advance(0.2)
+    assert await runner == "end"
+    assert m.done_data == {"wound_down": True}
+
+
+async def test_remapped_key_missing_in_the_parent_is_an_error_of_the_state(robot: FakeRobot) -> None:
+    """SMACH: reading a remapped key the parent does not have is a KeyError in the state's code."""
+
+    class Needs(StateMachine):
+        read = State(initial=True)
+        end = State(final=True)
+        ok = read.to(end)
+
+        async def on_read(self, ctx: StateContext) -> str:
+            ctx.userdata["value"]
+            return "ok"
+
+    class Holder(StateMachine):
+        sub = State(initial=True, machine=Needs, remap={"value": "missing"})
+        end = State(final=True)
+        fault = State(fault=True)
+        done_sub = sub.to(end)
+        out = fault.to(end)
+
+        async def on_fault(self, ctx: StateContext) -> str:
+            self.error = ctx.error
+            return "out"
+
+    m = Holder(robot)
+    assert await m.run() == "end"
+    assert isinstance(m.error, KeyError) and m.error.args == ("value",)
+
+
+def test_issue26_options_are_validated_at_class_definition() -> None:
+    """python-statemachine validates declarations when the class is created (factory.py)."""
+    RegionA, RegionB = regions()
+    cases: list[tuple[str, dict[str, Any]]] = [
+        ("history= is only for machine= or parallel=", {"history": "deep"}),
+        ("history must be 'shallow' or 'deep'", {"history": "full", "machine": RegionA}),
+        ("preempt_timeout must be", {"preempt_timeout": -1.0}),
+        ("remap= and args= are only for", {"remap": {"a": "b"}}),
+        ("finish= and outcome_map= are only for parallel", {"finish": "first", "machine": RegionA}),
+        ("finish must be", {"finish": "some", "parallel": [RegionA]}),
+        ("names region 'RegionC'", {"parallel": [RegionA, RegionB], "outcome_map": {"ok": {"RegionC": "a_end"}}}),
+    ]
+    for message, kw in cases:
+        with pytest.raises(StateMachineDefinitionError, match=message):
+            type(
+                "Bad",
+                (StateMachine,),
+                {"s": (s := State(initial=True, **kw)), "end": (e := State(final=True)), "go": s.to(e),
+                 "done_s": s.to(e), "ok": s.to(e)},
+            )
+    with pytest.raises(StateMachineDefinitionError, match=r"data= .* is only for final states"):
+
+        class NotFinal(StateMachine):
+            s = State(initial=True, data=("x",))
+            end = State(final=True)
+            go = s.to(end)
+
+
+async def test_preemption_of_a_composite_state_reaches_its_nested_active_state(
+    robot: FakeRobot, clock: FakeClock
+) -> None:
+    """SMACH: ``request_preempt()`` on a container is passed to its running children; the nested
+    machine winds down (here through its own ``park`` state) within the composite's bound."""
+
+    class Tool(StateMachine):
+        working = State(initial=True)
+        parking = State()
+        parked = State(final=True)
+        park = working.to(parking)
+        stowed = parking.to(parked)
+
+        async def on_working(self, ctx: StateContext) -> str:
+            await ctx.wait_preempt()
+            return "park"
+
+        async def on_parking(self, ctx: StateContext) -> str:
+            assert not ctx.preempt_requested()  # a new state: not asked to stop
+            await ctx.sleep(0.3)
+            return "stowed"
+
+    class Cell(StateMachine):
+        tool = State(initial=True, machine=Tool, preempt_timeout=1.0)
+        off = State(final=True)
+        stop = tool.to(off)
+        done_tool = tool.to(off)
+
+    m = Cell(robot)
+    runner = asyncio.create_task(m.run())
+    await m.wait_state("working")
+    m.send("stop")
+    await m.wait_state("parking")
+    await clock.wait_sleepers(2)  # parking's sleep and the bound
+    clock.advance(0.3)
+    assert await runner == "off"
+    tool = [t for mach, t in ((r.machine, r.target) for r in m.history) if mach == "Cell/tool/Tool" and t]
+    assert tool == ["working", "parking", "parked"]
+    assert not any(r.note.startswith("preempted: body cancelled") for r in m.history)
+
+
+# --------------------------------------------------------------------------- random machines (nobody named them)
+
+
+def _random_machine(rng: Any, depth: int, log: list[tuple[str, str]], tag: str) -> type[StateMachine]:
+    n = rng.randint(2, 4)
+    ns: dict[str, Any] = {"event_priority": rng.choice(["outer", "inner"])}
+    names = [f"s{i}" for i in range(n)]
+    for i, name in enumerate(names):
+        kw: dict[str, Any] = {"initial": i == 0}
+        if depth > 0 and rng.random() < 0.5:
+            if rng.random() < 0.7:
+                kw["machine"] = _random_machine(rng, depth - 1, log, f"{tag}{i}")
+            else:
+                kw["parallel"] = [_random_machine(rng, depth - 1, log, f"{tag}{i}p{k}") for k in range(2)]
+            kw["history"] = rng.choice([None, "shallow", "deep"])
+        ns[name] = State(**kw)
+    ns["end"] = State(final=True)
+    lists: dict[str, Any] = {}
+    for i, name in enumerate(names):
+        target = names[i + 1] if i + 1 < n else "end"
+        lists.setdefault("next", []).append(ns[name].to(ns[target]))
+        if ns[name].is_composite:
+            lists.setdefault(f"done_{name}", []).append(ns[name].to(ns[target]))
+        for event in ("back", "jump", "poke"):
+            if rng.random() < 0.4:
+                other = rng.choice(names)
+                internal = event == "poke" and rng.random() < 0.5
+                lists.setdefault(event, []).append(ns[name].to(ns[name] if internal else ns[other], internal=internal))
+    for event, tls in lists.items():
+        combined = tls[0]
+        for tl in tls[1:]:
+            combined = combined | tl
+        ns[event] = combined
+
+    def actions(state: str) -> tuple[Callable[..., None], Callable[..., None]]:
+        return (lambda self, ctx: log.append(("enter", ctx.state)), lambda self, ctx: log.append(("exit", ctx.state)))
+
+    for name in [*names, "end"]:
+        ns[f"on_enter_{name}"], ns[f"on_exit_{name}"] = actions(name)
+    return type(f"M{tag}", (StateMachine,), ns)
+
+
+@pytest.mark.parametrize("seed", range(40))
+async def test_random_machines_keep_entry_exit_nesting_and_a_consistent_configuration(
+    robot: FakeRobot, seed: int
+) -> None:
+    """SCXML §3.13 on machines nobody named: every exit follows its entry, a state is entered only
+    inside its active parent and exits only after its active descendants, and the configuration is
+    the set of entered-but-not-exited states (checked after every event and after cancellation)."""
+    import random
+
+    rng = random.Random(seed)
+    log: list[tuple[str, str]] = []
+    cls = _random_machine(rng, 2, log, "")
+    m = cls(robot)
+    runner = asyncio.create_task(m.run())
+
+    def active() -> set[str]:
+        open_: set[str] = set()
+        for kind, path in log:
+            if kind == "enter":
+                assert path not in open_, f"{path} entered twice: {log}"
+                parent = path.rsplit("/", 2)[0]  # ".../state/Machine/child" -> ".../state"
+                assert path.count("/") == 1 or parent in open_, f"{path} entered outside {parent}: {log}"
+                open_.add(path)
+            else:
+                assert path in open_, f"{path} exited without entry: {log}"
+                assert not any(p.startswith(path + "/") for p in open_), f"{path} exited before its children"
+                open_.discard(path)
+        return open_
+
+    for _ in range(25):
+        if runner.done():
+            break
+        m.send(rng.choice(["next", "back", "jump", "poke", "next"]))
+        for _ in range(30):
+            await asyncio.sleep(0)
+        still = active()
+        if not runner.done():
+            assert still == set(m.configuration), (still, m.configuration)
+    if not runner.done():
+        runner.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await runner
+    else:
+        assert await runner == "end"
+    assert active() == set(), log

@@ -120,6 +120,8 @@ TRANSITION_SCHEMA: dict[str, Any] = {
         "target": {"type": ["string", "null"]},
         "event": {"type": ["string", "null"]},
         "note": {"type": "string"},
+        "duration": {"type": ["number", "null"], "description": "seconds spent in source (transitions)"},
+        "configuration": {"type": "string", "description": "the root machine's active configuration after it"},
     },
 }
 JSON_SCHEMAS = {

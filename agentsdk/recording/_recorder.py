@@ -300,7 +300,8 @@ class Recorder:
     def _on_transition(self, machine: Any, rec: Any) -> None:
         if getattr(machine, "robot", None) is not self._robot or self._finished:
             return
-        msg = {"machine": rec.machine, "source": rec.source, "target": rec.target, "event": rec.event, "note": rec.note}
+        msg = {"machine": rec.machine, "source": rec.source, "target": rec.target, "event": rec.event, "note": rec.note,
+               "duration": rec.duration, "configuration": rec.configuration}
         self._pending_side.append((stamp_ns(rec.time), TRANSITIONS, msg))
 
     # ----------------------------------------------------------- blocks

@@ -67,20 +67,40 @@ Semantics:
   naming the state path, chained to the original exception.
 * Cancelling ``run()`` leaves the active state (same cleanup) and re-raises
   ``CancelledError``.
+* **A state is left at rest, whatever ends it.**  An e-stop or a safety fault
+  while a state runs (the robot's safety layer records it) leaves that state
+  through the fault path (:class:`RobotStoppedError`: the fault state, or out of
+  ``run()``), never by the transition its body or an event asked for; a body that
+  returns an event although a motion it started was ``ABORTED`` (and no later one
+  succeeded) goes the same way.  Every exit waits for a safety stop in progress
+  to reach rest before the next state's entry action or body starts.  The fault
+  state itself is not left for a stop (its body may e-stop, reset and enable).
+* Entry/exit actions ``on_enter_<state>(self, ctx)`` / ``on_exit_<state>(self, ctx)``
+  (sync or async) on any state, nested, parallel and final ones included; entry
+  runs in the state's motion scope before the body, exit after the state's
+  motions have stopped (innermost first).
+* ``State(history="shallow"|"deep")``, internal transitions
+  (``s.internal(action)``), transition actions (``a.to(b, action=...)``), parallel
+  outcome maps and ``finish=`` (SMACH ``Concurrence``), userdata with ``remap=`` and
+  ``args=``, done data (``State(final=True, data=...)``), declared outcomes
+  (``outcomes=`` or a ``Literal`` return annotation, checked at class definition),
+  graceful preemption (``preempt_timeout=``, ``ctx.preempt_requested()``) and
+  ``event_priority = "inner"``; see the README.
 """
 
 from ..scope import ClockLike, LoopClock
 from ._declaration import State, Transition, TransitionList
 from ._discovery import find_machines
-from ._errors import EventNotAllowed, StateMachineDefinitionError, StateMachineError
+from ._errors import EventNotAllowed, RobotStoppedError, StateMachineDefinitionError, StateMachineError
 from ._machine import StateMachine, TransitionListener
-from ._runtime import HistoryRecord, StateContext
+from ._runtime import HistoryRecord, StateContext, UserData
 
 __all__ = [
     "ClockLike",
     "EventNotAllowed",
     "HistoryRecord",
     "LoopClock",
+    "RobotStoppedError",
     "State",
     "StateContext",
     "StateMachine",
@@ -89,6 +109,7 @@ __all__ = [
     "Transition",
     "TransitionList",
     "TransitionListener",
+    "UserData",
     "find_machines",
 ]
 

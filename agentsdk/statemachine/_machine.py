@@ -6,23 +6,29 @@ import asyncio
 import functools
 import inspect
 import logging
-from collections.abc import Awaitable, Callable, Sequence
-from typing import Any, ClassVar
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Mapping, MutableMapping, Sequence
+from types import MappingProxyType
+from typing import Any, ClassVar, Literal
 
 from ..loop import HookHandle
 from ..scope import DEFAULT_STOP_TIMEOUT, ClockLike, LoopClock, MotionScope, MotionStopTimeoutError
-from ._declaration import Edge, Guard, Spec, State
-from ._errors import EventNotAllowed, StateMachineDefinitionError, StateMachineError
+from ._declaration import Action, Edge, Guard, Spec, State
+from ._errors import EventNotAllowed, RobotStoppedError, StateMachineDefinitionError, StateMachineError
+from ._mermaid import render_mermaid
+from ._rest import ignored_abort, safety_cursor, stop_since, wait_rest, watch_safety
 from ._runtime import (
+    EMPTY,
     Completion,
     External,
     Failure,
     HistoryRecord,
     Item,
+    Poke,
     StateContext,
     Step,
     TimerFired,
     Unhandled,
+    UserData,
     Waiter,
     merge_region_failures,
 )
@@ -49,9 +55,16 @@ class StateMachine:
     :param stop_timeout: seconds (clock) motions get to stop when a state is left.
 
     A subclass that declares no states is abstract (a base for shared methods).
+
+    ``event_priority`` (class attribute): ``"outer"`` (default) offers an external
+    event to this machine's state first, so an enclosing ``stop`` always wins over a
+    nested machine; ``"inner"`` offers it to the active nested machine(s) first and
+    this machine takes it only if none of them has an enabled transition for it
+    (SCXML's document order, transitions' nested-first).
     """
 
     _spec: ClassVar[Spec | None] = None
+    event_priority: ClassVar[Literal["outer", "inner"]] = "outer"
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -86,6 +99,19 @@ class StateMachine:
         self._sm_started = False
         self._sm_finished = False
         self._sm_waiters: list[Waiter] = []
+        #: SMACH-style userdata; a nested machine's remapped keys live in its parent's
+        self.userdata: MutableMapping[str, Any] = UserData()
+        #: the data of the final state reached (``State(final=True, data=...)``)
+        self.done_data: Mapping[str, Any] = EMPTY
+        self._sm_token: object | None = None
+        self._sm_baseline = 0  # safety event count when the current state was entered
+        self._sm_entered_at = 0.0
+        self._sm_left_in: str | None = None  # where the last run of this machine was left (history)
+        self._sm_kept: dict[str, list[StateMachine]] = {}  # composite state -> its last nested machines
+        self._sm_start: str | None = None  # history: the state a nested machine resumes in
+        self._sm_deep = False
+        self._sm_subscribers: list[asyncio.Queue[HistoryRecord | None]] = []
+        self._sm_preempt = asyncio.Event()
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.state_path}>"
@@ -118,6 +144,34 @@ class StateMachine:
             inner = "|".join(c.state_path[len(base) + 1 :] for c in children)
             return f"{base}/[{inner}]"
         return base
+
+    @property
+    def configuration(self) -> tuple[str, ...]:
+        """Every active state's full path, outermost first (SCXML's active configuration)."""
+        return tuple(self._sm_active_paths())
+
+    def visited(self) -> tuple[str, ...]:
+        """The full paths of every state entered so far, in first-entry order (nested ones included)."""
+        return tuple(dict.fromkeys(f"{r.machine}/{r.target}" for r in self.history if r.target is not None))
+
+    async def transitions(self) -> AsyncIterator[HistoryRecord]:
+        """Every :class:`HistoryRecord` of this machine (and its nested ones) from now on, as it happens.
+
+        ``async for rec in machine.transitions(): ...`` ends when the root machine
+        finishes.  Each transition's record carries ``duration`` (time spent in the
+        state left) and ``configuration`` (the active configuration after it).
+        """
+        root = self._sm_root()
+        if root._sm_finished:
+            return
+        queue: asyncio.Queue[HistoryRecord | None] = asyncio.Queue()
+        root._sm_subscribers.append(queue)
+        try:
+            while (rec := await queue.get()) is not None:
+                if rec.machine == self._sm_path or rec.machine.startswith(self._sm_path + "/"):
+                    yield rec
+        finally:
+            root._sm_subscribers.remove(queue)
 
     @property
     def children(self) -> tuple[StateMachine, ...]:
@@ -169,6 +223,7 @@ class StateMachine:
         if self.parent is not None:
             raise StateMachineError(f"{self._sm_path} is nested; run its root machine")
         self._sm_claim()
+        watch = self._sm_watch_safety()
         try:
             return await self._sm_loop()
         except Unhandled as u:
@@ -176,16 +231,22 @@ class StateMachine:
                 f"unhandled {type(u.exc).__name__} in state {u.path}: {u.exc}", path=u.path
             ) from u.exc
         finally:
+            for handle in watch:
+                handle.remove()
             self._sm_finish()
 
-    def send(self, event: str) -> None:
+    def send(self, event: str, data: Mapping[str, Any] | None = None) -> None:
         """Queue an external event (synchronous; call from any task on the machine's loop).
 
-        It is offered to the current state first, then to nested machines.  If a
-        transition takes it, the running state body is cancelled.
+        It is offered to the current state first, then to nested machines (the
+        other way round with ``event_priority = "inner"``).  If a transition takes
+        it, the running state body is cancelled (after its ``preempt_timeout``
+        grace).  ``data`` reaches the entered state as ``ctx.data``.
         """
         if not isinstance(event, str) or not event:
             raise TypeError(f"event must be a non-empty str, not {event!r}")
+        if data is not None and not isinstance(data, Mapping):
+            raise TypeError(f"event data must be a mapping, not {data!r}")
         if self._sm_finished:
             if self.strict:
                 raise EventNotAllowed(f"{self._sm_path} has finished; event {event!r} not allowed")
@@ -193,7 +254,7 @@ class StateMachine:
             return
         if self.strict and not self._sm_accepts(event):
             raise EventNotAllowed(f"no transition for event {event!r} in {self.state_path}")
-        self._sm_queue.put_nowait(External(event))
+        self._sm_queue.put_nowait(External(event, MappingProxyType(dict(data)) if data else EMPTY))
 
     async def wait_state(self, target: str) -> None:
         """Return once the machine is in ``target``.
@@ -224,6 +285,8 @@ class StateMachine:
 
     def _sm_finish(self) -> None:
         self._sm_finished = True
+        for queue in self._sm_subscribers:
+            queue.put_nowait(None)
         for w in self._sm_waiters:
             if not w.future.done():
                 w.future.set_exception(
@@ -267,8 +330,16 @@ class StateMachine:
         return HookHandle(lambda: _transition_listeners.remove(fn), lambda: fn in _transition_listeners)
 
     def _sm_record(
-        self, source: str | None, target: str | None, event: str | None, *, note: str = "", time: float | None = None
+        self,
+        source: str | None,
+        target: str | None,
+        event: str | None,
+        *,
+        note: str = "",
+        time: float | None = None,
+        duration: float | None = None,
     ) -> None:
+        root = self._sm_root()
         rec = HistoryRecord(
             time=self.clock.now() if time is None else time,
             source=source,
@@ -276,11 +347,15 @@ class StateMachine:
             event=event,
             note=note,
             machine=self._sm_path,
+            duration=duration,
+            configuration=root.state_path,
         )
         m: StateMachine | None = self
         while m is not None:
             m.history.append(rec)
             m = m.parent
+        for queue in root._sm_subscribers:
+            queue.put_nowait(rec)
         for listener in tuple(_transition_listeners):
             try:
                 listener(self, rec)
@@ -311,7 +386,7 @@ class StateMachine:
             m = m.parent
         return False
 
-    def _sm_make_children(self, state: State) -> list[StateMachine]:
+    def _sm_make_children(self, state: State, resume_deep: bool) -> list[StateMachine]:
         classes: Sequence[type[StateMachine]]
         if state.machine is not None:
             classes = (state.machine,)
@@ -319,37 +394,137 @@ class StateMachine:
             classes = state.parallel
         else:
             return []
-        children = []
-        for cls in classes:
-            child = cls(self.robot, clock=self.clock, strict=self.strict, stop_timeout=self.stop_timeout)
-            child.parent = self
-            child._sm_path = f"{self._sm_path}/{state.name}/{cls.__name__}"
-            child._sm_started = True
-            children.append(child)
+        assert state.name is not None
+        kept = self._sm_kept.get(state.name)
+        deep = state.history == "deep" or resume_deep
+        if kept is not None and (state.history is not None or resume_deep):
+            children = kept  # history: the same instances resume where they were left
+            for child in children:
+                child._sm_start = child._sm_left_in
+                child._sm_deep = deep and child._sm_left_in is not None
+                child._sm_queue = asyncio.Queue()
+                child._sm_finished = False
+                child._sm_state = None
+        else:
+            children = []
+            for cls in classes:
+                child = cls(self.robot, clock=self.clock, strict=self.strict, stop_timeout=self.stop_timeout)
+                child.parent = self
+                child._sm_path = f"{self._sm_path}/{state.name}/{cls.__name__}"
+                child._sm_started = True
+                child.userdata = UserData(self.userdata, state.remap) if state.remap else UserData()
+                children.append(child)
+            self._sm_kept[state.name] = children
+        if state.args is not None:
+            args = state.args(self) if callable(state.args) else state.args
+            for child in children:
+                child.userdata.update(args)
         return children
 
-    async def _sm_loop(self) -> str:
+    async def _sm_loop(self, start: str | None = None, deep: bool = False) -> str:
         spec = self._require_spec()
-        name, event = spec.initial, None
-        self._sm_record(None, name, None, note="initial")
+        name, event, data = start or spec.initial, None, EMPTY
+        resume_deep = deep and start is not None
+        self._sm_left_in = None
+        self.done_data = EMPTY
+        self._sm_entered(name)
+        self._sm_record(None, name, None, note="initial" if start is None else "history")
         while True:
-            self._sm_entered(name)
             state = spec.states[name]
             if state.final:
-                self._sm_finished = True
-                return name
-            step = await self._sm_run_state(state, event)
+                step = await self._sm_reach_final(state, event, data)
+                if step is None:
+                    self._sm_finished = True
+                    return name
+            else:
+                try:
+                    step = await self._sm_run_state(state, event, data, resume_deep)
+                except BaseException:
+                    self._sm_left_in = name
+                    raise
+                resume_deep = False
+                if step.error is None and step.edge is not None and step.edge.action is not None:
+                    step = await self._sm_transition_action(state, step)
             if step.error is not None:
+                self._sm_left_in = name
                 raise step.error
             assert step.target is not None
-            self._sm_record(name, step.target, step.event, time=step.time)
-            name, event = step.target, step.event
+            left_at = self._sm_entered_at
+            self._sm_entered(step.target)
+            self._sm_record(name, step.target, step.event, time=step.time, duration=step.time - left_at)
+            name, event, data = step.target, step.event, step.data
 
-    async def _sm_run_state(self, state: State, event: str | None) -> Step:
+    async def _sm_reach_final(self, state: State, event: str | None, data: Mapping[str, Any]) -> Step | None:
+        """Enter a final state: entry/exit actions, done data. A Step (to the fault path) if they fail."""
+        assert state.name is not None
+        path = f"{self._sm_path}/{state.name}"
+        self._sm_entered_at = self.clock.now()
+        ctx = StateContext(robot=self.robot, machine=self, state=path, clock=self.clock, event=event, data=data)
+        try:
+            await self._sm_call_action("enter", state, ctx)
+            if self.parent is None:  # the machine ends here: its final state exits (SCXML §3.13 exitInterpreter)
+                await self._sm_call_action("exit", state, ctx)
+            if state.data is not None:
+                if callable(state.data):
+                    values = state.data(self)
+                else:
+                    missing = [k for k in state.data if k not in self.userdata]
+                    if missing:
+                        raise StateMachineError(f"{path}: done data key(s) {missing} not in userdata", path=path)
+                    values = {k: self.userdata[k] for k in state.data}
+                self.done_data = MappingProxyType(dict(values))
+        except Exception as exc:
+            return await self._sm_fail(state, Failure(None, exc, path))
+        return None
+
+    async def _sm_transition_action(self, state: State, step: Step) -> Step:
+        assert step.edge is not None and step.edge.action is not None
+        try:
+            await _maybe_await(self._sm_resolve_action(step.edge.action)(self, step.event, step.data))
+        except Exception as exc:
+            return await self._sm_fail(state, Failure(None, exc, f"{self._sm_path}/{state.name}"))
+        return step
+
+    def _sm_resolve_action(self, action: Action) -> Callable[..., Any]:
+        if isinstance(action, str):
+            method = getattr(type(self), action)
+            return lambda machine, event, data: method(machine, event, data)
+        return action
+
+    async def _sm_call_action(self, kind: str, state: State, ctx: StateContext) -> None:
+        """Run ``on_enter_<state>`` / ``on_exit_<state>`` (sync or async) if declared."""
+        fn = getattr(self, f"on_{kind}_{state.name}", None)
+        if fn is not None and f"{kind}_{state.name}" not in self._require_spec().states:
+            await _maybe_await(fn(ctx))
+
+    def _sm_watch_safety(self) -> list[HookHandle]:
+        """Wake the active states whenever the robot's safety layer records something (an e-stop, a fault)."""
+        return watch_safety(self.robot, self._sm_poke)
+
+    def _sm_request_preempt(self) -> None:
+        """SMACH ``request_preempt``: the active state and its nested machines' active states."""
+        self._sm_preempt.set()
+        for child in self._sm_children:
+            child._sm_request_preempt()
+
+    def _sm_poke(self) -> None:
+        self._sm_queue.put_nowait(Poke())
+        for child in self._sm_children:
+            child._sm_poke()
+
+    def _sm_stopped(self, path: str) -> RobotStoppedError | None:
+        """The e-stop / safety fault recorded since the current state was entered, if any."""
+        return stop_since(self.robot, self._sm_baseline, path)
+
+    async def _sm_run_state(self, state: State, event: str | None, data: Mapping[str, Any], resume_deep: bool) -> Step:
         assert state.name is not None
         path = f"{self._sm_path}/{state.name}"
         token = object()
+        self._sm_token = token
+        self._sm_baseline = safety_cursor(self.robot)
+        self._sm_entered_at = self.clock.now()
         scope = MotionScope(path, clock=self.clock, stop_timeout=self.stop_timeout)
+        preempt = self._sm_preempt = asyncio.Event()
         ctx = StateContext(
             robot=self.robot,
             machine=self,
@@ -358,30 +533,85 @@ class StateMachine:
             event=event,
             error=self.last_error if state.fault else None,
             scope=scope,
+            data=data,
+            preempt=preempt,
         )
         body = getattr(self, f"on_{state.name}", None)
-        self._sm_children = self._sm_make_children(state)
+        has_enter = (
+            getattr(self, f"on_enter_{state.name}", None) is not None
+            and f"enter_{state.name}" not in self._require_spec().states
+        )
+        self._sm_children = self._sm_make_children(state, resume_deep)
         try:
             async with asyncio.TaskGroup() as tg:
                 tasks: list[asyncio.Task[None]] = []
-                if body is not None or self._sm_children:
-                    tasks.append(tg.create_task(self._sm_body(state, body, ctx, scope, token), name=path))
+                body_task: asyncio.Task[None] | None = None
+                entered = asyncio.Event()
+                if body is not None or self._sm_children or has_enter:
+                    body_task = tg.create_task(self._sm_body(state, body, ctx, scope, token, entered), name=path)
+                    tasks.append(body_task)
                 if state.timeout is not None:
                     tasks.append(tg.create_task(self._sm_timer(state.timeout, token), name=f"{path} timeout"))
                 try:
-                    step = await self._sm_dispatch(state, path, token)
+                    if has_enter:
+                        await entered.wait()  # no event is handled before the entry action has run
+                    step = await self._sm_dispatch(state, path, token, scope)
+                    if step.preemptive and state.preempt_timeout is not None and body_task is not None:
+                        await self._sm_grace(state, body_task, step)
                 finally:
                     scope.cancel_all()  # decelerate-and-hold requested before anything else
                     for task in tasks:
                         task.cancel()
         except BaseException:
             # cancelled (or a BaseException from a body): stop the motions, then propagate
-            self._sm_children = []
+            children, self._sm_children = self._sm_children, []
             await self._sm_close_scope(scope, path, None)
+            await wait_rest(self.robot)
+            try:
+                await self._sm_exit_finished_children(children)
+                await self._sm_call_action("exit", state, ctx)
+            except Exception:
+                _log.exception("%s: exit action failed while the state was cancelled", path)
             raise
-        self._sm_children = []
+        children, self._sm_children = self._sm_children, []
         await self._sm_close_scope(scope, path, step)
+        await wait_rest(self.robot)  # a state is left at rest, whatever ends it
+        try:
+            await self._sm_exit_finished_children(children)
+            await self._sm_call_action("exit", state, ctx)
+        except Exception as exc:
+            if step.error is not None:
+                step.error.exc.add_note(f"while leaving {path}, on_exit_{state.name} raised {exc!r}")
+            else:
+                step = await self._sm_fail(state, Failure(token, exc, path))
         return step
+
+    async def _sm_exit_finished_children(self, children: list[StateMachine]) -> None:
+        """Exit actions of nested machines' final states: they stay active until their parent exits."""
+        for child in children:
+            final = child._sm_state
+            if child._sm_finished and final is not None:
+                ctx = StateContext(robot=self.robot, machine=child, state=f"{child._sm_path}/{final}", clock=self.clock)
+                await child._sm_call_action("exit", child._require_spec().states[final], ctx)
+
+    async def _sm_grace(self, state: State, body: asyncio.Task[None], step: Step) -> None:
+        """Graceful preemption: the body (or the nested machines' active states) see
+        ``ctx.preempt_requested()`` and get ``preempt_timeout`` to end by themselves.
+        """
+        assert state.preempt_timeout is not None
+        if body.done():
+            return
+        self._sm_request_preempt()
+        timer = asyncio.ensure_future(self.clock.sleep(state.preempt_timeout))
+        try:
+            await asyncio.wait((body, timer), return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            timer.cancel()
+            await asyncio.gather(timer, return_exceptions=True)
+        if not body.done():
+            self._sm_record(
+                state.name, None, step.event, note=f"preempted: body cancelled after {state.preempt_timeout:g} s"
+            )
 
     async def _sm_close_scope(self, scope: MotionScope, path: str, step: Step | None) -> None:
         try:
@@ -407,14 +637,21 @@ class StateMachine:
         ctx: StateContext,
         scope: MotionScope,
         token: object,
+        entered: asyncio.Event,
     ) -> None:
         scope.activate()  # this task's context is private
         put = self._sm_queue.put_nowait
+        data: Mapping[str, Any] = EMPTY
         try:
+            try:
+                await self._sm_call_action("enter", state, ctx)  # in the state's scope, before its body
+            finally:
+                entered.set()
+            result: object = None
             if body is not None:
                 result = await body(ctx)
-            else:
-                result = await self._sm_run_children(state)
+            elif self._sm_children:
+                result, data = await self._sm_run_children(state)
             if result is not None and not isinstance(result, str):
                 raise TypeError(f"state body on_{state.name} returned {result!r}; expected an event name or None")
         except asyncio.CancelledError:
@@ -427,32 +664,72 @@ class StateMachine:
         except Exception as exc:
             put(Failure(token, exc, ctx.state))
         else:
-            put(Completion(token, result))
+            put(Completion(token, result, data))
 
-    async def _sm_run_children(self, state: State) -> str:
+    async def _sm_run_children(self, state: State) -> tuple[str, Mapping[str, Any]]:
         children = list(self._sm_children)
         if state.machine is not None:
-            final = await children[0]._sm_loop()
-            return state.completion_event(final)
+            child = children[0]
+            final = await child._sm_loop(child._sm_start, child._sm_deep)
+            return state.completion_event(final), child.done_data
+        assert state.name is not None
+        names = self._require_spec().regions[state.name]
+        results: dict[str, str | None] = dict.fromkeys(names)
         try:
             async with asyncio.TaskGroup() as tg:
-                for child in children:
-                    tg.create_task(child._sm_loop(), name=child.machine_path)
+                tasks = {
+                    tg.create_task(child._sm_loop(child._sm_start, child._sm_deep), name=child.machine_path): key
+                    for key, child in zip(names, children, strict=True)
+                }
+                pending = set(tasks)
+                while pending:
+                    done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+                    for task in done:
+                        if not task.cancelled() and task.exception() is None:
+                            results[tasks[task]] = task.result()
+                    if pending and self._sm_parallel_ends(state, results):
+                        for task in pending:
+                            task.cancel()  # the remaining regions are preempted (their states exit at rest)
+                        preempted = ", ".join(sorted(tasks[t] for t in pending))
+                        self._sm_record(state.name, None, None, note=f"regions preempted: {preempted}")
+                        break
         except BaseExceptionGroup as eg:
             raise merge_region_failures(eg, f"{self._sm_path}/{state.name}") from None
-        return state.completion_event()
+        outcome = state.completion_event()
+        for event, conditions in (state.outcome_map or {}).items():
+            if all(results.get(region) == final for region, final in conditions.items()):
+                outcome = event
+                break
+        return outcome, MappingProxyType(results)
+
+    @staticmethod
+    def _sm_parallel_ends(state: State, results: Mapping[str, str | None]) -> bool:
+        """Whether a parallel state ends before all its regions are final (``finish=``)."""
+        if state.finish == "first":
+            return True
+        if callable(state.finish):
+            return bool(state.finish(MappingProxyType(dict(results))))
+        return False
 
     async def _sm_timer(self, delay: float, token: object) -> None:
         await self.clock.sleep(delay)
         self._sm_queue.put_nowait(TimerFired(token))
 
-    async def _sm_dispatch(self, state: State, path: str, token: object) -> Step:
+    async def _sm_dispatch(self, state: State, path: str, token: object, scope: MotionScope) -> Step:
         assert state.name is not None
-        spec = self._require_spec()
+        # a composite state's nested machines answer for their own states; the fault state is where
+        # stops are handled (its body may e-stop or reset the robot itself), so it is not left for one
+        leaf = not self._sm_children and not state.fault
         while True:
             item = await self._sm_queue.get()
+            data: Mapping[str, Any] = EMPTY
+            if isinstance(item, Poke):
+                stop = self._sm_stopped(path) if leaf else None
+                if stop is None:
+                    continue
+                return await self._sm_fail(state, Failure(token, stop, path, estopped=True))
             if isinstance(item, External):
-                event = item.event
+                event, data = item.event, item.data
             elif item.token is not token:
                 continue  # left over from a previous visit of a state
             elif isinstance(item, Failure):
@@ -462,17 +739,31 @@ class StateMachine:
             else:
                 if item.event is None:
                     continue  # body finished: wait here for an event or the timeout
-                event = item.event
-                if event not in spec.events:
-                    err = StateMachineError(f"state body of {path} returned unknown event {event!r}")
-                    return await self._sm_fail(state, Failure(token, err, path))
+                event, data = item.event, item.data
+            stop = self._sm_stopped(path) if leaf else None
+            if stop is not None:  # stopped meanwhile: never the transition the body or an event asked for
+                return await self._sm_fail(state, Failure(token, stop, path, estopped=True))
+            if isinstance(item, Completion):
+                error = self._sm_check_outcome(state, path, event, scope if leaf else None)
+                if error is not None:
+                    return await self._sm_fail(state, Failure(token, error, path))
             now = self.clock.now()
             try:
+                if isinstance(item, External) and self.event_priority == "inner" and self._sm_children:
+                    if any([await c._sm_takes(event) for c in self._sm_children]):
+                        for child in self._sm_children:
+                            child._sm_queue.put_nowait(item)
+                        continue
                 edge, blocked = await self._sm_select(state.name, event)
+                if edge is not None and edge.internal:
+                    if edge.action is not None:
+                        await _maybe_await(self._sm_resolve_action(edge.action)(self, event, data))
+                    self._sm_record(state.name, state.name, event, note="internal", time=now)
+                    continue
             except Exception as exc:
                 return await self._sm_fail(state, Failure(token, exc, path))
             if edge is not None:
-                return Step(edge.target, event, now)
+                return Step(edge.target, event, now, data=data, edge=edge, preemptive=not isinstance(item, Completion))
             if blocked:
                 self._sm_record(state.name, None, event, note="blocked by guard", time=now)
             if isinstance(item, External) and self._sm_children:
@@ -480,6 +771,33 @@ class StateMachine:
                     child._sm_queue.put_nowait(item)
             elif not blocked:
                 self._sm_record(state.name, None, event, note="ignored", time=now)
+
+    def _sm_check_outcome(self, state: State, path: str, event: str, scope: MotionScope | None) -> Exception | None:
+        """What is wrong with a body's returned event: unknown, undeclared, or a motion it ignored was aborted."""
+        spec = self._require_spec()
+        if event not in spec.events:
+            return StateMachineError(f"state body of {path} returned unknown event {event!r}")
+        declared = spec.outcomes.get(state.name or "")
+        if declared and event not in declared:
+            return StateMachineError(
+                f"state body of {path} returned {event!r}, not one of its declared outcomes {sorted(declared)}"
+            )
+        if scope is not None:
+            aborted = ignored_abort(scope)
+            if aborted is not None:
+                message = f"{path}: body returned {event!r} but its motion was aborted ({aborted})"
+                return RobotStoppedError(message, reason="aborted", path=path)
+        return None
+
+    async def _sm_takes(self, event: str) -> bool:
+        """Whether the active configuration below and at this machine has an enabled transition for ``event``."""
+        for child in self._sm_children:
+            if await child._sm_takes(event):
+                return True
+        if self._sm_state is None or self._sm_finished:
+            return False
+        edge, _ = await self._sm_select(self._sm_state, event)
+        return edge is not None
 
     async def _sm_select(self, state: str, event: str) -> tuple[Edge | None, bool]:
         blocked = False
@@ -526,51 +844,23 @@ class StateMachine:
     # ----------------------------------------------------------------- Mermaid
 
     @classmethod
-    def mermaid(cls) -> str:
-        """A Mermaid ``stateDiagram-v2`` of the machine (nested machines as composite states)."""
-        lines = ["stateDiagram-v2"]
-        cls._mermaid_into(lines, "    ", "")
-        return "\n".join(lines) + "\n"
+    def mermaid(cls, visited: Iterable[str] | None = None) -> str:
+        """A Mermaid ``stateDiagram-v2`` of the machine (nested machines as composite states).
 
-    @classmethod
-    def _mermaid_into(cls, lines: list[str], indent: str, prefix: str) -> None:
-        spec = cls._require_spec()
+        ``visited``: full state paths (``"Patrol/moving"``, ``"Patrol/picking/Approach/grasp"``,
+        e.g. :meth:`visited` of a run, or ``machine/target`` of a recording's transitions)
+        are highlighted with the ``visited`` class; paths of other machines are ignored.
+        """
+        return render_mermaid(cls, visited)
 
-        def sid(name: str) -> str:
-            return f"{prefix}{name}"
+    def mermaid_run(self) -> str:
+        """The diagram of this machine with every state this run has entered highlighted."""
+        return render_mermaid(type(self), self.visited())
 
-        for name, st in spec.states.items():
-            notes = []
-            if st.timeout is not None:
-                notes.append(f"timeout {st.timeout:g}s")
-            if st.fault:
-                notes.append("fault handler")
-            if prefix:
-                lines.append(f'{indent}state "{name}" as {sid(name)}')
-            if st.machine is not None or st.parallel is not None:
-                regions = (st.machine,) if st.machine is not None else st.parallel or ()
-                lines.append(f"{indent}state {sid(name)} {{")
-                seen: dict[str, int] = {}
-                for i, region in enumerate(regions):
-                    if i:
-                        lines.append(f"{indent}    --")
-                    lines.append(f"{indent}    %% {region.__name__}")
-                    n = seen[region.__name__] = seen.get(region.__name__, 0) + 1
-                    tag = region.__name__ if n == 1 else f"{region.__name__}{n}"
-                    inner = f"{sid(name)}__" if st.machine is not None else f"{sid(name)}__{tag}__"
-                    region._mermaid_into(lines, indent + "    ", inner)
-                lines.append(f"{indent}}}")
-            elif not prefix and not notes:
-                lines.append(f"{indent}{name}")
-            for note in notes:
-                lines.append(f"{indent}{sid(name)} : {note}")
-        lines.append(f"{indent}[*] --> {sid(spec.initial)}")
-        for e in spec.edges:
-            label = e.event if e.guard is None else f"{e.event} [{e.guard_label}]"
-            lines.append(f"{indent}{sid(e.source)} --> {sid(e.target)} : {label}")
-        for name, st in spec.states.items():
-            if st.final:
-                lines.append(f"{indent}{sid(name)} --> [*]")
+
+async def _maybe_await(result: object) -> None:
+    if inspect.isawaitable(result):
+        await result
 
 
 @functools.cache
@@ -585,5 +875,7 @@ def _reserved() -> frozenset[str]:
         "history",
         "last_error",
         "last_error_path",
+        "userdata",
+        "done_data",
     }
 

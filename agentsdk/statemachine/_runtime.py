@@ -4,13 +4,18 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections.abc import Iterator, Mapping, MutableMapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from ..scope import ClockLike, MotionScope
 
 if TYPE_CHECKING:
+    from ._declaration import Edge
     from ._machine import StateMachine
+
+EMPTY: Mapping[str, Any] = MappingProxyType({})
 
 _log = logging.getLogger("agentsdk.statemachine")
 
@@ -24,7 +29,8 @@ class HistoryRecord:
     ``target`` is ``None`` for events that did not cause a transition (see ``note``).
     ``machine`` is the path of the machine the states belong to ("Patrol",
     "Patrol/moving/Approach"); the root's history holds the records of nested
-    machines as well.
+    machines as well.  ``duration`` and ``configuration`` are observations
+    (timing, the active configuration) and take no part in equality.
     """
 
     time: float
@@ -33,6 +39,55 @@ class HistoryRecord:
     event: str | None
     note: str = ""
     machine: str = ""
+    duration: float | None = field(default=None, compare=False)
+    """Seconds (machine clock) spent in ``source`` (a transition); ``None`` otherwise."""
+    configuration: str = field(default="", compare=False)
+    """The root machine's active configuration after this record (:attr:`StateMachine.state_path`)."""
+
+
+class UserData(MutableMapping[str, Any]):
+    """A machine's userdata: a dict, where remapped keys live in the parent's userdata (SMACH remapping).
+
+    ``remap`` maps this machine's key to the parent's key; reads and writes of a
+    remapped key go to the parent, every other key is this machine's own.
+    """
+
+    def __init__(self, parent: MutableMapping[str, Any] | None = None, remap: Mapping[str, str] | None = None) -> None:
+        self._local: dict[str, Any] = {}
+        self._parent = parent
+        self._remap: Mapping[str, str] = dict(remap or {}) if parent is not None else {}
+
+    def _where(self, key: str) -> tuple[MutableMapping[str, Any], str]:
+        if self._parent is not None and key in self._remap:
+            return self._parent, self._remap[key]
+        return self._local, key
+
+    def __getitem__(self, key: str) -> Any:
+        where, k = self._where(key)
+        try:
+            return where[k]
+        except KeyError:
+            raise KeyError(key) from None
+
+    def __setitem__(self, key: str, value: Any) -> None:
+        where, k = self._where(key)
+        where[k] = value
+
+    def __delitem__(self, key: str) -> None:
+        where, k = self._where(key)
+        del where[k]
+
+    def __iter__(self) -> Iterator[str]:
+        keys = dict.fromkeys(self._local)
+        if self._parent is not None:
+            keys.update(dict.fromkeys(k for k, pk in self._remap.items() if pk in self._parent))
+        return iter(keys)
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def __repr__(self) -> str:
+        return f"UserData({dict(self)!r})"
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,6 +105,30 @@ class StateContext:
     """In a fault state: the exception that led here (also ``machine.last_error``)."""
     scope: MotionScope | None = None
     """The motions started by this state so far (stopped when the state is left)."""
+    data: Mapping[str, Any] = field(default_factory=lambda: EMPTY)
+    """The data of the event that entered this state (``send(event, data)``, a nested
+    machine's done data, a parallel state's result per region)."""
+    preempt: asyncio.Event | None = field(default=None, repr=False)
+
+    @property
+    def userdata(self) -> MutableMapping[str, Any]:
+        """The machine's :attr:`~StateMachine.userdata`."""
+        return self.machine.userdata
+
+    def preempt_requested(self) -> bool:
+        """True once the state is being left and the body may wind down.
+
+        Requested by this state's ``State(preempt_timeout=...)``, or an enclosing
+        composite state's (which asks its nested machines' active states).
+        """
+        return self.preempt is not None and self.preempt.is_set()
+
+    async def wait_preempt(self) -> None:
+        """Return when preemption is requested (see :meth:`preempt_requested`)."""
+        if self.preempt is None:
+            await asyncio.get_running_loop().create_future()  # forever; cancelled when the state is left
+        else:
+            await self.preempt.wait()
 
     @property
     def name(self) -> str:
@@ -64,12 +143,19 @@ class StateContext:
 @dataclass(frozen=True, slots=True)
 class External:
     event: str
+    data: Mapping[str, Any] = field(default_factory=lambda: EMPTY)
 
 
 @dataclass(frozen=True, slots=True)
 class Completion:
     token: object
     event: str | None
+    data: Mapping[str, Any] = field(default_factory=lambda: EMPTY)
+
+
+@dataclass(frozen=True, slots=True)
+class Poke:
+    """The safety layer recorded something: check whether the robot was stopped."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,7 +172,7 @@ class Failure:
     fatal: bool = False  # not routed to fault states (the robot would not stop)
 
 
-Item = External | Completion | TimerFired | Failure
+Item = External | Completion | TimerFired | Failure | Poke
 
 
 class Unhandled(Exception):
@@ -140,6 +226,9 @@ class Step:
     event: str | None
     time: float
     error: Unhandled | None = None
+    data: Mapping[str, Any] = field(default_factory=lambda: EMPTY)
+    edge: Edge | None = None
+    preemptive: bool = False  # taken while the body may still run (an external event or the timeout)
 
 
 @dataclass(slots=True)

@@ -252,20 +252,38 @@ class RosFace:
         """Create the participant, its topics and services, and start publishing."""
         robot = self.robot
         loop = asyncio.get_running_loop()
-        # creating the participant and compiling the types' serialisers takes a while: off the loop
-        node = self._node = await asyncio.to_thread(_prepared_node, self.domain_id, self.namespace, loop)
+        # creating DDS entities compiles each type's serialiser and XTypes data (slow): off the loop
+        self._node = await asyncio.to_thread(self._build, loop)
         try:
-            self._setup(node, robot)
+            self._node.start()
+            urdf = robot.description.urdf_xml
+            if urdf:
+                self._description.write(String(urdf))
+            self._publish_static()
+            self._publish_status()
+            self._publisher = _StatePublisher(robot, self._js, self._clock_w, self.rate, self.stamp_offset)
+            self._spawn(self._periodic())
         except BaseException:
             await self.aclose()
             raise
 
-    def _setup(self, node: DdsNode, robot: Robot) -> None:
-        lockstep = robot.clock.lockstep
+    def _build(self, loop: asyncio.AbstractEventLoop) -> DdsNode:
+        """The participant with every writer, reader and service (runs in a worker thread)."""
+        _warm_up()
+        node = DdsNode(self.domain_id, self.namespace, loop)
+        try:
+            self._create_entities(node)
+        except BaseException:
+            node.close()
+            raise
+        return node
+
+    def _create_entities(self, node: DdsNode) -> None:
+        robot = self.robot
         state_qos = QOS_SENSOR if self.sensor_qos else QOS_DEFAULT
-        js = node.writer("joint_states", JointState, state_qos)
+        self._js = node.writer("joint_states", JointState, state_qos)
         # /clock without a namespace; a namespaced robot publishes <ns>/clock (remap clock:=<ns>/clock)
-        clock_w = node.writer("clock", Clock, QOS_SENSOR) if lockstep else None
+        self._clock_w = node.writer("clock", Clock, QOS_SENSOR) if robot.clock.lockstep else None
         self._tf = node.writer("tf", TFMessage, QOS_DEFAULT)
         self._tf_static = node.writer("tf_static", TFMessage, QOS_LATCHED)
         self._description = node.writer("robot_description", String, QOS_LATCHED)
@@ -283,14 +301,6 @@ class RosFace:
         node.service(f"{action}/get_result", FollowJointTrajectory_GetResult_Request,
                      FollowJointTrajectory_GetResult_Response, self._on_get_result)
         node.service(f"{action}/cancel_goal", CancelGoal_Request, CancelGoal_Response, self._on_cancel)
-        node.start()
-        urdf = robot.description.urdf_xml
-        if urdf:
-            self._description.write(String(urdf))
-        self._publish_static()
-        self._publish_status()
-        self._publisher = _StatePublisher(robot, js, clock_w, self.rate, self.stamp_offset)
-        self._spawn(self._periodic())
 
     async def aclose(self) -> None:
         """Stop serving: cancel the face's tasks, stop the publisher, delete the participant (idempotent)."""
@@ -550,8 +560,8 @@ class RosFace:
                                   [GoalInfo(UUID(g.uuid), g.stamp) for g in targets]))
 
 
-def _prepared_node(domain_id: int, namespace: str, loop: asyncio.AbstractEventLoop) -> DdsNode:
-    """A new participant, every message type's serialiser compiled (the first use is slow)."""
+def _warm_up() -> None:
+    """Compile every message type's serialiser (the first use is slow): call off the event loop."""
     for t in (JointState, Clock, TFMessage, String, DiagnosticArray, JointTrajectoryControllerState,
               FollowJointTrajectory_FeedbackMessage, GoalStatusArray, JointTrajectory):
         t.deserialize(t().serialize())
@@ -562,7 +572,6 @@ def _prepared_node(domain_id: int, namespace: str, loop: asyncio.AbstractEventLo
               FollowJointTrajectory_GetResult_Response, CancelGoal_Request, CancelGoal_Response):
         w = service_wire_type(t)
         w.deserialize(w(request_header=RequestHeader(), **{f: getattr(t(), f) for f in t.__dataclass_fields__}).serialize())
-    return DdsNode(domain_id, namespace, loop)
 
 
 def _transform(stamp: Time, parent: str, child: str, pose: Pose) -> TransformStamped:

@@ -253,7 +253,11 @@ class RosFace:
         robot = self.robot
         loop = asyncio.get_running_loop()
         # creating DDS entities compiles each type's serialiser and XTypes data (slow): off the loop
-        self._node = await asyncio.to_thread(self._build, loop)
+        try:
+            self._node = await _in_thread(lambda: self._build(loop))
+        except asyncio.CancelledError:
+            self._closed = True
+            raise
         try:
             self._node.start()
             urdf = robot.description.urdf_xml
@@ -558,6 +562,39 @@ class RosFace:
             self._publish_status()
         reply(CancelGoal_Response(_CANCEL_NONE if targets else _CANCEL_REJECTED,
                                   [GoalInfo(UUID(g.uuid), g.stamp) for g in targets]))
+
+
+async def _in_thread(fn: Callable[[], Any]) -> Any:
+    """Run ``fn`` in a new thread that ends with it (no pooled thread outlives the call).
+
+    Cancelling the caller waits for ``fn`` to finish first, so nothing it creates is orphaned
+    (``cleanup`` style: the result is returned through the future even then).
+    """
+    loop = asyncio.get_running_loop()
+    fut: asyncio.Future[Any] = loop.create_future()
+
+    def settle(value: Any, exc: BaseException | None) -> None:
+        if not fut.done():
+            if exc is not None:
+                fut.set_exception(exc)
+            else:
+                fut.set_result(value)
+
+    def run() -> None:
+        try:
+            value = fn()
+        except BaseException as exc:  # handed to the awaiting task
+            loop.call_soon_threadsafe(settle, None, exc)
+        else:
+            loop.call_soon_threadsafe(settle, value, None)
+
+    thread = threading.Thread(target=run, name="agentsdk-ros2-setup", daemon=True)
+    thread.start()
+    try:
+        return await asyncio.shield(fut)
+    finally:
+        while thread.is_alive():  # it ends right after handing over its result
+            await asyncio.sleep(0.001)
 
 
 def _warm_up() -> None:

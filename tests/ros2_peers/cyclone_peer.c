@@ -6,6 +6,7 @@
  *        FollowJointTrajectory client in rmw_cyclonedds' request format (request header = the
  *        request writer's instance handle + sequence number); cancels after CANCEL_AFTER feedback
  *        messages when CANCEL_AFTER > 0.
+ *   cyclone_peer trigger NS SERVICE          call a std_srvs/Trigger service (estop, reset, enable)
  * Topic names follow ROS 2's mapping (rt/, rq/...Request, rr/...Reply). Output: one line per event.
  */
 #include <stdio.h>
@@ -294,6 +295,32 @@ static int action(const char *ns, double t, int cancel_after, int argc, char **a
   return 1;
 }
 
+/* std_srvs/Trigger client: prints TRIGGER success message */
+static int trigger(const char *ns, const char *name) {
+  client_t c;
+  c.req = writer(topic(&std_srvs_srv_dds__Trigger_Request__desc, "rq/", ns, name, "Request"), qos(1, 0, 100));
+  c.rep = reader(topic(&std_srvs_srv_dds__Trigger_Response__desc, "rr/", ns, name, "Reply"), qos(1, 0, 100));
+  dds_instance_handle_t ih;
+  dds_get_instance_handle(c.req, &ih);
+  c.guid = ih;
+  c.seq = 0;
+  if (!wait_matched_pub(c.req, 20.0) || !wait_matched_sub(c.rep, 20.0)) { printf("NOMATCH\n"); return 1; }
+  dds_sleepfor(DDS_MSECS(200));
+  std_srvs_srv_dds__Trigger_Request_ r;
+  memset(&r, 0, sizeof r);
+  r.request_header.guid = c.guid;
+  r.request_header.seq = ++c.seq;
+  dds_write(c.req, &r);
+  void *loan = NULL, *rep = NULL;
+  dds_time_t end = dds_time() + DDS_SECS(30);
+  while (!(rep = take_reply(&c, c.seq, &loan)) && dds_time() < end) dds_sleepfor(DDS_MSECS(2));
+  if (!rep) { printf("NOREPLY\n"); return 1; }
+  std_srvs_srv_dds__Trigger_Response_ *t = rep;
+  printf("TRIGGER %d %s\n", t->success, t->message);
+  dds_return_loan(c.rep, &loan, 1);
+  return 0;
+}
+
 int main(int argc, char **argv) {
   if (argc < 3) { fprintf(stderr, "usage: see the source\n"); return 2; }
   srand((unsigned)dds_time());
@@ -303,6 +330,7 @@ int main(int argc, char **argv) {
   int rc = 2;
   if (!strcmp(argv[1], "listen")) rc = listen(argv[2], atof(argv[3]));
   else if (!strcmp(argv[1], "traj")) rc = traj(argv[2], atof(argv[3]), argc - 4, argv + 4);
+  else if (!strcmp(argv[1], "trigger")) rc = trigger(argv[2], argv[3]);
   else if (!strcmp(argv[1], "action")) rc = action(argv[2], atof(argv[3]), atoi(argv[4]), argc - 5, argv + 5);
   fflush(stdout);
   dds_delete(pp);

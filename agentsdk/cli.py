@@ -11,6 +11,7 @@
 ``agentsdk emulate-can ...``    run the MIT motor emulator on a CAN bus
 ``agentsdk bench ...``          run the benchmarks, each figure beside its raw baseline
 ``agentsdk vcan -- CMD``        run CMD inside user-mode Linux with a SocketCAN vcan0
+``agentsdk serve ...``          serve a robot as a ROS 2 node (DDS) until SIGINT/SIGTERM
 
 User errors print one line and exit non-zero; ``--debug`` shows tracebacks.
 """
@@ -730,6 +731,8 @@ def _parser() -> argparse.ArgumentParser:
                    add_help=False)
     sub.add_parser("vcan", help="run a command inside user-mode Linux with a SocketCAN vcan0 (root, Debian)",
                    add_help=False)
+    sub.add_parser("serve", help="serve a robot as a ROS 2 node over DDS (see `agentsdk serve --help`)",
+                   add_help=False)
     return p
 
 
@@ -738,7 +741,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     passthrough = {"emulate-can": lambda rest: _cmd_emulate_can(argparse.Namespace(), rest),
-                   "bench": _cmd_bench, "vcan": _cmd_vcan}
+                   "bench": _cmd_bench, "vcan": _cmd_vcan, "serve": _cmd_serve}
     head = argv[1:2] if argv[:1] == ["--debug"] else argv[:1]
     if head and head[0] in passthrough:
         rest = argv[argv.index(head[0]) + 1:]
@@ -761,6 +764,12 @@ def main(argv: list[str] | None = None) -> int:
             raise
         _print_error(exc)
         return EXIT_BAD_BEHAVIOR if isinstance(exc, BehaviorError) else EXIT_USER_ERROR
+
+
+def _cmd_serve(rest: list[str]) -> int:
+    from .ros2.cli import main as serve_main
+
+    return serve_main(rest)
 
 
 def _print_error(exc: BaseException) -> None:

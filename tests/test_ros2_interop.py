@@ -365,3 +365,37 @@ async def test_several_robots_in_one_process_under_their_namespaces(domain: Doma
         left = await run_peer(cyclone_peer, "listen", "/left", "1", env=domain.env)
         assert parse_joint_states(left)
 
+
+
+async def test_agentsdk_serve_until_sigterm_honours_ros_domain_id(domain: Domain, cyclone_peer: Path) -> None:
+    """The CLI: ROS_DOMAIN_ID picks the domain, its own loopback config (no CYCLONEDDS_URI), safe stop on SIGTERM."""
+    import signal
+    import sys
+
+    env = {k: v for k, v in domain.env.items() if k != "CYCLONEDDS_URI"}
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(agentsdk.__file__).parents[1]), env.get("PYTHONPATH", "")])
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "agentsdk", "serve", "--robot", "arm3", "--backend", "mock", "--namespace", "/cli",
+        env=env, stderr=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.DEVNULL)
+    assert proc.stderr is not None
+    try:
+        async with asyncio.timeout(60):
+            line = (await proc.stderr.readline()).decode()
+            while "serving" not in line:
+                assert line, "agentsdk serve exited before serving"
+                line = (await proc.stderr.readline()).decode()
+        assert f"domain {domain.id}" in line and "/cli" in line
+        await run_peer(cyclone_peer, "traj", "/cli", "1.0", "joint1=0.3", env=domain.env)
+        lines = await run_peer(cyclone_peer, "listen", "/cli", "1.5", env=domain.env)
+        states = parse_joint_states(lines)
+        assert states and abs(states[-1][2]["joint1"] - 0.3) <= 0.02, states[-1:]
+        proc.send_signal(signal.SIGTERM)
+        async with asyncio.timeout(30):
+            rest = (await proc.stderr.read()).decode()
+            rc = await proc.wait()
+        assert rc == 143, rest
+        assert "stopped by SIGTERM" in rest
+    finally:
+        if proc.returncode is None:
+            proc.kill()
+            await proc.wait()

@@ -1,0 +1,86 @@
+"""``agentsdk serve``: run a robot as a ROS 2 node until SIGINT/SIGTERM.
+
+::
+
+    agentsdk serve --robot arm3 --backend mujoco [--namespace /arm1] [--domain-id N]
+
+Time model: simulators run in **realtime** by default (paced to the wall clock, stamps in wall
+time, like a ros2_control hardware driver or Gazebo at real-time factor 1). ``--lockstep`` runs
+the robot in simulated time instead: it publishes ``clock`` for ``use_sim_time`` nodes and robot
+time then advances only while something moves the robot (a trajectory, a goal, a stop ramp),
+as fast as the CPU allows, and stands still in between (joint_states pause with it).
+SIGINT/SIGTERM bring the robot to a category 1 stop (a second signal: category 0), then the
+node leaves the graph; the exit code is 130/143.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import sys
+from typing import Any
+
+__all__ = ["main"]
+
+log = logging.getLogger(__name__)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="agentsdk serve", description="Serve a robot on the ROS 2 graph (DDS) until "
+                                "SIGINT/SIGTERM: joint_states, tf, robot_description, diagnostics, e-stop services, "
+                                "a JointTrajectoryController with its FollowJointTrajectory action.")
+    p.add_argument("--robot", default="arm3", help="robot name or path to .urdf/.xacro/MJCF/robot.yaml")
+    p.add_argument("--backend", default="mujoco", help="mujoco (default), pybullet, mock, can")
+    p.add_argument("--namespace", default="", help="ROS namespace, e.g. /arm1 (default: none)")
+    p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: $ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="joint_states rate in Hz, up to the control rate (default: min(control rate, 100))")
+    p.add_argument("--tf-rate", type=float, default=50.0, help="tf and controller_state rate in Hz (default 50)")
+    p.add_argument("--sensor-qos", action="store_true", help="publish joint_states best effort (SensorDataQoS)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="simulated time (publishes clock); robot time advances only while the robot moves")
+    p.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    """Run ``agentsdk serve`` with ``argv``; returns the exit code."""
+    from .. import cli
+    from ..errors import AgentSDKError
+
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        from .server import expose  # checks that cyclonedds is installed
+
+        options = cli._options(args.option)  # noqa: SLF001 -- the shared KEY=VALUE parser
+        backend = args.backend
+        if args.lockstep and backend == "can":
+            raise cli.ConfigurationError("--lockstep: a CAN robot always runs in realtime")
+
+        async def serve(robot: Any) -> None:
+            async with expose(robot, args.namespace, domain_id=args.domain_id, rate=args.rate,
+                              tf_rate=args.tf_rate, sensor_qos=args.sensor_qos) as face:
+                ns = face.namespace or "/"
+                print(f"serving {robot.name} ({robot.backend}, {'realtime' if robot.realtime else 'lockstep'}) "
+                      f"as ROS 2 node namespace {ns} on domain {face.domain_id}; Ctrl-C stops", file=sys.stderr,
+                      flush=True)
+                await asyncio.Event().wait()
+
+        asyncio.run(cli.run_behavior(serve, backend=backend, robot=args.robot,
+                                     realtime=None if args.lockstep else True, options=options,
+                                     install_signal_handlers=True))
+    except cli.Interrupted as exc:
+        print(f"stopped by {exc.signame}: {exc.detail}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        return 130
+    except AgentSDKError as exc:
+        if args.debug:
+            raise
+        cli._print_error(exc)  # noqa: SLF001
+        return cli.EXIT_USER_ERROR
+    return 0

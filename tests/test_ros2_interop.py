@@ -36,11 +36,11 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-import agentsdk  # noqa: E402
-from agentsdk import Robot  # noqa: E402
-from agentsdk.loop import Phase  # noqa: E402
-from agentsdk.ros2 import RosFace, expose  # noqa: E402
-from agentsdk.ros2.dds import loopback_config  # noqa: E402
+import agentsdk
+from agentsdk import Robot
+from agentsdk.loop import Phase
+from agentsdk.ros2 import expose
+from agentsdk.ros2.dds import loopback_config
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(180)]
 
@@ -103,7 +103,8 @@ def cyclone_peer() -> Path:
 def fastdds_peer() -> Path:
     missing = [what for what, ok in (
         ("fastddsgen (apt-get install fastddsgen)", shutil.which("fastddsgen")),
-        ("fastrtps headers (apt-get install libfastrtps-dev)", Path("/usr/include/fastdds/dds/domain/DomainParticipant.hpp").exists()),
+        ("fastrtps headers (apt-get install libfastrtps-dev)",
+         Path("/usr/include/fastdds/dds/domain/DomainParticipant.hpp").exists()),
         ("a C++ compiler (g++)", shutil.which("g++")),
     ) if not ok]
     if missing:
@@ -164,17 +165,18 @@ def domain(tmp_path: Path) -> Iterator[Domain]:
     yield Domain(did, env)
 
 
-async def run_peer(exe: Path, *args: str, env: dict[str, str], timeout: float = 60.0) -> list[str]:
+async def run_peer(exe: Path, *args: str, env: dict[str, str], limit: float = 60.0) -> list[str]:
     proc = await asyncio.create_subprocess_exec(str(exe), *args, env=env, stdout=asyncio.subprocess.PIPE,
                                                 stderr=asyncio.subprocess.PIPE)
     try:
-        async with asyncio.timeout(timeout):
+        async with asyncio.timeout(limit):
             out, err = await proc.communicate()
     except TimeoutError:
         proc.kill()
         await proc.wait()
         raise
-    assert proc.returncode == 0, f"{exe.name} {' '.join(args)} exited {proc.returncode}:\n{out.decode()}\n{err.decode()}"
+    assert proc.returncode == 0, (
+        f"{exe.name} {' '.join(args)} exited {proc.returncode}:\n{out.decode()}\n{err.decode()}")
     return out.decode().splitlines()
 
 
@@ -251,7 +253,7 @@ async def test_late_peers_receive_joint_states_description_and_static_tf(
                 mover.cancel()
         rec.handle.remove()
         urdf = robot.description.urdf_xml
-        static = sorted(c for c in face._static_links)  # noqa: SLF001 -- what tf_static must carry
+        static = sorted(c for c in face._static_links)
     for label, lines in (("cyclone", cyc), ("fastdds", fast)):
         desc = [line for line in lines if line.startswith("DESC ")]
         assert desc, f"{label} peer never got robot_description: {lines[:5]}"
@@ -273,10 +275,11 @@ async def test_late_peers_receive_joint_states_description_and_static_tf(
 
 
 # ---------------------------------------------------------------------------------- acceptance 2
-async def _settle(robot: Robot, timeout: float = 15.0) -> None:
-    async with asyncio.timeout(timeout):
+async def _settle(robot: Robot) -> None:
+    """Wait (wall time, bounded) until no motion drives the robot."""
+    async with asyncio.timeout(15.0):
         await asyncio.sleep(0.2)
-        while robot.busy:
+        while robot.busy:  # noqa: ASYNC110 -- polling a robot property from outside
             await asyncio.sleep(0.05)
 
 
@@ -296,7 +299,7 @@ async def test_peer_trajectory_is_followed_and_invalid_ones_rejected(
             n = face.rejected_trajectories
             await run_peer(exe, "traj", "/arm1", "1.0", *bad, env=domain.env)
             async with asyncio.timeout(10):
-                while face.rejected_trajectories == n:
+                while face.rejected_trajectories == n:  # noqa: ASYNC110 -- a counter bumped by the face
                     await asyncio.sleep(0.02)
             assert not robot.busy
         await asyncio.sleep(0.3)

@@ -11,7 +11,6 @@ import struct
 from collections.abc import Sequence
 
 import numpy as np
-
 from cyclonedds._clayer import ddspy_write  # type: ignore[import-not-found]
 
 from .msgs import Clock, Header, JointState, Time
@@ -28,7 +27,7 @@ def _split(t: float) -> tuple[int, int]:
 
 def write_raw(writer: object, data: bytes | bytearray) -> None:
     """Write pre-serialised CDR bytes (encapsulation header included) to a ``DataWriter``."""
-    ret = ddspy_write(writer._ref, bytes(data))  # type: ignore[attr-defined]  # noqa: SLF001
+    ret = ddspy_write(writer._ref, bytes(data))  # type: ignore[attr-defined]
     if ret < 0:
         raise OSError(f"DDS write failed ({ret})")
 

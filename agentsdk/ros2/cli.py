@@ -48,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: list[str]) -> int:
     """Run ``agentsdk serve`` with ``argv``; returns the exit code."""
     from .. import cli
-    from ..errors import AgentSDKError
+    from ..errors import AgentSDKError, ConfigurationError
 
     args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
@@ -56,10 +56,10 @@ def main(argv: list[str]) -> int:
     try:
         from .server import expose  # checks that cyclonedds is installed
 
-        options = cli._options(args.option)  # noqa: SLF001 -- the shared KEY=VALUE parser
+        options = cli._options(args.option)
         backend = args.backend
         if args.lockstep and backend == "can":
-            raise cli.ConfigurationError("--lockstep: a CAN robot always runs in realtime")
+            raise ConfigurationError("--lockstep: a CAN robot always runs in realtime")
 
         async def serve(robot: Any) -> None:
             async with expose(robot, args.namespace, domain_id=args.domain_id, rate=args.rate,
@@ -81,6 +81,6 @@ def main(argv: list[str]) -> int:
     except AgentSDKError as exc:
         if args.debug:
             raise
-        cli._print_error(exc)  # noqa: SLF001
+        cli._print_error(exc)
         return cli.EXIT_USER_ERROR
     return 0

@@ -75,7 +75,7 @@ def tolerances_from_goal(goal: FollowJointTrajectory_Goal, default: Tolerances) 
 
     def merged(base: float | dict[str, float] | None, override: dict[str, float]) -> float | dict[str, float] | None:
         if not override:
-            return base  # type: ignore[return-value]
+            return base
         if base is None:
             return override
         if isinstance(base, dict):

@@ -26,7 +26,7 @@ import typing
 from collections.abc import Callable
 from typing import Any
 
-from cyclonedds.core import GuardCondition, Policy, Qos, ReadCondition, SampleState, ViewState, InstanceState, WaitSet
+from cyclonedds.core import GuardCondition, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
 from cyclonedds.idl import IdlStruct, make_idl_struct
 from cyclonedds.internal import InvalidSample
@@ -56,7 +56,8 @@ def normalize_namespace(namespace: str) -> str:
     for p in parts:
         if not _TOKEN.match(p):
             raise InvalidValueError(
-                f"invalid ROS 2 namespace {namespace!r}: {p!r} must be letters, digits and '_', not starting with a digit"
+                f"invalid ROS 2 namespace {namespace!r}: {p!r} must be letters, digits and '_', "
+                "not starting with a digit"
             )
     return "".join("/" + p for p in parts)
 
@@ -108,10 +109,10 @@ QOS_SENSOR = Qos(Policy.Reliability.BestEffort, Policy.Durability.Volatile, Poli
 #: services: reliable, volatile, keep last (rmw_cyclonedds' services use keep all; 100 is plenty)
 QOS_SERVICE = _reliable(100)
 
-_WIRE_TYPES: dict[type[IdlStruct], type[IdlStruct]] = {}
+_WIRE_TYPES: dict[type[Any], type[Any]] = {}
 
 
-def service_wire_type(message: type[IdlStruct]) -> type[IdlStruct]:
+def service_wire_type(message: type[Any]) -> type[Any]:
     """The ``rmw_cyclonedds`` wire type of a service message: a ``request_header`` then its fields.
 
     Same DDS type name as ``message`` (so a ROS 2 client matches it); the CDR bytes are the
@@ -125,18 +126,18 @@ def service_wire_type(message: type[IdlStruct]) -> type[IdlStruct]:
             fields[f.name] = hints[f.name]
         typename = message.__idl_typename__
         wire = make_idl_struct(f"{message.__name__}_Wire", typename, fields)
-        wire.__idl_annotations__["extensibility"] = "final"  # type: ignore[attr-defined]
+        wire.__idl_annotations__["extensibility"] = "final"
         _WIRE_TYPES[message] = wire
     return wire
 
 
-def unwrap(message: type[IdlStruct], sample: Any) -> tuple[RequestHeader, Any]:
+def unwrap(message: type[Any], sample: Any) -> tuple[RequestHeader, Any]:
     """``(request header, message)`` of a wire sample."""
     body = message(**{f.name: getattr(sample, f.name) for f in dataclasses.fields(message)})
     return sample.request_header, body
 
 
-def wrap(message: type[IdlStruct], header: RequestHeader, body: Any) -> Any:
+def wrap(message: type[Any], header: RequestHeader, body: Any) -> Any:
     """The wire sample of ``body`` with ``header`` (a reply repeats the request's header)."""
     wire = service_wire_type(message)
     return wire(request_header=header, **{f.name: getattr(body, f.name) for f in dataclasses.fields(message)})
@@ -204,7 +205,8 @@ class DdsNode:
             self._topics[dds_name] = topic
         return topic
 
-    def writer(self, name: str, data_type: type[IdlStruct], qos: Qos = QOS_DEFAULT, *, prefix: str = "rt/") -> DataWriter[Any]:
+    def writer(self, name: str, data_type: type[IdlStruct], qos: Qos = QOS_DEFAULT, *,
+               prefix: str = "rt/") -> DataWriter[Any]:
         """A writer of the ROS topic ``name`` (relative to the namespace)."""
         w: DataWriter[Any] = DataWriter(self.participant, self._topic(prefix + self.name(name), data_type), qos=qos)
         self._entities.append(w)

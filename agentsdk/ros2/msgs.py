@@ -12,10 +12,29 @@ Services (``*_Request_`` / ``*_Response_``) are the message part only: on the wi
 """
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cyclonedds.idl.annotations as annotate
 from cyclonedds.idl import IdlStruct
-from cyclonedds.idl.types import array, float64, int8, int32, int64, sequence, uint8, uint16, uint32, uint64
+
+if TYPE_CHECKING:
+    # what the fields hold in Python (cyclonedds' IDL type markers are not types mypy understands)
+    from typing import TypeAlias
+
+    float64: TypeAlias = float
+    int8: TypeAlias = int
+    int32: TypeAlias = int
+    int64: TypeAlias = int
+    uint8: TypeAlias = int
+    uint16: TypeAlias = int
+    uint32: TypeAlias = int
+    uint64: TypeAlias = int
+    sequence = list
+    Octets16: TypeAlias = bytes
+else:
+    from cyclonedds.idl.types import array, float64, int8, int32, int64, sequence, uint8, uint16, uint32, uint64
+
+    Octets16 = array[uint8, 16]
 
 __all__ = [
     "UUID", "CancelGoal_Request", "CancelGoal_Response", "Clock", "DiagnosticArray", "DiagnosticStatus",
@@ -269,7 +288,7 @@ class Trigger_Response(IdlStruct, typename=_dds("std_srvs/srv/Trigger_Response")
 class UUID(IdlStruct, typename=_dds("unique_identifier_msgs/msg/UUID")):
     """``unique_identifier_msgs/msg/UUID``: 16 bytes."""
 
-    uuid: array[uint8, 16] = field(default_factory=lambda: bytes(16))
+    uuid: Octets16 = field(default_factory=lambda: bytes(16))
 
 
 @dataclass

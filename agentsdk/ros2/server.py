@@ -2,20 +2,19 @@
 
 What a served robot offers, under its namespace (``/arm1/joint_states`` ...):
 
-=========================================================  ==========================================  ===========
-name                                                       type                                        QoS
-=========================================================  ==========================================  ===========
-``joint_states``                                           ``sensor_msgs/JointState``                   reliable (best effort with ``sensor_qos``), keep last 10
-``tf``                                                     ``tf2_msgs/TFMessage`` (moving joints)       reliable, keep last 10
-``tf_static``                                              ``tf2_msgs/TFMessage`` (fixed joints)        reliable, transient local
-``robot_description``                                      ``std_msgs/String`` (URDF)                   reliable, transient local
-``clock`` (lockstep robots only)                           ``rosgraph_msgs/Clock``                      best effort, keep last 1
-``diagnostics``                                            ``diagnostic_msgs/DiagnosticArray``          reliable
-``estop``, ``reset``, ``enable`` (services)                ``std_srvs/Trigger``                         reliable
-``joint_trajectory_controller/joint_trajectory``           ``trajectory_msgs/JointTrajectory`` (in)     reliable
-``joint_trajectory_controller/controller_state``           ``control_msgs/JointTrajectoryControllerState``  reliable
-``joint_trajectory_controller/follow_joint_trajectory``    ``control_msgs/action/FollowJointTrajectory``  action
-=========================================================  ==========================================  ===========
+* ``joint_states`` (``sensor_msgs/JointState``): reliable, keep last 10 (best effort with
+  ``sensor_qos=True``);
+* ``tf`` (``tf2_msgs/TFMessage``, links on moving joints): reliable, keep last 10;
+* ``tf_static`` (links on fixed joints) and ``robot_description`` (``std_msgs/String``, the URDF):
+  reliable, transient local, so a late subscriber gets them;
+* ``clock`` (``rosgraph_msgs/Clock``, lockstep robots only): best effort;
+* ``diagnostics`` (``diagnostic_msgs/DiagnosticArray``): safety state and cause, ticks, missed
+  deadlines, motor statistics where the backend has them;
+* services ``estop``, ``reset``, ``enable`` (``std_srvs/Trigger``);
+* ``joint_trajectory_controller/joint_trajectory`` (``trajectory_msgs/JointTrajectory``, in),
+  ``joint_trajectory_controller/controller_state`` (``control_msgs/JointTrajectoryControllerState``)
+  and the action ``joint_trajectory_controller/follow_joint_trajectory``
+  (``control_msgs/action/FollowJointTrajectory``: goal, cancel, feedback, result, status).
 
 Every trajectory (topic or action goal) goes through :meth:`Robot.follow`: the same
 validation, limits, safety layer, preemption and cancel-decelerates as in a behavior.
@@ -245,7 +244,8 @@ class RosFace:
         await self.start()
         return self
 
-    async def __aexit__(self, et: type[BaseException] | None, e: BaseException | None, tb: TracebackType | None) -> None:
+    async def __aexit__(self, et: type[BaseException] | None, e: BaseException | None,
+                        tb: TracebackType | None) -> None:
         await self.aclose()
 
     async def start(self) -> None:
@@ -593,22 +593,23 @@ async def _in_thread(fn: Callable[[], Any]) -> Any:
     try:
         return await asyncio.shield(fut)
     finally:
-        while thread.is_alive():  # it ends right after handing over its result
+        while thread.is_alive():  # noqa: ASYNC110 -- it ends right after handing over its result
             await asyncio.sleep(0.001)
 
 
 def _warm_up() -> None:
     """Compile every message type's serialiser (the first use is slow): call off the event loop."""
+    t: type[Any]
     for t in (JointState, Clock, TFMessage, String, DiagnosticArray, JointTrajectoryControllerState,
               FollowJointTrajectory_FeedbackMessage, GoalStatusArray, JointTrajectory):
         t.deserialize(t().serialize())
-    from .dds import service_wire_type
+    from .dds import service_wire_type, wrap
 
     for t in (Trigger_Request, Trigger_Response, FollowJointTrajectory_SendGoal_Request,
               FollowJointTrajectory_SendGoal_Response, FollowJointTrajectory_GetResult_Request,
               FollowJointTrajectory_GetResult_Response, CancelGoal_Request, CancelGoal_Response):
         w = service_wire_type(t)
-        w.deserialize(w(request_header=RequestHeader(), **{f: getattr(t(), f) for f in t.__dataclass_fields__}).serialize())
+        w.deserialize(wrap(t, RequestHeader(), t()).serialize())
 
 
 def _transform(stamp: Time, parent: str, child: str, pose: Pose) -> TransformStamped:

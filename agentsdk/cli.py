@@ -388,7 +388,8 @@ def _video_args(args: argparse.Namespace) -> tuple[int, int]:
     return size
 
 
-def _options(items: list[str] | None) -> dict[str, Any]:
+def parse_options(items: list[str] | None) -> dict[str, Any]:
+    """``--option KEY=VALUE`` items as a dict of backend options (values parsed like YAML scalars)."""
     options: dict[str, Any] = {}
     for item in items or []:
         key, sep, value = item.partition("=")
@@ -429,7 +430,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     module = load_behavior(args.behavior)
     robot = args.robot or getattr(module, "ROBOT", "arm3")
     backend = args.backend or getattr(module, "BACKEND", "mujoco")
-    options = _options(args.option)
+    options = parse_options(args.option)
     _check_output(args.record, "recording")
     _check_output(args.plot, "plot")
     video_size = _video_args(args)
@@ -545,7 +546,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     t_wall = time.perf_counter()
     try:
         result = asyncio.run(
-            replay(data, backend=backend, robot=robot, options=_options(args.option), record=args.record,
+            replay(data, backend=backend, robot=robot, options=parse_options(args.option), record=args.record,
                    on_robot=extras.on_robot)
         )
     finally:
@@ -762,7 +763,7 @@ def main(argv: list[str] | None = None) -> int:
     except AgentSDKError as exc:
         if debug:
             raise
-        _print_error(exc)
+        print_error(exc)
         return EXIT_BAD_BEHAVIOR if isinstance(exc, BehaviorError) else EXIT_USER_ERROR
 
 
@@ -772,7 +773,7 @@ def _cmd_serve(rest: list[str]) -> int:
     return serve_main(rest)
 
 
-def _print_error(exc: BaseException) -> None:
+def print_error(exc: BaseException) -> None:
     """``error: ...`` on stderr, one line per problem (indented continuation lines stay as they are)."""
     for line in str(exc).splitlines() or [type(exc).__name__]:
         print(line if line[:1].isspace() else f"error: {line}", file=sys.stderr)

@@ -56,7 +56,7 @@ def main(argv: list[str]) -> int:
     try:
         from .server import expose  # checks that cyclonedds is installed
 
-        options = cli._options(args.option)
+        options = cli.parse_options(args.option)
         backend = args.backend
         if args.lockstep and backend == "can":
             raise ConfigurationError("--lockstep: a CAN robot always runs in realtime")
@@ -81,6 +81,6 @@ def main(argv: list[str]) -> int:
     except AgentSDKError as exc:
         if args.debug:
             raise
-        cli._print_error(exc)
+        cli.print_error(exc)
         return cli.EXIT_USER_ERROR
     return 0

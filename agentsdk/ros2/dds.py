@@ -36,6 +36,7 @@ from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
 from ..errors import ConfigurationError, InvalidValueError
+from ._fast import RawDataWriter
 from .msgs import RequestHeader
 
 __all__ = [
@@ -208,7 +209,7 @@ class DdsNode:
     def writer(self, name: str, data_type: type[IdlStruct], qos: Qos = QOS_DEFAULT, *,
                prefix: str = "rt/") -> DataWriter[Any]:
         """A writer of the ROS topic ``name`` (relative to the namespace)."""
-        w: DataWriter[Any] = DataWriter(self.participant, self._topic(prefix + self.name(name), data_type), qos=qos)
+        w: DataWriter[Any] = RawDataWriter(self.participant, self._topic(prefix + self.name(name), data_type), qos=qos)
         self._entities.append(w)
         return w
 

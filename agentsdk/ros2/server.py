@@ -48,7 +48,7 @@ from ..errors import AgentSDKError, CommandRejected, InvalidValueError, SafetyEr
 from ..loop import HookHandle, Phase
 from ..motion import Motion, MotionResult, ResultCode, Tolerances
 from ..safety import SafetyState
-from ._fast import ClockEncoder, JointStateEncoder, write_raw
+from ._fast import ClockEncoder, FixedLayout, JointStateEncoder, write_raw
 from .convert import (
     GOAL_ACCEPTED,
     GOAL_CANCELING,
@@ -129,7 +129,9 @@ class _StatePublisher:
         self._encoder = JointStateEncoder(robot.joint_names)
         self._clock = ClockEncoder()
         self._offset = stamp_offset
-        self._min_interval = 0.5 / rate
+        self._min_interval = 1.0 / rate
+        self._waiting = False
+        self._stop = threading.Event()
         self._efd = os.eventfd(0, os.EFD_CLOEXEC)
         self._closed = False
         self.published = 0
@@ -138,7 +140,7 @@ class _StatePublisher:
         self._hook: HookHandle = robot.add_tick_hook(Phase.OBSERVE, self._observe, order=-100)
 
     def _observe(self, t: float, state: Any, _setpoint: Any) -> None:
-        # the tick path: one countdown, one row copy, one eventfd write (no allocation of note)
+        # the tick path: a countdown, one row copy, and an eventfd write only when the publisher sleeps
         self._countdown -= 1
         if self._countdown:
             return
@@ -147,22 +149,27 @@ class _StatePublisher:
         self._stamps[i] = t
         self._blocks[i][...] = state.block
         self._seq += 1
-        os.eventfd_write(self._efd, 1)
+        if self._waiting:
+            self._waiting = False
+            os.eventfd_write(self._efd, 1)
 
     def _run(self) -> None:
         last = 0
         next_time = 0.0
         try:
-            while True:
-                os.eventfd_read(self._efd)
-                if self._closed:
-                    return
+            while not self._closed:
                 seq = self._seq
                 if seq == last:
+                    self._waiting = True
+                    if self._seq == last:  # checked again after announcing: no wake-up is lost
+                        os.eventfd_read(self._efd)
+                    self._waiting = False
                     continue
                 wait = next_time - time.monotonic()
                 if wait > 0:
-                    time.sleep(wait)  # the publisher thread, never the event loop
+                    # the robot runs faster than ``rate`` in wall time (lockstep): publish the newest
+                    # sample at most ``rate`` times per wall second (in this thread, never the loop)
+                    self._stop.wait(wait)
                     seq = self._seq
                 last = seq
                 i = (seq - 1) % _RING
@@ -185,8 +192,9 @@ class _StatePublisher:
             return
         self._closed = True
         self._hook.remove()
+        self._stop.set()
         os.eventfd_write(self._efd, 1)
-        self._thread.join(timeout=5.0)
+        self._thread.join(timeout=5.0)  # wakes at once: both its waits were just released
         os.close(self._efd)
 
 
@@ -274,6 +282,8 @@ class RosFace:
     def _build(self, loop: asyncio.AbstractEventLoop) -> DdsNode:
         """The participant with every writer, reader and service (runs in a worker thread)."""
         _warm_up()
+        self._prepare_tf()
+        self._prepare_controller_state()
         node = DdsNode(self.domain_id, self.namespace, loop)
         try:
             self._create_entities(node)
@@ -350,41 +360,73 @@ class RosFace:
 
     # ------------------------------------------------------------------ tf, state, diagnostics
     def _publish_static(self) -> None:
+        if not self._static_links:
+            return
+        poses = self.robot.kinematics.link_poses()  # fixed joints: the same at every configuration
+        stamp = self.stamp(self.robot.clock.now())
+        msgs = [_transform(stamp, parent, child, pose) for parent, child, pose in poses.transforms()
+                if child in self._static_links]
+        self._tf_static.write(TFMessage(msgs))
+
+    def _publish_tf(self) -> None:
+        if self._tf_layout is None:
+            return
+        state = self.robot.latest_state()
+        values = self.robot.kinematics.relative_transforms(self._tf_pairs, state.position)
+        write_raw(self._tf, self._tf_layout.encode(values.ravel(), state.stamp + self.stamp_offset))
+
+    def _prepare_tf(self) -> None:
+        """The moving transforms (parent, child) and their fixed-layout encoder (None: no kinematics)."""
+        self._tf_pairs: list[tuple[str, str]] = []
+        self._tf_layout: FixedLayout | None = None
         try:
             kin = self.robot.kinematics
         except AgentSDKError as exc:
             log.warning("no tf for %s: %s", self.robot.name, exc)
             return
-        static = _static_links(self.robot, kin)
-        self._static_links = static
-        poses = kin.link_poses()  # fixed joints: the same at every configuration
-        stamp = self.stamp(self.robot.clock.now())
-        msgs = [_transform(stamp, parent, child, pose) for parent, child, pose in poses.transforms() if child in static]
-        self._tf_static.write(TFMessage(msgs))
-
-    def _publish_tf(self) -> None:
-        try:
-            kin = self.robot.kinematics
-        except AgentSDKError:
+        self._static_links = _static_links(self.robot, kin)
+        self._tf_pairs = [(parent, child) for child, parent in kin.parents.items()
+                          if child not in self._static_links]
+        if not self._tf_pairs:
             return
-        state = self.robot.latest_state()
-        poses = kin.link_poses(state)
-        stamp = self.stamp(state.stamp)
-        msgs = [_transform(stamp, parent, child, pose) for parent, child, pose in poses.transforms()
-                if child not in self._static_links]
-        if msgs:
-            self._tf.write(TFMessage(msgs))
+        pairs = self._tf_pairs
+
+        def build(values: np.ndarray, stamps: list[Time]) -> TFMessage:
+            return TFMessage([
+                TransformStamped(Header(stamps[0], parent), child, Transform(
+                    Vector3(*map(float, values[7 * k:7 * k + 3])),
+                    Quaternion(*map(float, values[7 * k + 3:7 * k + 7]))))
+                for k, (parent, child) in enumerate(pairs)])
+
+        self._tf_layout = FixedLayout(build, 7 * len(pairs), 1)
+
+    def _prepare_controller_state(self) -> None:
+        names = list(self.robot.joint_names)
+        n = len(names)
+
+        def build(values: np.ndarray, stamps: list[Time]) -> JointTrajectoryControllerState:
+            pts = [point_msg(values[2 * k * n:(2 * k + 1) * n], values[(2 * k + 1) * n:(2 * k + 2) * n])
+                   for k in range(6)]
+            return JointTrajectoryControllerState(Header(stamps[0]), names, reference=pts[0], feedback=pts[1],
+                                                  error=pts[2], output=pts[3], desired=pts[4], actual=pts[5])
+
+        self._cs_values = np.zeros(12 * n)
+        self._cs_layout = FixedLayout(build, 12 * n, 1)
 
     def _publish_controller_state(self) -> None:
         robot = self.robot
         state = robot.latest_state()
         q_des, v_des, _ = robot.desired_state()
-        desired = point_msg(q_des, v_des)
-        actual = point_msg(state.position, state.velocity)
-        error = point_msg(q_des - state.position, v_des - state.velocity)
-        self._controller_state.write(JointTrajectoryControllerState(
-            header=Header(self.stamp(state.stamp)), joint_names=list(robot.joint_names),
-            reference=desired, feedback=actual, error=error, output=desired, desired=desired, actual=actual))
+        n = len(q_des)
+        v = self._cs_values.reshape(12, n)
+        # reference, feedback, error, output, desired (= reference), actual (= feedback): positions, velocities
+        v[0], v[1] = q_des, v_des
+        v[2], v[3] = state.position, state.velocity
+        v[4], v[5] = q_des - state.position, v_des - state.velocity
+        v[6], v[7] = q_des, v_des
+        v[8], v[9] = q_des, v_des
+        v[10], v[11] = state.position, state.velocity
+        write_raw(self._controller_state, self._cs_layout.encode(self._cs_values, state.stamp + self.stamp_offset))
 
     def _publish_diagnostics(self) -> None:
         robot = self.robot

@@ -16,12 +16,11 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
-import agentsdk  # noqa: E402
-from agentsdk import InvalidValueError  # noqa: E402
-from agentsdk.ros2 import expose  # noqa: E402
-from agentsdk.ros2._fast import FixedLayout  # noqa: E402
-from agentsdk.ros2.dds import QOS_LATCHED, QOS_SENSOR, DdsNode, normalize_namespace, resolve_domain_id  # noqa: E402
-from agentsdk.ros2.msgs import (  # noqa: E402
+import agentsdk
+from agentsdk import InvalidValueError
+from agentsdk.ros2 import expose
+from agentsdk.ros2.dds import QOS_LATCHED, QOS_SENSOR, DdsNode, normalize_namespace, resolve_domain_id
+from agentsdk.ros2.msgs import (
     Clock,
     DiagnosticArray,
     JointState,
@@ -64,14 +63,14 @@ async def test_fixed_layout_encoders_equal_the_messages() -> None:
     """tf and controller_state bytes are the messages' own serialisation, for any robot shape."""
     async with agentsdk.connect("mock", robot="humanoid") as robot:
         face = expose(robot)
-        face._prepare_tf()  # noqa: SLF001 -- the encoders the face builds, checked without a participant
-        face._prepare_controller_state()  # noqa: SLF001
+        face._prepare_tf()
+        face._prepare_controller_state()
         rng = np.random.default_rng(7)
-        pairs = face._tf_pairs  # noqa: SLF001
+        pairs = face._tf_pairs
         assert pairs
         q = rng.uniform(-0.4, 0.4, len(robot.joints))
         values = robot.kinematics.relative_transforms(pairs, list(q)).ravel()
-        data = bytes(face._tf_layout.encode(values, 12.25))  # type: ignore[union-attr]  # noqa: SLF001
+        data = bytes(face._tf_layout.encode(values, 12.25))  # type: ignore[union-attr]
         msg = TFMessage.deserialize(data)
         poses = robot.kinematics.link_poses(list(q))
         assert [(t.header.frame_id, t.child_frame_id) for t in msg.transforms] == pairs
@@ -87,7 +86,7 @@ async def test_fixed_layout_encoders_equal_the_messages() -> None:
         n = len(robot.joints)
         cs_values = rng.normal(size=12 * n)
         cs = JointTrajectoryControllerState.deserialize(
-            bytes(face._cs_layout.encode(cs_values, 3.5)))  # noqa: SLF001
+            bytes(face._cs_layout.encode(cs_values, 3.5)))
         assert cs.joint_names == list(robot.joint_names)
         assert cs.reference.positions == list(cs_values[:n]) and cs.actual.velocities == list(cs_values[11 * n:])
 

@@ -30,7 +30,7 @@ newest each time, like a keep-last history). Stamps: robot time for lockstep rob
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import dataclasses
 import logging
 import math
 import os
@@ -447,16 +447,24 @@ class RosFace:
             KeyValue("joint_states_published", str(self.published)),
             KeyValue("trajectories_rejected", str(self.rejected_trajectories)),
         ]
-        stats = getattr(robot.controller, "stats", None)
-        if callable(stats):
-            with contextlib.suppress(Exception):
-                stats = stats()
-        if isinstance(stats, dict):
-            values.extend(KeyValue(f"motor.{k}", str(v)) for k, v in stats.items())
         message = st.name if cause is None else f"{st.name}: {cause}"
-        status = DiagnosticStatus(level=level, name=f"agentsdk: {robot.name}{self.namespace}",
-                                  message=message, hardware_id=robot.backend, values=values)
-        self._diagnostics.write(DiagnosticArray(Header(self.stamp(robot.clock.now())), [status]))
+        statuses = [DiagnosticStatus(level=level, name=f"agentsdk: {robot.name}{self.namespace}",
+                                     message=message, hardware_id=robot.backend, values=values)]
+        # per-motor statistics where the backend keeps them (the CAN backend: commands, replies, missed, late...)
+        stats = getattr(robot.controller, "stats", None)
+        if isinstance(stats, list | tuple):
+            for item in stats:
+                if not dataclasses.is_dataclass(item) or isinstance(item, type):
+                    continue
+                fields = dataclasses.asdict(item)
+                trouble = bool(fields.get("consecutive_missed") or fields.get("last_error"))
+                who = fields.get("joint", "motor")
+                statuses.append(DiagnosticStatus(
+                    level=1 if trouble else 0, name=f"agentsdk: {robot.name}{self.namespace} motor {who}",
+                    message=str(fields.get("last_error") or ("missing replies" if trouble else "OK")),
+                    hardware_id=str(fields.get("motor_id", robot.backend)),
+                    values=[KeyValue(k, str(v)) for k, v in fields.items()]))
+        self._diagnostics.write(DiagnosticArray(Header(self.stamp(robot.clock.now())), statuses))
 
     async def _periodic(self) -> None:
         """tf, controller_state at ``tf_rate`` and diagnostics at 1 Hz, in wall time."""
@@ -558,11 +566,13 @@ class RosFace:
                     FollowJointTrajectory_Feedback(Header(self.stamp(fb.time)), list(fb.joint_names),
                                                    desired, actual, error)))
             result: MotionResult = await motion
-        except AgentSDKError as exc:  # the robot closed or faulted under the goal
-            result = MotionResult(ResultCode.ABORTED, {}, f"{type(exc).__name__}: {exc}", self.robot.clock.now())
         except asyncio.CancelledError:
             motion.cancel()
             raise
+        except Exception as exc:  # the robot closed or faulted under the goal: the client still gets a result
+            if not isinstance(exc, AgentSDKError):
+                log.exception("FollowJointTrajectory goal failed")
+            result = MotionResult(ResultCode.ABORTED, {}, f"{type(exc).__name__}: {exc}", self.robot.clock.now())
         self._finish(goal, result)
 
     def _finish(self, goal: _Goal, result: MotionResult) -> None:

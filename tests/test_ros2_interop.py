@@ -371,27 +371,33 @@ async def test_several_robots_in_one_process_under_their_namespaces(domain: Doma
 
 
 async def test_agentsdk_serve_until_sigterm_honours_ros_domain_id(domain: Domain, cyclone_peer: Path) -> None:
-    """The CLI: ROS_DOMAIN_ID picks the domain, its own loopback config (no CYCLONEDDS_URI), safe stop on SIGTERM."""
+    """The CLI: two robots in one process, ROS_DOMAIN_ID picks the domain, its own loopback config
+    (no CYCLONEDDS_URI), a category 1 stop on SIGTERM (exit 143)."""
     import signal
     import sys
 
     env = {k: v for k, v in domain.env.items() if k != "CYCLONEDDS_URI"}
     env["PYTHONPATH"] = os.pathsep.join([str(Path(agentsdk.__file__).parents[1]), env.get("PYTHONPATH", "")])
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "agentsdk", "serve", "--robot", "arm3", "--backend", "mock", "--namespace", "/cli",
+        sys.executable, "-m", "agentsdk", "serve", "--backend", "mock",
+        "--robot", "arm3", "--namespace", "/cli", "--robot", "arm3", "--namespace", "/cli2",
         env=env, stderr=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.DEVNULL)
     assert proc.stderr is not None
     try:
+        serving: list[str] = []
         async with asyncio.timeout(60):
-            line = (await proc.stderr.readline()).decode()
-            while "serving" not in line:
-                assert line, "agentsdk serve exited before serving"
+            while len(serving) < 2:
                 line = (await proc.stderr.readline()).decode()
-        assert f"domain {domain.id}" in line and "/cli" in line
-        await run_peer(cyclone_peer, "traj", "/cli", "1.0", "joint1=0.3", env=domain.env)
-        lines = await run_peer(cyclone_peer, "listen", "/cli", "1.5", env=domain.env)
-        states = parse_joint_states(lines)
-        assert states and abs(states[-1][2]["joint1"] - 0.3) <= 0.02, states[-1:]
+                assert line, f"agentsdk serve exited before serving: {serving}"
+                if "serving" in line:
+                    serving.append(line)
+        assert all(f"domain {domain.id}" in line for line in serving)
+        assert "/cli " in serving[0] and "/cli2 " in serving[1]
+        await run_peer(cyclone_peer, "traj", "/cli2", "1.0", "joint1=0.3", env=domain.env)
+        for ns, expected in (("/cli2", 0.3), ("/cli", 0.0)):
+            lines = await run_peer(cyclone_peer, "listen", ns, "1.5", env=domain.env)
+            states = parse_joint_states(lines)
+            assert states and abs(states[-1][2]["joint1"] - expected) <= 0.02, (ns, states[-1:])
         proc.send_signal(signal.SIGTERM)
         async with asyncio.timeout(30):
             rest = (await proc.stderr.read()).decode()

@@ -3,6 +3,7 @@
 ::
 
     agentsdk serve --robot arm3 --backend mujoco [--namespace /arm1] [--domain-id N]
+    agentsdk serve --robot arm3 --namespace /left --robot arm3 --namespace /right   # two robots, one process
 
 Time model: simulators run in **realtime** by default (paced to the wall clock, stamps in wall
 time, like a ros2_control hardware driver or Gazebo at real-time factor 1). ``--lockstep`` runs
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import sys
 from typing import Any
@@ -30,9 +32,11 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="agentsdk serve", description="Serve a robot on the ROS 2 graph (DDS) until "
                                 "SIGINT/SIGTERM: joint_states, tf, robot_description, diagnostics, e-stop services, "
                                 "a JointTrajectoryController with its FollowJointTrajectory action.")
-    p.add_argument("--robot", default="arm3", help="robot name or path to .urdf/.xacro/MJCF/robot.yaml")
-    p.add_argument("--backend", default="mujoco", help="mujoco (default), pybullet, mock, can")
-    p.add_argument("--namespace", default="", help="ROS namespace, e.g. /arm1 (default: none)")
+    p.add_argument("--robot", action="append", help="robot name or path to .urdf/.xacro/MJCF/robot.yaml "
+                   "(default arm3); repeat it, each with its own --namespace, to serve several robots")
+    p.add_argument("--backend", action="append",
+                   help="mujoco (default), pybullet, mock, can; one for all robots or one per --robot")
+    p.add_argument("--namespace", action="append", help="ROS namespace, e.g. /arm1 (default: none); one per --robot")
     p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: $ROS_DOMAIN_ID, else 0)")
     p.add_argument("--rate", type=float, default=None,
                    help="joint_states rate in Hz, up to the control rate (default: min(control rate, 100))")
@@ -57,22 +61,46 @@ def main(argv: list[str]) -> int:
         from .server import expose  # checks that cyclonedds is installed
 
         options = cli.parse_options(args.option)
-        backend = args.backend
-        if args.lockstep and backend == "can":
+        robots = args.robot or ["arm3"]
+        backends = args.backend or ["mujoco"]
+        namespaces = args.namespace or [""]
+        if len(backends) not in (1, len(robots)):
+            raise ConfigurationError(f"give one --backend for all robots or one per --robot ({len(robots)})")
+        if len(robots) > 1 and (len(namespaces) != len(robots) or len(set(namespaces)) != len(namespaces)):
+            raise ConfigurationError("serving several robots needs one distinct --namespace per --robot")
+        if len(namespaces) != len(robots):
+            raise ConfigurationError("give one --namespace per --robot")
+        backends = backends * len(robots) if len(backends) == 1 else backends
+        if args.lockstep and "can" in backends:
             raise ConfigurationError("--lockstep: a CAN robot always runs in realtime")
+        realtime = None if args.lockstep else True
 
-        async def serve(robot: Any) -> None:
-            async with expose(robot, args.namespace, domain_id=args.domain_id, rate=args.rate,
-                              tf_rate=args.tf_rate, sensor_qos=args.sensor_qos) as face:
-                ns = face.namespace or "/"
-                print(f"serving {robot.name} ({robot.backend}, {'realtime' if robot.realtime else 'lockstep'}) "
-                      f"as ROS 2 node namespace {ns} on domain {face.domain_id}; Ctrl-C stops", file=sys.stderr,
-                      flush=True)
-                await asyncio.Event().wait()
+        async def serve(first: Any) -> None:
+            from ..robot import connect
 
-        asyncio.run(cli.run_behavior(serve, backend=backend, robot=args.robot,
-                                     realtime=None if args.lockstep else True, options=options,
-                                     install_signal_handlers=True))
+            async with contextlib.AsyncExitStack() as stack:
+                served = [first]
+                for robot_spec, backend in zip(robots[1:], backends[1:], strict=True):
+                    served.append(await stack.enter_async_context(
+                        connect(backend, robot=robot_spec, realtime=realtime, **options)))
+                try:
+                    for robot, ns in zip(served, namespaces, strict=True):
+                        face = await stack.enter_async_context(expose(
+                            robot, ns, domain_id=args.domain_id, rate=args.rate, tf_rate=args.tf_rate,
+                            sensor_qos=args.sensor_qos))
+                        mode = "realtime" if robot.realtime else "lockstep"
+                        print(f"serving {robot.name} ({robot.backend}, {mode}) as ROS 2 node namespace "
+                              f"{face.namespace or '/'} on domain {face.domain_id}; Ctrl-C stops",
+                              file=sys.stderr, flush=True)
+                    await asyncio.Event().wait()
+                finally:
+                    # the first robot gets run_behavior's safe stop; the others the same category 1 stop here
+                    for robot in served[1:]:
+                        with contextlib.suppress(AgentSDKError):
+                            await asyncio.shield(robot.estop(1))
+
+        asyncio.run(cli.run_behavior(serve, backend=backends[0], robot=robots[0], realtime=realtime,
+                                     options=options, install_signal_handlers=True))
     except cli.Interrupted as exc:
         print(f"stopped by {exc.signame}: {exc.detail}", file=sys.stderr)
         return exc.exit_code

@@ -25,6 +25,7 @@ from agentsdk.ros2.msgs import (
     DiagnosticArray,
     JointState,
     JointTrajectoryControllerState,
+    ParticipantEntitiesInfo,
     String,
     TFMessage,
     Time,
@@ -168,3 +169,23 @@ async def test_close_is_idempotent_and_robot_stays_usable() -> None:
         result = await robot.move_to({"joint1": 0.2})
         assert result.ok
 
+
+
+async def test_ros_discovery_info_names_the_node_and_its_endpoints() -> None:
+    """What ``ros2 node list`` reads: the node's name and namespace, its readers' and writers' ids."""
+    domain = random.SystemRandom().randint(30, 230)
+    async with agentsdk.connect("mock", robot="arm3") as robot, Peer(domain, "") as peer:
+        assert peer.node is not None
+        got: list[ParticipantEntitiesInfo] = []
+        peer.node.subscribe("ros_discovery_info", ParticipantEntitiesInfo, got.append, QOS_LATCHED, prefix="")
+        peer.node.start()
+        async with expose(robot, "/arm7", domain_id=domain) as face:
+            async with asyncio.timeout(20):
+                while not any(i.node_entities_info_seq for i in got):  # noqa: ASYNC110 -- filled by the reader thread
+                    await asyncio.sleep(0.02)
+            info = next(i for i in got if i.node_entities_info_seq)
+            node = info.node_entities_info_seq[0]
+            assert (node.node_namespace, node.node_name) == ("/arm7", face.node_name) == ("/arm7", "agentsdk_arm3")
+            # readers: the JTC topic and 6 service request readers; writers: 11 topics and 6 service reply writers
+            assert len(node.reader_gid_seq) == 7 and len(node.writer_gid_seq) >= 15
+            assert all(bytes(g.data)[:12] == bytes(info.gid.data)[:12] for g in node.writer_gid_seq)

@@ -37,7 +37,7 @@ from cyclonedds.util import duration
 
 from ..errors import ConfigurationError, InvalidValueError
 from ._fast import RawDataWriter
-from .msgs import RequestHeader
+from .msgs import Gid, NodeEntitiesInfo, ParticipantEntitiesInfo, RequestHeader
 
 __all__ = [
     "QOS_DEFAULT", "QOS_LATCHED", "QOS_SENSOR", "DdsNode", "loopback_config", "normalize_namespace",
@@ -191,6 +191,9 @@ class DdsNode:
         self._topics: dict[str, Topic[Any]] = {}
         self._readers: list[tuple[ReadCondition, DataReader[Any], Callable[[Any], None]]] = []
         self._entities: list[Any] = []
+        #: DDS GUIDs (16 bytes) of this node's readers and writers, for ros_discovery_info
+        self.reader_guids: list[bytes] = []
+        self.writer_guids: list[bytes] = []
         self._lock = threading.Lock()
         self._closed = False
         self._thread: threading.Thread | None = None
@@ -211,6 +214,7 @@ class DdsNode:
         """A writer of the ROS topic ``name`` (relative to the namespace)."""
         w: DataWriter[Any] = RawDataWriter(self.participant, self._topic(prefix + self.name(name), data_type), qos=qos)
         self._entities.append(w)
+        self.writer_guids.append(w.guid.bytes)
         return w
 
     def subscribe(self, name: str, data_type: type[IdlStruct], callback: Callable[[Any], None],
@@ -222,6 +226,7 @@ class DdsNode:
             self._readers.append((cond, r, callback))
             self._waitset.attach(cond)
         self._entities.append(r)
+        self.reader_guids.append(r.guid.bytes)
         return r
 
     def service(self, name: str, request: type[IdlStruct], response: type[IdlStruct],
@@ -233,6 +238,7 @@ class DdsNode:
             self.participant, self._topic(f"rr/{full}Reply", service_wire_type(response)),
             qos=_reliable(100, user_data=sid))
         self._entities.append(writer)
+        self.writer_guids.append(writer.guid.bytes)
 
         def on_request(sample: Any) -> None:
             header, body = unwrap(request, sample)
@@ -250,6 +256,24 @@ class DdsNode:
             self._readers.append((cond, r, on_request))
             self._waitset.attach(cond)
         self._entities.append(r)
+        self.reader_guids.append(r.guid.bytes)
+
+    def announce(self, node_name: str) -> None:
+        """Publish ``ros_discovery_info`` so ``ros2 node list`` / ``ros2 node info`` show this node.
+
+        rmw_dds_common's graph message (Humble layout), on the un-prefixed DDS topic
+        ``ros_discovery_info``, reliable + transient local, keep last 1.
+        """
+        w: DataWriter[Any] = DataWriter(self.participant, self._topic("ros_discovery_info", ParticipantEntitiesInfo),
+                                        qos=QOS_LATCHED)
+        self._entities.append(w)
+
+        def gid(guid: bytes) -> Gid:
+            return Gid(guid + bytes(24 - len(guid)))
+
+        w.write(ParticipantEntitiesInfo(gid(self.participant.guid.bytes), [NodeEntitiesInfo(
+            self.namespace or "/", node_name,
+            [gid(g) for g in self.reader_guids], [gid(g) for g in self.writer_guids])]))
 
     def start(self) -> None:
         """Start the reader thread (after every subscription is made)."""

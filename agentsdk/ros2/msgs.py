@@ -31,21 +31,56 @@ if TYPE_CHECKING:
     uint64: TypeAlias = int
     sequence = list
     Octets16: TypeAlias = bytes
+    Octets24: TypeAlias = bytes
 else:
     from cyclonedds.idl.types import array, float64, int8, int32, int64, sequence, uint8, uint16, uint32, uint64
 
     Octets16 = array[uint8, 16]
+    Octets24 = array[uint8, 24]
 
 __all__ = [
-    "UUID", "CancelGoal_Request", "CancelGoal_Response", "Clock", "DiagnosticArray", "DiagnosticStatus",
-    "Duration", "FollowJointTrajectory_Feedback", "FollowJointTrajectory_FeedbackMessage",
-    "FollowJointTrajectory_GetResult_Request", "FollowJointTrajectory_GetResult_Response",
-    "FollowJointTrajectory_Goal", "FollowJointTrajectory_Result", "FollowJointTrajectory_SendGoal_Request",
-    "FollowJointTrajectory_SendGoal_Response", "GoalInfo", "GoalStatus", "GoalStatusArray", "Header",
-    "JointComponentTolerance", "JointState", "JointTolerance", "JointTrajectory", "JointTrajectoryControllerState",
-    "JointTrajectoryPoint", "KeyValue", "MultiDOFJointTrajectory", "MultiDOFJointTrajectoryPoint", "Quaternion",
-    "RequestHeader", "String", "TFMessage", "Time", "Transform", "TransformStamped", "Trigger_Request",
-    "Trigger_Response", "Twist", "Vector3",
+    "UUID",
+    "CancelGoal_Request",
+    "CancelGoal_Response",
+    "Clock",
+    "DiagnosticArray",
+    "DiagnosticStatus",
+    "Duration",
+    "FollowJointTrajectory_Feedback",
+    "FollowJointTrajectory_FeedbackMessage",
+    "FollowJointTrajectory_GetResult_Request",
+    "FollowJointTrajectory_GetResult_Response",
+    "FollowJointTrajectory_Goal",
+    "FollowJointTrajectory_Result",
+    "FollowJointTrajectory_SendGoal_Request",
+    "FollowJointTrajectory_SendGoal_Response",
+    "Gid",
+    "GoalInfo",
+    "GoalStatus",
+    "GoalStatusArray",
+    "Header",
+    "JointComponentTolerance",
+    "JointState",
+    "JointTolerance",
+    "JointTrajectory",
+    "JointTrajectoryControllerState",
+    "JointTrajectoryPoint",
+    "KeyValue",
+    "MultiDOFJointTrajectory",
+    "MultiDOFJointTrajectoryPoint",
+    "NodeEntitiesInfo",
+    "ParticipantEntitiesInfo",
+    "Quaternion",
+    "RequestHeader",
+    "String",
+    "TFMessage",
+    "Time",
+    "Transform",
+    "TransformStamped",
+    "Trigger_Request",
+    "Trigger_Response",
+    "Twist",
+    "Vector3",
 ]
 
 
@@ -471,6 +506,35 @@ class FollowJointTrajectory_FeedbackMessage(
 
     goal_id: UUID = field(default_factory=UUID)
     feedback: FollowJointTrajectory_Feedback = field(default_factory=FollowJointTrajectory_Feedback)
+
+
+# ------------------------------------------------------------------ rmw_dds_common (Humble): node discovery
+@dataclass
+@annotate.final
+class Gid(IdlStruct, typename=_dds("rmw_dds_common/msg/Gid")):
+    """``rmw_dds_common/msg/Gid`` (Humble: 24 bytes): a DDS GUID's 16 bytes, zero padded."""
+
+    data: Octets24 = field(default_factory=lambda: bytes(24))
+
+
+@dataclass
+@annotate.final
+class NodeEntitiesInfo(IdlStruct, typename=_dds("rmw_dds_common/msg/NodeEntitiesInfo")):
+    """``rmw_dds_common/msg/NodeEntitiesInfo``: one node and its readers' and writers' ids."""
+
+    node_namespace: str = ""
+    node_name: str = ""
+    reader_gid_seq: sequence[Gid] = field(default_factory=list)
+    writer_gid_seq: sequence[Gid] = field(default_factory=list)
+
+
+@dataclass
+@annotate.final
+class ParticipantEntitiesInfo(IdlStruct, typename=_dds("rmw_dds_common/msg/ParticipantEntitiesInfo")):
+    """``rmw_dds_common/msg/ParticipantEntitiesInfo``: what ``ros_discovery_info`` carries (``ros2 node list``)."""
+
+    gid: Gid = field(default_factory=Gid)
+    node_entities_info_seq: sequence[NodeEntitiesInfo] = field(default_factory=list)
 
 
 # ------------------------------------------------------------------ rmw_cyclonedds request header

@@ -34,6 +34,7 @@ import dataclasses
 import logging
 import math
 import os
+import re
 import threading
 import time
 from collections import OrderedDict
@@ -246,6 +247,8 @@ class RosFace:
         self.rejected_trajectories = 0
         self.last_rejection: str = ""
         self._static_links: set[str] = set()
+        #: the ROS node name ``ros2 node list`` shows (under :attr:`namespace`)
+        self.node_name = "agentsdk_" + (re.sub(r"\W", "_", robot.name) or "robot")
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> RosFace:
@@ -315,6 +318,7 @@ class RosFace:
         node.service(f"{action}/get_result", FollowJointTrajectory_GetResult_Request,
                      FollowJointTrajectory_GetResult_Response, self._on_get_result)
         node.service(f"{action}/cancel_goal", CancelGoal_Request, CancelGoal_Response, self._on_cancel)
+        node.announce(self.node_name)
 
     async def aclose(self) -> None:
         """Stop serving: cancel the face's tasks, stop the publisher, delete the participant (idempotent)."""

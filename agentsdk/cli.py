@@ -12,6 +12,7 @@
 ``agentsdk emulate-can ...``    run the MIT motor emulator on a CAN bus
 ``agentsdk bench ...``          run the benchmarks, each figure beside its raw baseline
 ``agentsdk vcan -- CMD``        run CMD inside user-mode Linux with a SocketCAN vcan0
+``agentsdk serve ...``          serve a robot as a ROS 2 node (DDS) until SIGINT/SIGTERM
 
 User errors print one line and exit non-zero; ``--debug`` shows tracebacks.
 """
@@ -388,7 +389,8 @@ def _video_args(args: argparse.Namespace) -> tuple[int, int]:
     return size
 
 
-def _options(items: list[str] | None) -> dict[str, Any]:
+def parse_options(items: list[str] | None) -> dict[str, Any]:
+    """``--option KEY=VALUE`` items as a dict of backend options (values parsed like YAML scalars)."""
     options: dict[str, Any] = {}
     for item in items or []:
         key, sep, value = item.partition("=")
@@ -429,7 +431,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     module = load_behavior(args.behavior)
     robot = args.robot or getattr(module, "ROBOT", "arm3")
     backend = args.backend or getattr(module, "BACKEND", "mujoco")
-    options = _options(args.option)
+    options = parse_options(args.option)
     _check_output(args.record, "recording")
     _check_output(args.plot, "plot")
     video_size = _video_args(args)
@@ -545,7 +547,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     t_wall = time.perf_counter()
     try:
         result = asyncio.run(
-            replay(data, backend=backend, robot=robot, options=_options(args.option), record=args.record,
+            replay(data, backend=backend, robot=robot, options=parse_options(args.option), record=args.record,
                    on_robot=extras.on_robot)
         )
     finally:
@@ -739,6 +741,8 @@ def _parser() -> argparse.ArgumentParser:
                    add_help=False)
     sub.add_parser("vcan", help="run a command inside user-mode Linux with a SocketCAN vcan0 (root, Debian)",
                    add_help=False)
+    sub.add_parser("serve", help="serve a robot as a ROS 2 node over DDS (see `agentsdk serve --help`)",
+                   add_help=False)
     return p
 
 
@@ -747,7 +751,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     passthrough = {"emulate-can": lambda rest: _cmd_emulate_can(argparse.Namespace(), rest),
-                   "bench": _cmd_bench, "vcan": _cmd_vcan}
+                   "bench": _cmd_bench, "vcan": _cmd_vcan, "serve": _cmd_serve}
     head = argv[1:2] if argv[:1] == ["--debug"] else argv[:1]
     if head and head[0] in passthrough:
         rest = argv[argv.index(head[0]) + 1:]
@@ -768,11 +772,17 @@ def main(argv: list[str] | None = None) -> int:
     except AgentSDKError as exc:
         if debug:
             raise
-        _print_error(exc)
+        print_error(exc)
         return EXIT_BAD_BEHAVIOR if isinstance(exc, BehaviorError) else EXIT_USER_ERROR
 
 
-def _print_error(exc: BaseException) -> None:
+def _cmd_serve(rest: list[str]) -> int:
+    from .ros2.cli import main as serve_main
+
+    return serve_main(rest)
+
+
+def print_error(exc: BaseException) -> None:
     """``error: ...`` on stderr, one line per problem (indented continuation lines stay as they are)."""
     for line in str(exc).splitlines() or [type(exc).__name__]:
         print(line if line[:1].isspace() else f"error: {line}", file=sys.stderr)

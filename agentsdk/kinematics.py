@@ -564,6 +564,33 @@ class Kinematics:
             poses = {name: self._pose(d, bid) for name, bid in self._links.items()}
         return LinkPoses(self.root_link, poses, dict(self._parents), stamp)
 
+    def relative_transforms(self, pairs: Sequence[tuple[str, str]], positions: Positions | None = None) -> FloatArray:
+        """Each ``(parent, child)`` pair's pose of ``child`` in ``parent``, from one FK pass.
+
+        A ``(len(pairs), 7)`` array of ``(x, y, z, qx, qy, qz, qw)`` rows: what ``/tf`` carries,
+        without building a :class:`Pose` per link (vectorised; used by the ROS 2 tf publisher).
+        """
+        pid = np.array([self.body_id(p) for p, _ in pairs], dtype=np.intp)
+        cid = np.array([self.body_id(c) for _, c in pairs], dtype=np.intp)
+        q = self.resolve(positions)
+        with self._lock:
+            d = self._set(q)
+            xp, xc = d.xpos[pid], d.xpos[cid]
+            rp = d.xmat[pid].reshape(-1, 3, 3)
+            qp, qc = d.xquat[pid], d.xquat[cid]
+        out = np.empty((len(pairs), 7))
+        out[:, :3] = np.einsum("kji,kj->ki", rp, xc - xp)  # R_parent^T (x_child - x_parent)
+        # conj(q_parent) * q_child, MuJoCo's (w, x, y, z) in, (x, y, z, w) out
+        aw, av = qp[:, 0], -qp[:, 1:]
+        bw, bv = qc[:, 0], qc[:, 1:]
+        ax, ay, az = av[:, 0], av[:, 1], av[:, 2]
+        bx, by, bz = bv[:, 0], bv[:, 1], bv[:, 2]
+        out[:, 3] = aw * bx + bw * ax + ay * bz - az * by
+        out[:, 4] = aw * by + bw * ay + az * bx - ax * bz
+        out[:, 5] = aw * bz + bw * az + ax * by - ay * bx
+        out[:, 6] = aw * bw - ax * bx - ay * by - az * bz
+        return out
+
     def jacobian(self, link: str, positions: Positions | None = None) -> FloatArray:
         """Geometric Jacobian (6, n) of ``link``'s origin in the root frame: rows (v; w), columns in joint order."""
         bid = self.body_id(link)

@@ -85,6 +85,12 @@ def _multi(quick: bool) -> list[Section]:
     return [multi.run(quick)]
 
 
+def _ros2_serve(quick: bool) -> list[Section]:
+    from agentsdk.bench import ros2_serve
+
+    return [ros2_serve.run(quick)]
+
+
 def _planning(quick: bool) -> list[Section]:
     from agentsdk.bench import planning
 
@@ -481,8 +487,10 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "can_cycle": ("CAN cycle rates on vcan0 vs raw python-can and the wire limit", _can_cycle),
     "safety_latency": ("e-stop and stall latency", _safety_latency),
     "planning": ("trajectory planning time vs raw ruckig", _planning),
+    "ros2_serve": ("serving joint_states on ROS 2: lockstep cost and tick -> peer latency vs raw DDS", _ros2_serve),
 }
 ALIASES = {
+    "ros2": "ros2_serve",
     "feedback": "feedback_timing",
     "pacing": "realtime",
     "robots": "multi",

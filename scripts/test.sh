@@ -26,6 +26,16 @@ if ! ldconfig -p 2>/dev/null | grep -q -E 'libEGL_mesa\.so|libOSMesa\.so' && com
         { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends $GL_PKGS >/dev/null; }
 fi
 
+# System packages: the independent ROS 2 peers of the interop tests (tests/test_ros2_interop.py) are
+# built from Eclipse Cyclone DDS C (idlc) and eProsima Fast DDS (fastddsgen, C++), Debian's packages.
+if { ! command -v idlc >/dev/null || ! command -v fastddsgen >/dev/null || ! command -v g++ >/dev/null; } &&
+    command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+    export DEBIAN_FRONTEND=noninteractive
+    ROS2_PEER_PKGS="cyclonedds-dev cyclonedds-tools libfastrtps-dev fastddsgen fastdds-tools gcc g++"
+    apt-get install -y -q --no-install-recommends $ROS2_PEER_PKGS >/dev/null 2>&1 ||
+        { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends $ROS2_PEER_PKGS >/dev/null; }
+fi
+
 "$PY" -m ruff check .
 
 # Static types: mypy --strict over agentsdk and the backends (as installed: see the script).

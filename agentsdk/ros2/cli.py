@@ -1,0 +1,114 @@
+"""``agentsdk serve``: run a robot as a ROS 2 node until SIGINT/SIGTERM.
+
+::
+
+    agentsdk serve --robot arm3 --backend mujoco [--namespace /arm1] [--domain-id N]
+    agentsdk serve --robot arm3 --namespace /left --robot arm3 --namespace /right   # two robots, one process
+
+Time model: simulators run in **realtime** by default (paced to the wall clock, stamps in wall
+time, like a ros2_control hardware driver or Gazebo at real-time factor 1). ``--lockstep`` runs
+the robot in simulated time instead: it publishes ``clock`` for ``use_sim_time`` nodes and robot
+time then advances only while something moves the robot (a trajectory, a goal, a stop ramp),
+as fast as the CPU allows, and stands still in between (joint_states pause with it).
+SIGINT/SIGTERM bring the robot to a category 1 stop (a second signal: category 0), then the
+node leaves the graph; the exit code is 130/143.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import logging
+import sys
+from typing import Any
+
+__all__ = ["main"]
+
+log = logging.getLogger(__name__)
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="agentsdk serve", description="Serve a robot on the ROS 2 graph (DDS) until "
+                                "SIGINT/SIGTERM: joint_states, tf, robot_description, diagnostics, e-stop services, "
+                                "a JointTrajectoryController with its FollowJointTrajectory action.")
+    p.add_argument("--robot", action="append", help="robot name or path to .urdf/.xacro/MJCF/robot.yaml "
+                   "(default arm3); repeat it, each with its own --namespace, to serve several robots")
+    p.add_argument("--backend", action="append",
+                   help="mujoco (default), pybullet, mock, can; one for all robots or one per --robot")
+    p.add_argument("--namespace", action="append", help="ROS namespace, e.g. /arm1 (default: none); one per --robot")
+    p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: $ROS_DOMAIN_ID, else 0)")
+    p.add_argument("--rate", type=float, default=None,
+                   help="joint_states rate in Hz, up to the control rate (default: min(control rate, 100))")
+    p.add_argument("--tf-rate", type=float, default=50.0, help="tf and controller_state rate in Hz (default 50)")
+    p.add_argument("--sensor-qos", action="store_true", help="publish joint_states best effort (SensorDataQoS)")
+    p.add_argument("--lockstep", action="store_true",
+                   help="simulated time (publishes clock); robot time advances only while the robot moves")
+    p.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
+    p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    return p
+
+
+def main(argv: list[str]) -> int:
+    """Run ``agentsdk serve`` with ``argv``; returns the exit code."""
+    from .. import cli
+    from ..errors import AgentSDKError, ConfigurationError
+
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.INFO,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        from .server import expose  # checks that cyclonedds is installed
+
+        options = cli.parse_options(args.option)
+        robots = args.robot or ["arm3"]
+        backends = args.backend or ["mujoco"]
+        namespaces = args.namespace or [""]
+        if len(backends) not in (1, len(robots)):
+            raise ConfigurationError(f"give one --backend for all robots or one per --robot ({len(robots)})")
+        if len(robots) > 1 and (len(namespaces) != len(robots) or len(set(namespaces)) != len(namespaces)):
+            raise ConfigurationError("serving several robots needs one distinct --namespace per --robot")
+        if len(namespaces) != len(robots):
+            raise ConfigurationError("give one --namespace per --robot")
+        backends = backends * len(robots) if len(backends) == 1 else backends
+        if args.lockstep and "can" in backends:
+            raise ConfigurationError("--lockstep: a CAN robot always runs in realtime")
+        realtime = None if args.lockstep else True
+
+        async def serve(first: Any) -> None:
+            from ..robot import connect
+
+            async with contextlib.AsyncExitStack() as stack:
+                served = [first]
+                for robot_spec, backend in zip(robots[1:], backends[1:], strict=True):
+                    served.append(await stack.enter_async_context(
+                        connect(backend, robot=robot_spec, realtime=realtime, **options)))
+                try:
+                    for robot, ns in zip(served, namespaces, strict=True):
+                        face = await stack.enter_async_context(expose(
+                            robot, ns, domain_id=args.domain_id, rate=args.rate, tf_rate=args.tf_rate,
+                            sensor_qos=args.sensor_qos))
+                        mode = "realtime" if robot.realtime else "lockstep"
+                        print(f"serving {robot.name} ({robot.backend}, {mode}) as ROS 2 node namespace "
+                              f"{face.namespace or '/'} on domain {face.domain_id}; Ctrl-C stops",
+                              file=sys.stderr, flush=True)
+                    await asyncio.Event().wait()
+                finally:
+                    # the first robot gets run_behavior's safe stop; the others the same category 1 stop here
+                    for robot in served[1:]:
+                        with contextlib.suppress(AgentSDKError):
+                            await asyncio.shield(robot.estop(1))
+
+        asyncio.run(cli.run_behavior(serve, backend=backends[0], robot=robots[0], realtime=realtime,
+                                     options=options, install_signal_handlers=True))
+    except cli.Interrupted as exc:
+        print(f"stopped by {exc.signame}: {exc.detail}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        return 130
+    except AgentSDKError as exc:
+        if args.debug:
+            raise
+        cli.print_error(exc)
+        return cli.EXIT_USER_ERROR
+    return 0

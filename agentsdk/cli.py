@@ -332,8 +332,9 @@ class _RunExtras:
         if self.record or self.plot:
             from .recording import Recorder
 
-            self.recorder = Recorder.attach(bot, self.record, rate=self.rate, keep=bool(self.plot),
-                                            metadata=self.metadata, format=self.record_format)
+            rate = {} if self.rate is None else {"rate": self.rate}  # default: recording.STATE_RATE
+            self.recorder = Recorder.attach(bot, self.record, keep=bool(self.plot),
+                                            metadata=self.metadata, format=self.record_format, **rate)
         if self.view and bot.backend == "mujoco":
             self.viewer = _MujocoView(bot)
         if self.video:
@@ -692,7 +693,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="mcap: agentsdk channels + Foxglove /tf and /robot_description (default); "
                    "ros2: a rosbag2 MCAP with CDR sensor_msgs/JointState and tf2_msgs/TFMessage")
     r.add_argument("--record-rate", type=float, metavar="HZ",
-                   help="decimate recorded joint states to HZ (commands are always complete)")
+                   help="record joint states at HZ of robot time (default 50; the control rate or more: "
+                   "every tick); commands are always complete")
     r.add_argument("--plot", metavar="OUT.png", help="plot desired vs actual position per joint and the error")
     r.add_argument("--video", metavar="RUN.mp4",
                    help="render the run offscreen (no display needed) to an .mp4 or .gif file")

@@ -85,6 +85,12 @@ def _multi(quick: bool) -> list[Section]:
     return [multi.run(quick)]
 
 
+def _recording(quick: bool) -> list[Section]:
+    from agentsdk.bench import recording
+
+    return [recording.run(quick)]
+
+
 def _planning(quick: bool) -> list[Section]:
     from agentsdk.bench import planning
 
@@ -481,6 +487,9 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "can_cycle": ("CAN cycle rates on vcan0 vs raw python-can and the wire limit", _can_cycle),
     "safety_latency": ("e-stop and stall latency", _safety_latency),
     "planning": ("trajectory planning time vs raw ruckig", _planning),
+    "recording": (
+        "recording cost: arm3 lockstep recorded vs unrecorded, MB per robot-minute, read-back memory", _recording
+    ),
 }
 ALIASES = {
     "feedback": "feedback_timing",
@@ -493,6 +502,7 @@ ALIASES = {
     "plan": "planning",
     "trajectory": "planning",
     "real_time_factor": "rtf",
+    "record": "recording",
 }
 
 

@@ -2,13 +2,8 @@
 
 from __future__ import annotations
 
-import math
 import os
 from pathlib import Path
-from typing import Any
-
-import numpy as np
-
 
 #: the format of the recordings written now (CDR); :data:`JSON_FORMAT` files (agentsdk < 0.x) are still read
 FORMAT = "agentsdk-recording/2"

@@ -17,6 +17,7 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from ..backend import ModeCode
 from ..errors import ConfigurationError
+from ._cdr import CdrReader, FixedLayout, command_layout, joint_state_layout
 from ._channels import (
     FORMAT,
     JOINT_COMMANDS,
@@ -28,7 +29,6 @@ from ._channels import (
     SAFETY_EVENTS,
     TRANSITIONS,
 )
-from ._cdr import CdrReader, FixedLayout, command_layout, joint_state_layout
 
 log = logging.getLogger("agentsdk.recording")
 
@@ -300,7 +300,8 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
     except (ValueError, KeyError, TypeError, IndexError) as exc:
         raise ConfigurationError(f"cannot read recording {p}: {type(exc).__name__}: {exc}") from exc
     if f.truncated:
-        log.warning("recording %s was not finished (%s); read up to its last complete chunk", p, f.reason or "no summary")
+        reason = f.reason or "no summary"
+        log.warning("recording %s was not finished (%s); read up to its last complete chunk", p, reason)
     out = _empty(names, period, md)
     out.truncated = f.truncated
     out.events, out.transitions = events, transitions

@@ -37,8 +37,10 @@ RECORDER_ORDER = -1000
 #: ticks per block (fewer for robots with many joints: a block stays under :data:`_BLOCK_BYTES`)
 BLOCK_TICKS = 4096
 _BLOCK_BYTES = 2 << 20
-#: memory for blocks (filled and waiting for the writer, or free): beyond it ticks are dropped, not queued
-_POOL_BYTES = 24 << 20
+#: memory for blocks (filled and waiting for the writer, or free), allocated at attach: memory stays flat
+_POOL_BYTES = 8 << 20
+#: longest a lockstep tick waits for the writer to free a block before ticks are dropped (wall s)
+_LOCKSTEP_WAIT = 2.0
 #: default rate of /joint_states (Hz of robot time); commands are never decimated
 STATE_RATE = 50.0
 #: default rate of /tf (Hz of robot time): smooth in Foxglove, cheap for a 30-link robot
@@ -97,9 +99,9 @@ class Recorder:
         self.path = Path(path) if path is not None else None
         n = len(self.names)
         self._cap = max(16, min(int(block_ticks), _BLOCK_BYTES // Block.row_bytes(n)))
-        self._max_blocks = max(3, _POOL_BYTES // (self._cap * Block.row_bytes(n)))
         self._free: queue.SimpleQueue[Block] = queue.SimpleQueue()
-        self._blocks = 1
+        for _ in range(max(3, _POOL_BYTES // (self._cap * Block.row_bytes(n))) - 1):
+            self._free.put(Block(self._cap, n))
         self._block: Block | None = Block(self._cap, n)
         self._k = 0
         self._prev_t = float(robot.clock.now())
@@ -144,6 +146,7 @@ class Recorder:
             kinematics=kin,
             description=(stamp_ns(self._prev_t), urdf) if urdf else None,
             names=self.names,
+            yield_gil=bool(robot.realtime),
         )
         # first observer: sees the setpoint exactly as written, before a watchdog changes it
         self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, self._on_tick, order=RECORDER_ORDER)
@@ -238,9 +241,13 @@ class Recorder:
             return self._free.get_nowait()
         except queue.Empty:
             pass
-        if self._blocks < self._max_blocks:
-            self._blocks += 1
-            return Block(self._cap, len(self.names))
+        if not self._robot.realtime:
+            # lockstep: the simulated robot cannot move while the loop waits, so wait for the writer
+            # (back-pressure) rather than lose ticks; the wait is about one block's encoding
+            try:
+                return self._free.get(timeout=_LOCKSTEP_WAIT)
+            except queue.Empty:
+                pass
         if not self._gap:
             log.warning("the recording writer fell behind: ticks are dropped until it catches up")
         self._gap = True

@@ -7,9 +7,10 @@ bounded by the block pool.  Everything else happens on the thread: choosing
 the rows to keep (decimated joint states and ``/tf`` samples, change-based
 commands), forward kinematics for ``/tf``, encoding whole blocks of messages at
 once (:mod:`._cdr`), and the MCAP writer's zstd chunk compression and file
-writes (which release the GIL).  The thread gives the GIL back every few
-messages, so a busy writer delays a tick by tens of microseconds, not a whole
-switch interval.
+writes (which release the GIL).  In real time the thread gives the GIL back
+every few messages, so a busy writer delays a tick by tens of microseconds,
+not a whole switch interval; in lockstep (where a CPU-bound loop would then
+starve it) it takes its share of the interpreter like any thread.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING
 
 import numpy as np
 from mcap.writer import CompressionType, IndexType, Writer
@@ -42,13 +43,13 @@ from ._cdr import (
 )
 from ._channels import (
     JOINT_COMMANDS,
-    ROS2_FORMAT,
     JOINT_STATES,
     METADATA_NAME,
     NS_PER_S,
     QOS_DEFAULT,
     QOS_LATCHED,
     ROBOT_DESCRIPTION,
+    ROS2_FORMAT,
     SAFETY_EVENTS,
     TF,
     TRANSITIONS,
@@ -155,7 +156,7 @@ class Selector:
     def __init__(self, t0: float, rate: float | None, tf_rate: float | None) -> None:
         self.rate, self.tf_rate = rate, tf_rate
         self._last_sample = math.floor(t0 * rate + 1e-6) if rate else 0
-        self._last_tf = math.floor(t0 * tf_rate + 1e-6) - 1 if tf_rate else 0
+        self._last_tf = math.floor(t0 * tf_rate + 1e-6) if tf_rate else 0  # sampled like the states
         self._last_cmd: tuple[np.ndarray, ...] | None = None
         self._held: tuple[int, tuple[np.ndarray, ...]] | None = None
         # the last tick's state and /tf rows, held back with a held command so the file stays in time order
@@ -198,7 +199,8 @@ class Selector:
                 n = len(self._held[1][0]) if self._held is not None else self._carry[1].shape[1]  # type: ignore[index]
                 z = np.zeros((0, n))
                 cmd_ns = np.zeros(0, np.int64)
-                cmd = {f: np.zeros((0, n), dtype=bool if f == "en" else np.int8 if f == "mode" else float) for f in CMD_FIELDS}
+                kinds = {"en": bool, "mode": np.int8}
+                cmd = {f: np.zeros((0, n), dtype=kinds.get(f, float)) for f in CMD_FIELDS}
                 if self._held is not None:  # the run's last tick, held back by the previous block
                     ns, row = self._held
                     cmd_ns, cmd = np.array([ns], np.int64), {f: r[None] for f, r in zip(CMD_FIELDS, row, strict=True)}
@@ -321,7 +323,9 @@ class Output:
         # messages up through them. Without them, readers stream the file (it is in log-time order).
         # The ros2 kind keeps every index for ROS 2 tooling.
         index = IndexType.ALL if kind == "ros2" else IndexType.METADATA | IndexType.ATTACHMENT
-        self.writer = w = Writer(self.stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD, index_types=index)
+        self.writer = w = Writer(
+            self.stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD, index_types=index
+        )
         w.start(profile="ros2", library=f"agentsdk {__version__}")
         self.types = CHANNEL_TYPES[kind]
         sids = {t: w.register_schema(t, "ros2msg", MSGDEFS[t].encode()) for t in sorted(set(self.types.values()))}
@@ -354,11 +358,14 @@ class Output:
         """The robot description, once, at the start."""
         self.add(ROBOT_DESCRIPTION, ns, strings_message(None, [urdf if self.kind == "ros2" else foxglove_urdf(urdf)]))
 
-    def encode(self, rows: Rows, tf: tuple[TfTree, np.ndarray, np.ndarray] | None) -> list[tuple[np.ndarray, str, np.ndarray]]:
+    def encode(
+        self, rows: Rows, tf: tuple[TfTree, np.ndarray, np.ndarray] | None
+    ) -> list[tuple[np.ndarray, str, np.ndarray]]:
         """Every message of a block as ``(stamps, topic, (k, size) bytes)``, commands first at equal stamps."""
         out = [
             (rows.cmd_ns, JOINT_COMMANDS, self._commands(rows)),
-            (rows.st_ns, JOINT_STATES, self.state.encode(rows.st_ns, {"position": rows.q, "velocity": rows.v, "effort": rows.e})),
+            (rows.st_ns, JOINT_STATES,
+             self.state.encode(rows.st_ns, {"position": rows.q, "velocity": rows.v, "effort": rows.e})),
         ]
         if tf is not None:
             tree, trans, rot = tf
@@ -453,8 +460,10 @@ class WriterThread:
         kinematics: Callable[[], Kinematics] | None,
         description: tuple[int, str] | None,
         names: tuple[str, ...],
+        yield_gil: bool = True,
     ) -> None:
         self.outputs = outputs
+        self._yield_gil = yield_gil
         self.selector = selector
         self.free = free
         self.jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
@@ -556,7 +565,7 @@ class WriterThread:
             else:  # a side message: (topic, bytes)
                 o.add(data[i][0], int(ns[i]), data[i][1])
             self._since_yield += 1
-            if self._since_yield >= _MESSAGES_PER_YIELD:
+            if self._yield_gil and self._since_yield >= _MESSAGES_PER_YIELD:
                 self._since_yield = 0
                 time.sleep(_YIELD_S)  # let a waiting control loop take the GIL
 

@@ -235,11 +235,6 @@ class FixedLayout:
         width = count * np.dtype(dtype).itemsize
         return block[:, off : off + width].view(dtype)
 
-    def stamps(self, block: np.ndarray, prefix: str = "") -> np.ndarray:
-        """The header stamps (ns) of a block."""
-        sec = self.column(block, prefix + "sec")[:, 0].astype(np.int64)
-        return sec * NS_PER_S + self.column(block, prefix + "nanosec")[:, 0]
-
     def matches(self, block: np.ndarray) -> np.ndarray:
         """Rows of ``block`` whose constant bytes (names, lengths, padding) are the template's."""
         mask = np.ones(self.size, dtype=bool)

@@ -202,8 +202,9 @@ class Selector:
                 kinds = {"en": bool, "mode": np.int8}
                 cmd = {f: np.zeros((0, n), dtype=kinds.get(f, float)) for f in CMD_FIELDS}
                 if self._held is not None:  # the run's last tick, held back by the previous block
-                    ns, row = self._held
-                    cmd_ns, cmd = np.array([ns], np.int64), {f: r[None] for f, r in zip(CMD_FIELDS, row, strict=True)}
+                    last_ns, row = self._held
+                    cmd_ns = np.array([last_ns], np.int64)
+                    cmd = {f: r[None] for f, r in zip(CMD_FIELDS, row, strict=True)}
                 self._held = None
                 return Rows(np.zeros(0, np.int64), z, z, z, cmd_ns, cmd, np.zeros(0, np.int64), z)
             return None

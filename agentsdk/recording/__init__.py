@@ -4,7 +4,7 @@
     agentsdk replay run.mcap --backend mujoco               # replay + divergence report
 
 Channels (ROS 2 CDR messages, ``ros2msg`` schemas, zstd-compressed chunks)
--------------------------------------------------------------------------
+--------------------------------------------------------------------------
 
 =========================  ===================================  ==============================================
 topic                      message type                         content

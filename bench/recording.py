@@ -29,6 +29,8 @@ from agentsdk.bench.common import Comparison, Section, median, progress
 
 SIM_S = 60.0
 REPEATS = 3
+#: arrays from which the read-back memory bound (2x) is a target: below, one chunk's fixed cost dominates
+_MEMORY_TARGET_FROM = 4_000_000
 
 
 async def _run(sim_s: float, path: Path | None, seed: int) -> tuple[float, int]:
@@ -109,9 +111,14 @@ def run(quick: bool = False, sim_s: float | None = None, repeats: int | None = N
         Comparison("file size per minute of robot time", "MB", None, size / minutes / 1e6, baseline_label="",
                    sdk_target=2.0),
         Comparison("read_recording peak memory / returned arrays", "x", None, back["peak"] / back["arrays"],
-                   baseline_label="", sdk_target=2.0,
+                   baseline_label="", sdk_target=2.0 if back["arrays"] >= _MEMORY_TARGET_FROM else None,
                    extra={"peak_bytes": back["peak"], "array_bytes": back["arrays"], "file_bytes": size}),
     ]
+    if back["arrays"] < _MEMORY_TARGET_FROM:
+        sec.notes.append(
+            "the arrays are small: the fixed cost of one decompressed chunk (~1-3 MB) dominates the read-back "
+            "ratio, so the 2x bound is checked only from 4 MB of arrays (a full run, --sim 60 or more)"
+        )
     sec.notes.append(
         f"file {size / 1e6:.2f} MB for {back['robot_s']:.1f} s of robot time ({back['states']} joint states at the "
         f"default rate, {back['commands']} commands); read back in {back['seconds']:.2f} s with a traced peak of "

@@ -243,9 +243,12 @@ class Recorder:
             pass
         if not self._robot.realtime:
             # lockstep: the simulated robot cannot move while the loop waits, so wait for the writer
-            # (back-pressure) rather than lose ticks; the wait is about one block's encoding
+            # (back-pressure) rather than lose ticks; the wait is about one block's encoding, and kept
+            # well inside the wall-clock stall watchdog's timeout
+            stall = getattr(getattr(self._robot.safety, "config", None), "stall_timeout", None)
+            wait = _LOCKSTEP_WAIT if stall is None else min(_LOCKSTEP_WAIT, 0.4 * float(stall))
             try:
-                return self._free.get(timeout=_LOCKSTEP_WAIT)
+                return self._free.get(timeout=wait)
             except queue.Empty:
                 pass
         if not self._gap:

@@ -498,7 +498,11 @@ class WriterThread:
     # -------------------------------------------------------------- thread body
     def _run(self) -> None:
         try:
-            self._setup()
+            self._describe()
+        except BaseException as exc:  # kept for finish() to raise
+            self.error = exc
+        try:
+            self._setup_tf()
         except Exception as exc:  # the file is still written, without /tf
             log.warning("recording without /tf: %s", exc)
         while True:
@@ -518,12 +522,14 @@ class WriterThread:
                     self.pending -= 1
                     self._idle.notify_all()
 
-    def _setup(self) -> None:
+    def _describe(self) -> None:
         if self._description is not None:
             ns, urdf = self._description
             for o in self.outputs:
                 o.description(ns, urdf)
                 o.flush()
+
+    def _setup_tf(self) -> None:
         if self._kinematics is not None:
             kin = self._kinematics()
             if tuple(kin.joint_names) != self._names:

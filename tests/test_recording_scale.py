@@ -151,7 +151,9 @@ async def test_replay_reproduces_a_default_recording_of_lockstep_mujoco_exactly(
     assert result.worst == 0.0, result.lines()
 
 
-def test_the_tick_hook_allocates_nothing_between_hand_offs() -> None:
+def test_the_tick_hook_allocates_nothing_between_hand_offs(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(recorder_module, "FLUSH_INTERVAL", 1e9)  # no wall-clock hand-off in the window
+
     async def run() -> tuple[int, list[str]]:
         async with agentsdk.connect("mock", robot="arm3", safety={"stall_timeout": None}) as robot:
             rec = Recorder.attach(robot, keep=True, tf_rate=None)
@@ -229,3 +231,13 @@ def test_rosbags_reads_the_default_format_with_its_own_schemas(moves_file: Path)
     np.testing.assert_array_equal(np.array([c[2] for c in commands]), data.cmd_kp)
     meta = json.loads(data.metadata["joints"])
     assert meta == ["joint1", "joint2", "joint3"]
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full")
+async def test_a_file_that_cannot_be_written_is_a_configuration_error() -> None:
+    from agentsdk.errors import ConfigurationError
+
+    async with agentsdk.connect("mock", robot="arm3") as robot:
+        with pytest.raises(ConfigurationError, match="cannot write recording /dev/full"):
+            Recorder.attach(robot, "/dev/full")
+        await robot.clock.sleep(0.05)  # the robot runs on, unrecorded

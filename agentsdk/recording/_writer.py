@@ -15,6 +15,7 @@ starve it) it takes its share of the interpreter like any thread.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import queue
@@ -319,33 +320,38 @@ class Output:
             self.stream: IO[bytes] = open(path, "wb")  # closed in close()
         except OSError as exc:
             raise ConfigurationError(f"cannot write recording {path}: {exc.strerror or exc}") from exc
-        # The agentsdk kind has no chunk or message index: message indexes cost 16 uncompressed bytes a
-        # message (a third of the file), and readers that find chunk indexes (Foxglove, rosbags) look
-        # messages up through them. Without them, readers stream the file (it is in log-time order).
-        # The ros2 kind keeps every index for ROS 2 tooling.
-        index = IndexType.ALL if kind == "ros2" else IndexType.METADATA | IndexType.ATTACHMENT
-        self.writer = w = Writer(
-            self.stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD, index_types=index
-        )
-        w.start(profile="ros2", library=f"agentsdk {__version__}")
-        self.types = CHANNEL_TYPES[kind]
-        sids = {t: w.register_schema(t, "ros2msg", MSGDEFS[t].encode()) for t in sorted(set(self.types.values()))}
-        self.channels: dict[str, int] = {}
-        self.counts: dict[str, int] = {}
-        for topic, msg_type in self.types.items():
-            qos = QOS_LATCHED if topic == ROBOT_DESCRIPTION else QOS_DEFAULT
-            self.channels[topic] = w.register_channel(topic, "cdr", sids[msg_type], {"offered_qos_profiles": qos})
-            self.counts[topic] = 0
-        md = dict(metadata)
-        if kind == "ros2":
-            md["format"] = ROS2_FORMAT  # not replayable: the commands carry no modes or gains
-        w.add_metadata(METADATA_NAME, md)
-        self.state = joint_state_layout(self.names)
-        self.command: FixedLayout = command_layout(self.names) if kind == "agentsdk" else self.state
-        self.tf: FixedLayout | None = None
-        self.start_ns: int | None = None
-        self.end_ns = 0
-        self.flush()  # the header, schemas and metadata reach the disk at once
+        try:
+            # The agentsdk kind has no chunk or message index: message indexes cost 16 uncompressed bytes a
+            # message (a third of the file), and readers that find chunk indexes (Foxglove, rosbags) look
+            # messages up through them. Without them, readers stream the file (it is in log-time order).
+            # The ros2 kind keeps every index for ROS 2 tooling.
+            index = IndexType.ALL if kind == "ros2" else IndexType.METADATA | IndexType.ATTACHMENT
+            self.writer = w = Writer(
+                self.stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD, index_types=index
+            )
+            w.start(profile="ros2", library=f"agentsdk {__version__}")
+            self.types = CHANNEL_TYPES[kind]
+            sids = {t: w.register_schema(t, "ros2msg", MSGDEFS[t].encode()) for t in sorted(set(self.types.values()))}
+            self.channels: dict[str, int] = {}
+            self.counts: dict[str, int] = {}
+            for topic, msg_type in self.types.items():
+                qos = QOS_LATCHED if topic == ROBOT_DESCRIPTION else QOS_DEFAULT
+                self.channels[topic] = w.register_channel(topic, "cdr", sids[msg_type], {"offered_qos_profiles": qos})
+                self.counts[topic] = 0
+            md = dict(metadata)
+            if kind == "ros2":
+                md["format"] = ROS2_FORMAT  # not replayable: the commands carry no modes or gains
+            w.add_metadata(METADATA_NAME, md)
+            self.state = joint_state_layout(self.names)
+            self.command: FixedLayout = command_layout(self.names) if kind == "agentsdk" else self.state
+            self.tf: FixedLayout | None = None
+            self.start_ns: int | None = None
+            self.end_ns = 0
+            self.flush()  # the header, schemas and metadata reach the disk at once
+        except OSError as exc:
+            with contextlib.suppress(OSError):  # closing flushes what the full disk refused again
+                self.stream.close()
+            raise ConfigurationError(f"cannot write recording {path}: {exc.strerror or exc}") from exc
 
     def add(self, topic: str, ns: int, data: bytes) -> None:
         seq = self.counts[topic]

@@ -146,7 +146,6 @@ class Recorder:
             kinematics=kin,
             description=(stamp_ns(self._prev_t), urdf) if urdf else None,
             names=self.names,
-            yield_gil=bool(robot.realtime),
         )
         # first observer: sees the setpoint exactly as written, before a watchdog changes it
         self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, self._on_tick, order=RECORDER_ORDER)

@@ -6,11 +6,10 @@ time, partial ones) to :class:`WriterThread` through a queue whose length is
 bounded by the block pool.  Everything else happens on the thread: choosing
 the rows to keep (decimated joint states and ``/tf`` samples, change-based
 commands), forward kinematics for ``/tf``, encoding whole blocks of messages at
-once (:mod:`._cdr`), and the MCAP writer's zstd chunk compression and file
-writes (which release the GIL).  In real time the thread gives the GIL back
-every few messages, so a busy writer delays a tick by tens of microseconds,
-not a whole switch interval; in lockstep (where a CPU-bound loop would then
-starve it) it takes its share of the interpreter like any thread.
+once (:mod:`._cdr`), and writing each block as one zstd-compressed MCAP chunk
+(:mod:`._mcap`: the chunk's records are laid out with numpy too).  The thread
+holds the GIL only for a few array operations per block; compression and file
+writes release it.
 """
 
 from __future__ import annotations
@@ -21,14 +20,12 @@ import math
 import queue
 import re
 import threading
-import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
 import numpy as np
-from mcap.writer import CompressionType, IndexType, Writer
 
 from ..errors import ConfigurationError
 from ._cdr import (
@@ -55,6 +52,7 @@ from ._channels import (
     TF,
     TRANSITIONS,
 )
+from ._mcap import McapFile, Part
 
 if TYPE_CHECKING:
     from ..kinematics import Kinematics
@@ -65,9 +63,6 @@ log = logging.getLogger("agentsdk.recording")
 FLUSH_INTERVAL = 0.5
 #: MCAP chunk size before compression (a chunk is also closed at every flush)
 CHUNK_BYTES = 1 << 20
-#: messages the writer adds between two moments it lets the control loop take the GIL
-_MESSAGES_PER_YIELD = 16
-_YIELD_S = 20e-6
 
 #: message type of every channel, per output kind ("agentsdk": replayable; "ros2": standard types only)
 CHANNEL_TYPES: dict[str, dict[str, str]] = {
@@ -324,55 +319,47 @@ class Output:
             # The agentsdk kind has no chunk or message index: message indexes cost 16 uncompressed bytes a
             # message (a third of the file), and readers that find chunk indexes (Foxglove, rosbags) look
             # messages up through them. Without them, readers stream the file (it is in log-time order).
-            # The ros2 kind keeps every index for ROS 2 tooling.
-            index = IndexType.ALL if kind == "ros2" else IndexType.METADATA | IndexType.ATTACHMENT
-            self.writer = w = Writer(
-                self.stream, chunk_size=CHUNK_BYTES, compression=CompressionType.ZSTD, index_types=index
+            # The ros2 kind keeps both for ROS 2 tooling.
+            self.file = f = McapFile(
+                self.stream, profile="ros2", library=f"agentsdk {__version__}", message_index=kind == "ros2"
             )
-            w.start(profile="ros2", library=f"agentsdk {__version__}")
             self.types = CHANNEL_TYPES[kind]
-            sids = {t: w.register_schema(t, "ros2msg", MSGDEFS[t].encode()) for t in sorted(set(self.types.values()))}
+            sids = {t: f.schema(t, "ros2msg", MSGDEFS[t].encode()) for t in sorted(set(self.types.values()))}
             self.channels: dict[str, int] = {}
-            self.counts: dict[str, int] = {}
             for topic, msg_type in self.types.items():
                 qos = QOS_LATCHED if topic == ROBOT_DESCRIPTION else QOS_DEFAULT
-                self.channels[topic] = w.register_channel(topic, "cdr", sids[msg_type], {"offered_qos_profiles": qos})
-                self.counts[topic] = 0
+                self.channels[topic] = f.channel(topic, "cdr", sids[msg_type], {"offered_qos_profiles": qos})
             md = dict(metadata)
             if kind == "ros2":
                 md["format"] = ROS2_FORMAT  # not replayable: the commands carry no modes or gains
-            w.add_metadata(METADATA_NAME, md)
+            f.metadata(METADATA_NAME, md)
             self.state = joint_state_layout(self.names)
             self.command: FixedLayout = command_layout(self.names) if kind == "agentsdk" else self.state
             self.tf: FixedLayout | None = None
-            self.start_ns: int | None = None
-            self.end_ns = 0
             self.flush()  # the header, schemas and metadata reach the disk at once
         except OSError as exc:
             with contextlib.suppress(OSError):  # closing flushes what the full disk refused again
                 self.stream.close()
             raise ConfigurationError(f"cannot write recording {path}: {exc.strerror or exc}") from exc
 
-    def add(self, topic: str, ns: int, data: bytes) -> None:
-        seq = self.counts[topic]
-        self.writer.add_message(self.channels[topic], log_time=ns, data=data, publish_time=ns, sequence=seq)
-        self.counts[topic] = seq + 1
-        if self.start_ns is None or ns < self.start_ns:
-            self.start_ns = ns
-        self.end_ns = max(self.end_ns, ns)
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages written per topic."""
+        per_id = self.file.stats.channel_message_counts
+        return {topic: per_id[cid] for topic, cid in self.channels.items()}
 
     def description(self, ns: int, urdf: str) -> None:
         """The robot description, once, at the start."""
-        self.add(ROBOT_DESCRIPTION, ns, strings_message(None, [urdf if self.kind == "ros2" else foxglove_urdf(urdf)]))
+        data = strings_message(None, [urdf if self.kind == "ros2" else foxglove_urdf(urdf)])
+        self.file.chunk([(self.channels[ROBOT_DESCRIPTION], np.array([ns], np.int64), [data])])
 
-    def encode(
-        self, rows: Rows, tf: tuple[TfTree, np.ndarray, np.ndarray] | None
-    ) -> list[tuple[np.ndarray, str, np.ndarray]]:
-        """Every message of a block as ``(stamps, topic, (k, size) bytes)``, commands first at equal stamps."""
-        out = [
-            (rows.cmd_ns, JOINT_COMMANDS, self._commands(rows)),
-            (rows.st_ns, JOINT_STATES,
-             self.state.encode(rows.st_ns, {"position": rows.q, "velocity": rows.v, "effort": rows.e})),
+    def encode(self, rows: Rows, tf: tuple[TfTree, np.ndarray, np.ndarray] | None) -> list[Part]:
+        """Every message of a block, one part per channel (commands first: they win ties of stamps)."""
+        ch = self.channels
+        state_cols = {"position": rows.q, "velocity": rows.v, "effort": rows.e}
+        out: list[Part] = [
+            (ch[JOINT_COMMANDS], rows.cmd_ns, self._commands(rows)),
+            (ch[JOINT_STATES], rows.st_ns, self.state.encode(rows.st_ns, state_cols)),
         ]
         if tf is not None:
             tree, trans, rot = tf
@@ -382,7 +369,7 @@ class Output:
             for i in range(len(tree.children)):
                 cols[f"t{i}"], cols[f"r{i}"] = trans[:, i], rot[:, i]
             stamps = [f"{i}." for i in range(len(tree.children))]
-            out.append((rows.tf_ns, TF, self.tf.encode(rows.tf_ns, cols, stamps)))
+            out.append((ch[TF], rows.tf_ns, self.tf.encode(rows.tf_ns, cols, stamps)))
         return out
 
     def _commands(self, rows: Rows) -> np.ndarray:
@@ -393,29 +380,36 @@ class Output:
                         enabled=c["en"].view(np.uint8))
         return self.command.encode(rows.cmd_ns, cols)
 
-    def side_message(self, ns: int, topic: str, fields: tuple[str, ...]) -> tuple[str, bytes]:
-        """A safety event or transition as ``(topic, CDR bytes)``."""
-        return topic, strings_message(ns, fields)
+    def side(self, side: list[tuple[int, str, tuple[str, ...]]]) -> list[Part]:
+        """Safety events and transitions (only the agentsdk kind has their message types), one part per topic."""
+        parts: list[Part] = []
+        for topic in (SAFETY_EVENTS, TRANSITIONS):
+            items = sorted((x for x in side if x[1] == topic and topic in self.channels), key=lambda x: x[0])
+            if items:
+                stamps = np.array([x[0] for x in items], dtype=np.int64)
+                parts.append((self.channels[topic], stamps, [strings_message(x[0], x[2]) for x in items]))
+        return parts
 
     def flush(self) -> None:
-        """Close the open chunk and push it to the OS: a killed process keeps everything written so far."""
-        self.writer.flush()  # type: ignore[no-untyped-call]  # mcap's Writer has no annotations here
+        """Push what is written to the OS: a killed process keeps every chunk written so far."""
+        self.file.flush()
 
     def close(self, ok: bool = True) -> None:
         """Write the summary and the rosbag2 metadata, and close the file."""
         try:
             if ok:
-                self.writer.add_metadata("rosbag2", {"serialized_metadata": self._rosbag2_metadata()})
-                self.writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer has no annotations here
+                self.file.metadata("rosbag2", {"serialized_metadata": self._rosbag2_metadata()})
+                self.file.finish()
         finally:
             self.stream.close()
 
     def _rosbag2_metadata(self) -> str:
         import yaml
 
-        start = self.start_ns or 0
-        total = sum(self.counts.values())
-        span = {"nanoseconds": max(0, self.end_ns - start)}
+        st = self.file.stats
+        start = st.message_start_time
+        total = st.message_count
+        span = {"nanoseconds": max(0, st.message_end_time - start)}
         info = {
             "rosbag2_bagfile_information": {
                 "version": 8,
@@ -467,10 +461,8 @@ class WriterThread:
         kinematics: Callable[[], Kinematics] | None,
         description: tuple[int, str] | None,
         names: tuple[str, ...],
-        yield_gil: bool = True,
     ) -> None:
         self.outputs = outputs
-        self._yield_gil = yield_gil
         self.selector = selector
         self.free = free
         self.jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
@@ -482,7 +474,6 @@ class WriterThread:
         self.final_counts: dict[str, int] = {}
         self.pending = 0  # jobs queued and not yet written
         self._idle = threading.Condition()
-        self._since_yield = 0
         self.thread = threading.Thread(target=self._run, name="agentsdk-recorder-writer", daemon=True)
         self.thread.start()
 
@@ -555,32 +546,8 @@ class WriterThread:
                 tf = (self.tree, trans, rot)
         for o in self.outputs:
             parts = o.encode(rows, tf) if rows is not None else []
-            side = [(ns, topic, fields) for ns, topic, fields in job.side if topic in o.channels]
-            if side:
-                stamps = np.array([x[0] for x in side], dtype=np.int64)
-                parts.append((stamps, "", [o.side_message(*x) for x in side]))  # type: ignore[arg-type]
-            self._add_sorted(o, parts)
+            o.file.chunk(parts + o.side(job.side))
             o.flush()
-
-    def _add_sorted(self, o: Output, parts: list[tuple[np.ndarray, str, np.ndarray]]) -> None:
-        """Add the messages of all parts in log-time order (at equal stamps, in part order)."""
-        if not parts:
-            return
-        stamps = np.concatenate([p[0] for p in parts])
-        kinds = np.concatenate([np.full(len(p[0]), k) for k, p in enumerate(parts)])
-        index = np.concatenate([np.arange(len(p[0])) for p in parts])
-        order = np.lexsort((kinds, stamps))
-        for j in order.tolist():
-            k, i = int(kinds[j]), int(index[j])
-            ns, topic, data = parts[k]
-            if topic:
-                o.add(topic, int(ns[i]), data[i].tobytes())
-            else:  # a side message: (topic, bytes)
-                o.add(data[i][0], int(ns[i]), data[i][1])
-            self._since_yield += 1
-            if self._yield_gil and self._since_yield >= _MESSAGES_PER_YIELD:
-                self._since_yield = 0
-                time.sleep(_YIELD_S)  # let a waiting control loop take the GIL
 
     def close_outputs(self, ok: bool) -> None:
         error: BaseException | None = None

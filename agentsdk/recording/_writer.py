@@ -61,8 +61,6 @@ log = logging.getLogger("agentsdk.recording")
 
 #: wall-clock seconds between hand-offs (and chunk flushes): a killed run loses at most about this much
 FLUSH_INTERVAL = 0.5
-#: MCAP chunk size before compression (a chunk is also closed at every flush)
-CHUNK_BYTES = 1 << 20
 
 #: message type of every channel, per output kind ("agentsdk": replayable; "ros2": standard types only)
 CHANNEL_TYPES: dict[str, dict[str, str]] = {

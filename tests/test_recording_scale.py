@@ -31,6 +31,8 @@ from agentsdk.recording import _recorder as recorder_module
 pytestmark = pytest.mark.timeout(300)
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
+#: lockstep runs here: the wall-clock stall watchdog protects nothing and e-stops them on a loaded machine
+NO_STALL = {"stall_timeout": None}
 MB_PER_ROBOT_MINUTE = 2.0
 
 
@@ -58,7 +60,7 @@ def moves_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
     mp.setattr(recorder_module, "FLUSH_INTERVAL", 1e9)
 
     async def run() -> None:
-        async with agentsdk.connect("mujoco", robot="arm3") as robot:
+        async with agentsdk.connect("mujoco", robot="arm3", safety=NO_STALL) as robot:
             rec = Recorder.attach(robot, path)
             await _random_moves(robot, 20.0)
         rec.finish()
@@ -84,7 +86,7 @@ def test_reading_back_stays_under_twice_the_arrays_it_returns(tmp_path: Path) ->
 
     async def run() -> None:
         # every tick, 120 s of robot time: ~7 MB of arrays, so fixed costs (one chunk) do not hide growth
-        async with agentsdk.connect("mock", robot="arm3") as robot:
+        async with agentsdk.connect("mock", robot="arm3", safety=NO_STALL) as robot:
             rec = Recorder.attach(robot, path, rate=None, tf_rate=None)
             t = 0.0
             while robot.clock.now() < 120.0:
@@ -116,7 +118,7 @@ async def test_every_recorded_value_reads_back_exactly() -> None:
                       sp.velocity.copy(), sp.effort.copy(), sp.kp.copy(), sp.kd.copy(), sp.enabled.copy(),
                       sp.mode.copy(), sp.target.copy()))
 
-    async with agentsdk.connect("mujoco", robot="arm3") as robot:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=NO_STALL) as robot:
         rec = Recorder(robot, keep=True, rate=None, block_ticks=97)  # many blocks, boundaries everywhere
         robot.add_tick_hook(Phase.OBSERVE, spy, order=recorder_module.RECORDER_ORDER + 1)
         await robot.move_to({"joint1": 0.5, "joint2": 0.3}, duration=0.8)

@@ -690,8 +690,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--record", metavar="RUN.mcap", help="record joint states, commands, safety events and "
                    "state-machine transitions to an MCAP file (Foxglove-readable)")
     r.add_argument("--record-format", choices=("mcap", "ros2"), default="mcap",
-                   help="mcap: agentsdk channels + Foxglove /tf and /robot_description (default); "
-                   "ros2: a rosbag2 MCAP with CDR sensor_msgs/JointState and tf2_msgs/TFMessage")
+                   help="mcap: CDR with ros2msg schemas, every agentsdk channel, replayable (default); "
+                   "ros2: standard ROS 2 message types only, fully indexed, for ros2 bag play")
     r.add_argument("--record-rate", type=float, metavar="HZ",
                    help="record joint states at HZ of robot time (default 50; the control rate or more: "
                    "every tick); commands are always complete")

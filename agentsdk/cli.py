@@ -334,8 +334,9 @@ class _RunExtras:
         if self.record or self.plot:
             from .recording import Recorder
 
-            self.recorder = Recorder.attach(bot, self.record, rate=self.rate, keep=bool(self.plot),
-                                            metadata=self.metadata, format=self.record_format)
+            rate = {} if self.rate is None else {"rate": self.rate}  # default: recording.STATE_RATE
+            self.recorder = Recorder.attach(bot, self.record, keep=bool(self.plot),
+                                            metadata=self.metadata, format=self.record_format, **rate)
         if self.view and bot.backend == "mujoco":
             self.viewer = _MujocoView(bot)
         if self.video:
@@ -698,10 +699,11 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--record", metavar="RUN.mcap", help="record joint states, commands, safety events and "
                    "state-machine transitions to an MCAP file (Foxglove-readable)")
     r.add_argument("--record-format", choices=("mcap", "ros2"), default="mcap",
-                   help="mcap: agentsdk channels + Foxglove /tf and /robot_description (default); "
-                   "ros2: a rosbag2 MCAP with CDR sensor_msgs/JointState and tf2_msgs/TFMessage")
+                   help="mcap: CDR with ros2msg schemas, every agentsdk channel, replayable (default); "
+                   "ros2: standard ROS 2 message types only, fully indexed, for ros2 bag play")
     r.add_argument("--record-rate", type=float, metavar="HZ",
-                   help="decimate recorded joint states to HZ (commands are always complete)")
+                   help="record joint states at HZ of robot time (default 50; the control rate or more: "
+                   "every tick); commands are always complete")
     r.add_argument("--plot", metavar="OUT.png", help="plot desired vs actual position per joint and the error")
     r.add_argument("--video", metavar="RUN.mp4",
                    help="render the run offscreen (no display needed) to an .mp4 or .gif file")

@@ -591,6 +591,20 @@ class Kinematics:
         out[:, 6] = aw * bw - ax * bx - ay * by - az * bz
         return out
 
+    def link_frames(self, q: npt.ArrayLike) -> tuple[FloatArray, FloatArray]:
+        """Every link's position ``(L, 3)`` and orientation ``(L, 4)`` (x, y, z, w) in the root frame.
+
+        Rows in :attr:`link_names` order, ``q`` in joint order; the arrays-only form of
+        :meth:`link_poses` for callers that transform many states (the recorder's ``/tf``).
+        """
+        ids = np.fromiter(self._links.values(), dtype=np.intp, count=len(self._links))
+        qa = np.asarray(q, dtype=float)
+        with self._lock:
+            d = self._set(qa)
+            pos = d.xpos[ids].copy()
+            quat = d.xquat[ids][:, [1, 2, 3, 0]]
+        return pos, quat
+
     def jacobian(self, link: str, positions: Positions | None = None) -> FloatArray:
         """Geometric Jacobian (6, n) of ``link``'s origin in the root frame: rows (v; w), columns in joint order."""
         bid = self.body_id(link)

@@ -91,6 +91,12 @@ def _ros2_serve(quick: bool) -> list[Section]:
     return [ros2_serve.run(quick)]
 
 
+def _recording(quick: bool) -> list[Section]:
+    from agentsdk.bench import recording
+
+    return [recording.run(quick)]
+
+
 def _planning(quick: bool) -> list[Section]:
     from agentsdk.bench import planning
 
@@ -488,6 +494,9 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "safety_latency": ("e-stop and stall latency", _safety_latency),
     "planning": ("trajectory planning time vs raw ruckig", _planning),
     "ros2_serve": ("serving joint_states on ROS 2: lockstep cost and tick -> peer latency vs raw DDS", _ros2_serve),
+    "recording": (
+        "recording cost: arm3 lockstep recorded vs unrecorded, MB per robot-minute, read-back memory", _recording
+    ),
 }
 ALIASES = {
     "ros2": "ros2_serve",
@@ -501,6 +510,7 @@ ALIASES = {
     "plan": "planning",
     "trajectory": "planning",
     "real_time_factor": "rtf",
+    "record": "recording",
 }
 
 

@@ -466,7 +466,8 @@ def test_signal_stops_the_motors_at_rest_before_disabling_them(tmp_path: Path, l
     with emulator_process(leg):
         for k in range(SIGNAL_TRIALS):
             record = tmp_path / f"run-{sig}-{k}.mcap"
-            host = agentsdk_run(behavior, leg, "--quiet", "--record", str(record))
+            # every tick (a rate at or above the control rate): the test reads the state at torque-off
+            host = agentsdk_run(behavior, leg, "--quiet", "--record", str(record), "--record-rate", "1e6")
             try:
                 host.wait_for("MOVING")
                 time.sleep(0.2 + 0.05 * (k % 4))

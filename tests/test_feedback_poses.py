@@ -6,10 +6,9 @@ measured state of the same stamp, captured independently by an OBSERVE tick hook
 
 from __future__ import annotations
 
-import json
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import pytest
@@ -255,9 +254,14 @@ async def test_feedback_loop_links_argument_and_plain_state_without_links(arm: a
     assert agent.types == {JointState}
 
 
-def _read_tf(path: Path) -> dict[int, dict]:
+def _read_tf(path: Path) -> dict[int, Any]:
+    """``{log time: tf2_msgs/TFMessage}`` decoded by rosbags (an independent CDR implementation)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
     with open(path, "rb") as f:
-        return {m.log_time: json.loads(m.data) for _s, _c, m in make_reader(f).iter_messages(topics=["/tf"])}
+        messages = make_reader(f).iter_messages(topics=["/tf"])
+        return {m.log_time: store.deserialize_cdr(m.data, s.name) for s, _c, m in messages}
 
 
 def _chain_pose(transforms: dict[str, tuple[str, Pose]], root: str, link: str) -> Pose:
@@ -286,11 +290,11 @@ async def test_recording_tf_contains_the_chosen_links_matching_the_feedback(tmp_
             continue
         matched += 1
         transforms = {}
-        for tr in msg["transforms"]:
-            t, r = tr["translation"], tr["rotation"]
-            transforms[tr["child_frame_id"]] = (
-                tr["parent_frame_id"],
-                Pose(position=[t["x"], t["y"], t["z"]], orientation=[r["x"], r["y"], r["z"], r["w"]]),
+        for tr in msg.transforms:
+            t, r = tr.transform.translation, tr.transform.rotation
+            transforms[tr.child_frame_id] = (
+                tr.header.frame_id,
+                Pose(position=[t.x, t.y, t.z], orientation=[r.x, r.y, r.z, r.w]),
             )
         for link in LINKS:
             assert link in transforms  # /tf carries every link, so the chosen ones too

@@ -84,45 +84,71 @@ def _write(tmp_path: Path, name: str, text: str) -> Path:
 
 
 # ----------------------------------------------------------------- recording
-def test_recording_has_foxglove_channels_and_one_joint_state_per_tick(wave_run: dict[str, Path]) -> None:
+def _rosbags_decoder(path: Path) -> Any:
+    """A rosbags type store knowing every message type of the file, registered from its own ros2msg schemas."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert summary is not None
+    for schema in summary.schemas.values():
+        if schema.name.startswith("agentsdk_msgs/"):
+            store.register(get_types_from_msg(schema.data.decode().split("=" * 80)[0], schema.name))
+    return store
+
+
+def test_recording_has_cdr_channels_with_ros2msg_schemas(wave_run: dict[str, Path]) -> None:
     counts, channels, meta = _summary(wave_run["mcap"])
     assert set(counts) == set(TOPICS)
-    assert counts["/joint_states"] == WAVE_TICKS
+    assert counts["/joint_states"] == WAVE_TICKS // 10  # decimated to 50 Hz by default
     # change-based commands: at least the first and last tick, never more than one per tick
     assert 2 <= counts["/joint_commands"] <= WAVE_TICKS
     assert counts["/safety/events"] == 0 and counts["/behavior/transitions"] == 0
     for ch, schema in channels.values():
-        assert ch.message_encoding == "json" and schema.encoding == "jsonschema"
-        assert json.loads(schema.data)["type"] == "object"
+        assert ch.message_encoding == "cdr" and schema.encoding == "ros2msg"
     assert channels["/joint_states"][1].name == "sensor_msgs/msg/JointState"
+    assert channels["/joint_commands"][1].name == "agentsdk_msgs/msg/JointCommand"
+    assert channels["/tf"][1].name == "tf2_msgs/msg/TFMessage"
     assert meta["robot"] == "arm3" and meta["backend"] == "mujoco" and meta["control_period"] == "0.002"
+    assert meta["format"] == "agentsdk-recording/2" and meta["record_rate"] == "50.0"
     assert json.loads(meta["joints"]) == ["joint1", "joint2", "joint3"]
     assert meta["behavior"].endswith("wave.py")
 
+    # decoded by an independent CDR implementation from the file's own schemas
+    store = _rosbags_decoder(wave_run["mcap"])
+    first: dict[str, Any] = {}
     with open(wave_run["mcap"], "rb") as f:
-        first = {}
-        for _, ch, msg in make_reader(f).iter_messages():
-            first.setdefault(ch.topic, (msg.log_time, json.loads(msg.data)))
+        for schema, ch, msg in make_reader(f).iter_messages():
+            if ch.topic not in first:
+                first[ch.topic] = (msg.log_time, store.deserialize_cdr(msg.data, schema.name))
     t, state = first["/joint_states"]
-    assert t == 2_000_000  # state after the first tick, robot time in ns
-    assert state["header"]["stamp"] == {"sec": 0, "nanosec": 2_000_000}
-    assert state["name"] == ["joint1", "joint2", "joint3"] and len(state["position"]) == 3
+    assert t == 20_000_000  # the first 50 Hz sample, robot time in ns
+    assert (state.header.stamp.sec, state.header.stamp.nanosec) == (0, 20_000_000)
+    assert list(state.name) == ["joint1", "joint2", "joint3"] and len(state.position) == 3
     t, cmd = first["/joint_commands"]
-    assert t == 0 and cmd["mode"] == ["position"] * 3 and cmd["enabled"] == [True] * 3
-    assert cmd["target"] == [0.0, 0.6, 0.0]  # wave's first pose; the setpoint ramps towards it
-    assert 0.0 < cmd["position"][1] < 0.6
+    assert t == 0 and cmd.mode.tolist() == [0, 0, 0] and cmd.enabled.tolist() == [True] * 3
+    assert cmd.target.tolist() == [0.0, 0.6, 0.0]  # wave's first pose; the setpoint ramps towards it
+    assert 0.0 < cmd.position[1] < 0.6
+    assert cmd.kp.tolist() == [100.0, 800.0, 20.0]
 
 
-def test_record_rate_decimates_joint_states_but_not_commands(wave_run: dict[str, Path], tmp_path: Path) -> None:
-    out = tmp_path / "slow.mcap"
-    assert main(["run", "wave", "--record", str(out), "--record-rate", "50", "-q"]) == 0
-    counts, _, meta = _summary(out)
+def test_record_rate_sets_the_joint_state_rate_but_never_decimates_commands(
+    wave_run: dict[str, Path], tmp_path: Path
+) -> None:
     full, _, _ = _summary(wave_run["mcap"])
-    assert counts["/joint_states"] == WAVE_TICKS * 50 // 500
+    every, slow = tmp_path / "every.mcap", tmp_path / "slow.mcap"
+    assert main(["run", "wave", "--record", str(every), "--record-rate", "500", "-q"]) == 0  # the control rate
+    assert main(["run", "wave", "--record", str(slow), "--record-rate", "20", "-q"]) == 0
+    counts, _, meta = _summary(every)
+    assert counts["/joint_states"] == WAVE_TICKS and meta["record_rate"] == ""
     assert counts["/joint_commands"] == full["/joint_commands"]
-    assert meta["record_rate"] == "50.0"
-    data = read_recording(out)
-    assert np.all(np.diff(data.state_time) == 20_000_000)
+    counts, _, meta = _summary(slow)
+    assert counts["/joint_states"] == WAVE_TICKS * 20 // 500 and meta["record_rate"] == "20.0"
+    assert counts["/joint_commands"] == full["/joint_commands"]
+    data = read_recording(slow)
+    assert np.all(np.diff(data.state_time) == 50_000_000)
+    np.testing.assert_array_equal(read_recording(every).state_time[24::25], data.state_time)
 
 
 def test_safety_events_and_state_machine_transitions_are_recorded(tmp_path: Path) -> None:
@@ -130,7 +156,7 @@ def test_safety_events_and_state_machine_transitions_are_recorded(tmp_path: Path
     out = tmp_path / "reach.mcap"
     assert main(["run", str(beh), "--backend", "mock", "--record", str(out), "-q"]) == 0
     counts, _, _ = _summary(out)
-    assert counts["/joint_states"] == 150  # 0.3 s at 500 Hz
+    assert counts["/joint_states"] == 15  # 0.3 s at 50 Hz
     data = read_recording(out)
     assert [(e["kind"], e["joint"]) for e in data.events] == [("clamp", "joint1")]
     assert data.events[0]["time"] == pytest.approx(0.1)
@@ -157,7 +183,7 @@ def test_replay_into_mujoco_reproduces_the_lockstep_recording(
     # compare the two files independently of replay()'s own bookkeeping
     rec, rep = read_recording(wave_run["mcap"]), read_recording(replayed)
     rows = np.searchsorted(rep.state_time, rec.state_time)
-    assert len(rec.state_time) == WAVE_TICKS
+    assert len(rec.state_time) == WAVE_TICKS // 10
     np.testing.assert_array_equal(rep.state_time[rows], rec.state_time)
     assert np.max(np.abs(rep.position[rows] - rec.position)) <= 1e-6
     assert np.max(np.abs(rep.velocity[rows] - rec.velocity)) <= 1e-6

@@ -44,7 +44,7 @@ def _run_trial(tmp_path: Path, backend: str, sig: int, k: int) -> tuple[int, str
     record = tmp_path / f"run-{backend}-{sig}-{k}.mcap"
     proc = subprocess.Popen(
         [sys.executable, "-m", "agentsdk", "run", str(behavior), "--backend", backend, "--realtime", "--quiet",
-         "--record", str(record)],
+         "--record", str(record), "--record-rate", "500"],  # every tick: the test reads the state at torque-off
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:

@@ -3,41 +3,52 @@
     agentsdk run behaviors/wave.py --record run.mcap        # record
     agentsdk replay run.mcap --backend mujoco               # replay + divergence report
 
-Channels (all ``jsonschema`` schemas, ``json`` message encoding)
-----------------------------------------------------------------
+Channels (ROS 2 CDR messages, ``ros2msg`` schemas, zstd-compressed chunks)
+--------------------------------------------------------------------------
 
-=========================  ==============================  ==================================================
-topic                      schema name                     content
-=========================  ==============================  ==================================================
-``/joint_states``          ``sensor_msgs/msg/JointState``  measured state after every control tick (or
-                                                           decimated to ``record_rate`` Hz): ``header.stamp``
-                                                           {sec, nanosec}, ``name[]``, ``position[]``,
-                                                           ``velocity[]``, ``effort[]``
-``/joint_commands``        ``agentsdk/msg/JointCommand``   the servo setpoint actually written to the backend
-                                                           (after the safety layer): the JointState fields
-                                                           (desired position/velocity/effort) plus ``mode[]``
-                                                           ("position"/"velocity"/"effort"), ``enabled[]``
-                                                           ``kp[]``, ``kd[]`` and ``target[]`` (the last
-                                                           commanded value before ramping)
-``/safety/events``         ``agentsdk/msg/SafetyEvent``    ``kind``, ``joint`` (or null), ``detail``
-``/behavior/transitions``  ``agentsdk/msg/Transition``     state-machine history records: ``machine``,
-                                                           ``source``, ``target``, ``event``, ``note``
-=========================  ==============================  ==================================================
+=========================  ===================================  ==============================================
+topic                      message type                         content
+=========================  ===================================  ==============================================
+``/joint_states``          ``sensor_msgs/msg/JointState``       measured state, decimated to ``rate`` Hz of
+                                                                robot time (default :data:`STATE_RATE`;
+                                                                ``None``: every control tick)
+``/joint_commands``        ``agentsdk_msgs/msg/JointCommand``   the servo setpoint actually written to the
+                                                                backend (after the safety layer): name[],
+                                                                position[], velocity[], effort[], mode[]
+                                                                (uint8: 0 position, 1 velocity, 2 effort),
+                                                                enabled[], kp[], kd[], target[] (the last
+                                                                commanded value before ramping)
+``/safety/events``         ``agentsdk_msgs/msg/SafetyEvent``    kind, joint ("" for none), detail
+``/behavior/transitions``  ``agentsdk_msgs/msg/Transition``     state-machine history records: machine,
+                                                                source, target, event ("" for none), note
+``/tf``                    ``tf2_msgs/msg/TFMessage``           every link's parent -> child transform from
+                                                                forward kinematics, at ``tf_rate`` Hz
+``/robot_description``     ``std_msgs/msg/String``              the URDF, once, at the start
+=========================  ===================================  ==============================================
 
-A metadata record named ``agentsdk`` holds what replay needs: the robot (name,
-or absolute path of its robot.yaml/URDF), the backend and its options, the
-control period, the joint names, the validated robot.yaml content and the
-behavior script.
+The file is a rosbag2 MCAP (profile ``ros2``, the ``rosbag2`` metadata
+record): Foxglove decodes every channel from its embedded ``ros2msg`` schema
+(the ``agentsdk_msgs`` definitions included), ``rosbags`` reads it with the
+definitions registered from the schemas.  A metadata record named ``agentsdk``
+holds what replay needs: the robot (name, or absolute path of its
+robot.yaml/URDF), the backend and its options, the control period, the joint
+names, the record rates, the validated robot.yaml content and the behavior
+script.  ``--record-format ros2`` (``format="ros2"``) writes only standard
+message types (``/joint_commands`` as ``sensor_msgs/msg/JointState``, no
+events or transitions) for ``ros2 bag play``; such a file cannot be replayed.
+Recordings of earlier versions (JSON messages, format ``agentsdk-recording/1``)
+are still read.
 
-Why JSON and not ROS 2 CDR: Foxglove decodes ``json`` channels natively from
-their JSON schema (plots of ``/joint_states.position[0]`` and
-``/joint_commands.position[0]`` work out of the box, with the same field paths
-as a ROS bag, since the messages are shaped like ``sensor_msgs/JointState``),
-``mcap cat --json`` prints them, every channel uses one code path, and the SDK
-needs no extra dependency.  The price: ``ros2 bag play`` cannot republish JSON
-channels; a ROS user who needs that can convert ``/joint_states`` to CDR with
-``mcap-ros2-support`` offline.  The command channel has no ROS message type
-anyway (``mode[]``, gains).
+Why CDR and ``ros2msg`` rather than protobuf: the per-tick messages have a
+fixed layout for a given robot, so a block of them is encoded (and decoded)
+as one numpy array, with no Python work per message; CDR with ``ros2msg``
+schemas is what both Foxglove and ROS 2 tooling read without extra schema
+files, and it unifies the default format with the rosbag2 variant.
+
+Size: the joint states are decimated by default (50 Hz) because at 500 Hz
+they alone would exceed 2 MB per minute of robot time (nine float64 a tick are
+nearly incompressible).  Commands are never decimated, so a recording replays
+exactly.  A moving 3-joint arm costs about 1.5-2 MB per minute of robot time.
 
 Timing
 ------
@@ -49,25 +60,36 @@ tick is stamped ``t - period`` (when it was written).
 
 ``/joint_commands`` is change-based: a message is written at every tick whose
 setpoint differs from the previous tick's, at the tick just before each change
-(so a line plot shows holds as flat segments) and at the first and last tick
-of every buffer block; sample-and-hold reconstructs the setpoint of every tick
-exactly.  ``record_rate`` decimates ``/joint_states`` only: commands are never
-decimated, so a decimated recording still replays exactly.
+(so a line plot shows holds as flat segments) and at the run's last tick;
+sample-and-hold reconstructs the setpoint of every tick exactly.
 
 Cost on the control loop
 ------------------------
-The recorder's tick hook copies a few numpy rows into preallocated blocks of
-``BLOCK_TICKS`` ticks (about 3 µs per tick for a 3-joint arm); no logging and
-no encoding per tick.  When a block is full the rows to keep are selected
-(vectorized, well under a millisecond) and queued; :meth:`Recorder.finish`
-encodes and writes them after the run.  Only a long run whose queue exceeds
-``DRAIN_AFTER_TICKS`` ticks (about 2 minutes at 500 Hz) has the tick hook
-write a few queued messages per tick, which bounds memory at a steady cost of
-tens of microseconds per tick.  Writing whole blocks at once in the loop (or
-in a thread: the GIL hand-offs stalled the loop for up to a second under load)
-would pause the control loop long enough to trip the safety layer's stall
-watchdog.  Call :meth:`Recorder.finish` after the robot is closed, as the CLI
-does, so that the final write cannot stall a running control loop.
+The recorder's tick hook copies a few numpy rows into a preallocated block
+(about 3 µs per tick for a 3-joint arm); no encoding and no Python object per
+tick.  A full block (or, every :data:`FLUSH_INTERVAL` s of wall time, a partial
+one) is handed to a writer thread, which selects the rows, computes ``/tf``,
+encodes the block's messages and lays out its MCAP chunk with numpy (no Python
+work per message: the ``mcap`` package's writer spent about 8 µs of
+interpreter time per message, in the GIL the control loop needs), compresses
+it with zstd and writes it.  Blocks
+come from a fixed pool: if the writer ever falls behind by the whole pool,
+ticks are dropped (counted in :attr:`Recorder.dropped_ticks`, logged) rather
+than the loop blocked or memory grown.  :meth:`Recorder.finish` joins the
+thread: call it after the robot is closed, as the CLI does.
+
+Crash safety
+------------
+Every hand-off closes an MCAP chunk and pushes it to the OS, so a killed run
+loses at most about half a second; :func:`read_recording` reads such a file
+up to its last complete chunk and sets ``RunData.truncated``.
+
+Reading
+-------
+:func:`read_recording` streams the file one chunk at a time into arrays
+allocated once from the file's message counts (the summary, or a counting pass
+for a truncated file), decoding each chunk's messages as one array: memory is
+the returned arrays plus one chunk.
 
 State-machine transitions
 -------------------------
@@ -88,26 +110,25 @@ deterministic, so a MuJoCo recording replays into MuJoCo bit for bit.
 """
 
 from . import _recorder
+from ._cdr import MSGDEFS as MSGDEFS
 from ._channels import FORMAT, TOPICS, robot_spec_for_metadata
-from ._channels import JOINT_COMMAND_SCHEMA as JOINT_COMMAND_SCHEMA
 from ._channels import JOINT_COMMANDS as JOINT_COMMANDS
-from ._channels import JOINT_STATE_SCHEMA as JOINT_STATE_SCHEMA
 from ._channels import JOINT_STATES as JOINT_STATES
+from ._channels import JSON_FORMAT as JSON_FORMAT
 from ._channels import METADATA_NAME as METADATA_NAME
 from ._channels import ROBOT_DESCRIPTION as ROBOT_DESCRIPTION
-from ._channels import SAFETY_EVENT_SCHEMA as SAFETY_EVENT_SCHEMA
 from ._channels import SAFETY_EVENTS as SAFETY_EVENTS
 from ._channels import TF as TF
-from ._channels import TRANSITION_SCHEMA as TRANSITION_SCHEMA
 from ._channels import TRANSITIONS as TRANSITIONS
 from ._reader import RunData, read_recording
 from ._recorder import BLOCK_TICKS, Recorder
-from ._recorder import DRAIN_AFTER_TICKS as DRAIN_AFTER_TICKS
 from ._recorder import FLUSH_INTERVAL as FLUSH_INTERVAL
 from ._recorder import RECORDER_ORDER as RECORDER_ORDER
 from ._replay import ReplayResult, replay
 
 # re-bound here with their documentation, which Sphinx reads from the assignments in this module
+#: default rate of /joint_states (Hz of robot time); commands are never decimated
+STATE_RATE = _recorder.STATE_RATE
 #: default rate of /tf (Hz of robot time): smooth in Foxglove, cheap for a 30-link robot
 TF_RATE = _recorder.TF_RATE
 #: ``--record-format`` choices
@@ -117,6 +138,7 @@ __all__ = [
     "BLOCK_TICKS",
     "FORMAT",
     "RECORD_FORMATS",
+    "STATE_RATE",
     "TF_RATE",
     "TOPICS",
     "Recorder",

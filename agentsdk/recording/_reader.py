@@ -4,26 +4,31 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from mcap.records import Channel, Chunk, Footer, Message, Metadata
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from ..backend import ModeCode
 from ..errors import ConfigurationError
+from ._cdr import CdrReader, FixedLayout, command_layout, joint_state_layout
 from ._channels import (
     FORMAT,
     JOINT_COMMANDS,
     JOINT_STATES,
+    JSON_FORMAT,
     METADATA_NAME,
     NS_PER_S,
-    ROBOT_DESCRIPTION,
+    ROS2_FORMAT,
     SAFETY_EVENTS,
-    TF,
+    TRANSITIONS,
 )
 
 log = logging.getLogger("agentsdk.recording")
@@ -123,111 +128,301 @@ def _empty(names: tuple[str, ...], period: float, metadata: dict[str, str]) -> R
 
 
 # ------------------------------------------------------------------ reading
-def _scan_mcap(p: Path) -> tuple[dict[str, str], list[tuple[str, int, bytes]], bool, str]:
-    """Every metadata record and message of an MCAP file, read front to back.
+class _Columns:
+    """Preallocated arrays filled message by message (sized from the file's counts; grown only if a count was short)."""
+
+    def __init__(self, rows: int, n: int, fields: dict[str, Any]) -> None:
+        self.n = n
+        self.k = 0
+        self.time = np.empty(rows, np.int64)
+        self.arrays = {f: np.empty((rows, n), dtype=dt) for f, dt in fields.items()}
+
+    def reserve(self, extra: int) -> int:
+        """Room for ``extra`` more rows; returns the first row index."""
+        need = self.k + extra
+        if need > len(self.time):
+            cap = max(need, len(self.time) * 3 // 2 + 16)
+            self.time = np.resize(self.time, cap)
+            self.arrays = {f: np.resize(a, (cap, self.n)) for f, a in self.arrays.items()}
+        start = self.k
+        self.k = need
+        return start
+
+    def trimmed(self) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        k = self.k
+        if k == len(self.time):
+            return self.time, self.arrays
+        return self.time[:k].copy(), {f: a[:k].copy() for f, a in self.arrays.items()}
+
+
+_STATE_FIELDS: dict[str, Any] = {"position": float, "velocity": float, "effort": float}
+_COMMAND_FIELDS: dict[str, Any] = {
+    "position": float, "velocity": float, "effort": float, "kp": float, "kd": float, "target": float,
+    "enabled": bool, "mode": np.int8,
+}
+
+
+class _File:
+    """One pass over an MCAP file, chunk by chunk (one decompressed chunk in memory at a time).
 
     A file whose writer was killed has no summary and may end inside a record:
-    what precedes the last complete chunk is returned, with ``truncated=True``
-    and the reason (the ``mcap recover`` idea).  Chunk CRCs are checked, so a
-    damaged chunk ends the read instead of returning garbage.
+    the pass stops after the last complete chunk, with ``truncated`` and the
+    reason (the ``mcap recover`` idea).  Chunk CRCs are checked, so a damaged
+    chunk ends the read instead of returning garbage.
     """
-    md: dict[str, str] = {}
-    topics: dict[int, str] = {}
-    out: list[tuple[str, int, bytes]] = []
-    complete = False
-    reason = ""
 
-    def take(rec: Any) -> None:
-        if isinstance(rec, Channel):
-            topics[rec.id] = rec.topic
-        elif isinstance(rec, Message):
-            topic = topics.get(rec.channel_id)
-            if topic is not None:
-                out.append((topic, rec.log_time, rec.data))
-        elif isinstance(rec, Metadata) and rec.name == METADATA_NAME:
-            md.update(rec.metadata)
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.metadata: dict[str, str] = {}
+        self.channels: dict[int, tuple[str, str]] = {}  # id -> (topic, schema name)
+        self.truncated = True
+        self.reason = ""
 
-    with open(p, "rb") as f:
-        records = StreamReader(f, emit_chunks=True, record_size_limit=1 << 31).records
-        while True:
-            try:
-                rec = next(records)
-                inner = breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else [rec]
-            except StopIteration:
-                break
-            except Exception as exc:  # any failure here is a damaged or cut tail: keep what came before
-                reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
-                break
-            for r in inner:
-                take(r)
-            if isinstance(rec, Footer):
-                complete = True
-    return md, out, not complete, reason
+    def batches(self) -> Iterator[list[Message]]:
+        schemas: dict[int, str] = {}
+        self.truncated, self.reason = True, ""
+        with open(self.path, "rb") as f:
+            records = StreamReader(f, emit_chunks=True, record_size_limit=1 << 31).records
+            while True:
+                try:
+                    rec = next(records)
+                    inner = breakup_chunk(rec, validate_crc=True) if isinstance(rec, Chunk) else [rec]
+                except StopIteration:
+                    break
+                except Exception as exc:  # any failure here is a damaged or cut tail: keep what came before
+                    self.reason = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                    break
+                msgs: list[Message] = []
+                for r in inner:
+                    if isinstance(r, Message):
+                        msgs.append(r)
+                    elif isinstance(r, Schema):
+                        schemas[r.id] = r.name
+                    elif isinstance(r, Channel):
+                        self.channels[r.id] = (r.topic, schemas.get(r.schema_id, ""))
+                    elif isinstance(r, Metadata) and r.name == METADATA_NAME:
+                        self.metadata.update(r.metadata)
+                if msgs:
+                    yield msgs
+                if isinstance(rec, Footer):
+                    self.truncated = False
+
+    def summary_counts(self) -> dict[str, int] | None:
+        """Messages per topic from the summary, if the file has one."""
+        try:
+            with open(self.path, "rb") as f:
+                summary = SeekingReader(f, record_size_limit=1 << 31).get_summary()
+        except Exception:  # no (valid) summary: a truncated file
+            return None
+        if summary is None or summary.statistics is None:
+            return None
+        counts: dict[str, int] = {}
+        for cid, ch in summary.channels.items():
+            counts[ch.topic] = counts.get(ch.topic, 0) + summary.statistics.channel_message_counts.get(cid, 0)
+        return counts
+
+    def count(self) -> dict[str, int]:
+        """Messages per topic: from the summary, or by a pass over the chunks (a truncated file)."""
+        counts = self.summary_counts()
+        if counts is not None:
+            return counts
+        counts = {}
+        for msgs in self.batches():
+            for m in msgs:
+                ch = self.channels.get(m.channel_id)
+                if ch is not None:
+                    counts[ch[0]] = counts.get(ch[0], 0) + 1
+        return counts
 
 
 def read_recording(path: str | os.PathLike[str]) -> RunData:
     """Read an agentsdk MCAP recording; raises ConfigurationError for a missing or foreign file.
 
-    A recording cut short (the process was killed) is read up to its last
-    complete chunk; ``RunData.truncated`` is then True.
+    Streams the file chunk by chunk into arrays allocated once from the file's
+    message counts, so memory stays close to the arrays returned.  Reads the
+    current (CDR) format and the JSON format of earlier versions.  A recording
+    cut short (the process was killed) is read up to its last complete chunk;
+    ``RunData.truncated`` is then True.
     """
     p = Path(path)
     if not p.is_file():
         raise ConfigurationError(f"recording not found: {p}")
+    f = _File(p)
     try:
-        md, messages, truncated, reason = _scan_mcap(p)
+        counts = f.count()
+        if not f.metadata:  # read from the summary: the metadata comes with the first pass
+            for _ in f.batches():
+                if f.metadata:
+                    break
+        return _decode(f, counts)
     except OSError as exc:
         raise ConfigurationError(f"cannot read recording {p}: {exc.strerror or exc}") from exc
-    if md.get("format") != FORMAT:
-        if truncated and not messages and not md:
-            raise ConfigurationError(f"cannot read recording {p}: {reason or 'no MCAP data'}")
+
+
+def _decode(f: _File, counts: dict[str, int]) -> RunData:
+    p, md = f.path, f.metadata
+    fmt = md.get("format")
+    if fmt == ROS2_FORMAT:
         raise ConfigurationError(
-            f"{p} is not an agentsdk recording (no '{METADATA_NAME}' metadata; a --record-format ros2 "
-            "file is read with ROS 2 tools or the rosbags library)"
+            f"{p} is a --record-format ros2 recording: its commands carry no modes or gains, so it cannot be "
+            "replayed or read with read_recording; read it with ROS 2 tools or the rosbags library"
         )
+    if fmt not in (FORMAT, JSON_FORMAT):
+        if f.truncated and not md and not counts:
+            raise ConfigurationError(f"cannot read recording {p}: {f.reason or 'no MCAP data'}")
+        raise ConfigurationError(f"{p} is not an agentsdk recording (no '{METADATA_NAME}' metadata)")
     try:
         names = tuple(json.loads(md["joints"]))
         period = float(md["control_period"])
-        st_t: list[int] = []
-        st: list[tuple[list[float], list[float], list[float]]] = []
-        cm_t: list[int] = []
-        cm: list[dict[str, Any]] = []
-        events: list[dict[str, Any]] = []
-        transitions: list[dict[str, Any]] = []
-        for topic, log_time, data in messages:
-            if topic in (TF, ROBOT_DESCRIPTION):
-                continue
-            msg = json.loads(data)
-            if topic == JOINT_STATES:
-                st_t.append(log_time)
-                st.append((msg["position"], msg["velocity"], msg["effort"]))
-            elif topic == JOINT_COMMANDS:
-                cm_t.append(log_time)
-                cm.append(msg)
-            else:
-                msg.pop("header", None)
-                item = {"time": log_time / NS_PER_S, **msg}
-                (events if topic == SAFETY_EVENTS else transitions).append(item)
     except (ValueError, KeyError, TypeError) as exc:
-        raise ConfigurationError(f"cannot read recording {p}: {exc}") from exc
-    if truncated:
-        log.warning("recording %s was not finished (%s); read up to its last complete chunk", p, reason or "no summary")
+        raise ConfigurationError(f"cannot read recording {p}: bad metadata ({exc})") from exc
     n = len(names)
+    states = _Columns(counts.get(JOINT_STATES, 0), n, _STATE_FIELDS)
+    commands = _Columns(counts.get(JOINT_COMMANDS, 0), n, _COMMAND_FIELDS)
+    events: list[dict[str, Any]] = []
+    transitions: list[dict[str, Any]] = []
+    dec = _JsonDecoder(names) if fmt == JSON_FORMAT else _CdrDecoder(names)
+    try:
+        for msgs in f.batches():
+            by_topic: dict[str, list[Message]] = {}
+            for m in msgs:
+                ch = f.channels.get(m.channel_id)
+                if ch is not None:
+                    by_topic.setdefault(ch[0], []).append(m)
+            for topic, group in by_topic.items():
+                if topic == JOINT_STATES:
+                    dec.states(group, states)
+                elif topic == JOINT_COMMANDS:
+                    dec.commands(group, commands)
+                elif topic == SAFETY_EVENTS:
+                    events.extend(dec.event(m) for m in group)
+                elif topic == TRANSITIONS:
+                    transitions.extend(dec.transition(m) for m in group)
+    except (ValueError, KeyError, TypeError, IndexError) as exc:
+        raise ConfigurationError(f"cannot read recording {p}: {type(exc).__name__}: {exc}") from exc
+    if f.truncated:
+        reason = f.reason or "no summary"
+        log.warning("recording %s was not finished (%s); read up to its last complete chunk", p, reason)
     out = _empty(names, period, md)
-    out.truncated = truncated
+    out.truncated = f.truncated
     out.events, out.transitions = events, transitions
-    if st:
-        arr = np.array(st, dtype=float).reshape(len(st), 3, n)
-        out.state_time = np.array(st_t, dtype=np.int64)
-        out.position, out.velocity, out.effort = arr[:, 0], arr[:, 1], arr[:, 2]
-    if cm:
-
-        def col(key: str, dtype: Any = float) -> np.ndarray:
-            return np.array([m[key] for m in cm], dtype=dtype).reshape(len(cm), n)
-
-        out.cmd_time = np.array(cm_t, dtype=np.int64)
-        out.cmd_position, out.cmd_velocity, out.cmd_effort = col("position"), col("velocity"), col("effort")
-        out.cmd_kp, out.cmd_kd, out.cmd_target = col("kp"), col("kd"), col("target")
-        out.cmd_enabled = col("enabled", bool)
-        out.cmd_mode = np.array([[ModeCode.of(x) for x in m["mode"]] for m in cm], dtype=np.int8).reshape(len(cm), n)
+    st_t, st = states.trimmed()
+    out.state_time, out.position, out.velocity, out.effort = st_t, st["position"], st["velocity"], st["effort"]
+    cm_t, cm = commands.trimmed()
+    out.cmd_time = cm_t
+    out.cmd_position, out.cmd_velocity, out.cmd_effort = cm["position"], cm["velocity"], cm["effort"]
+    out.cmd_kp, out.cmd_kd, out.cmd_target = cm["kp"], cm["kd"], cm["target"]
+    out.cmd_enabled, out.cmd_mode = cm["enabled"], cm["mode"]
     return out
+
+
+class _CdrDecoder:
+    """The CDR messages of the current format; whole chunks at once when they have the expected layout."""
+
+    def __init__(self, names: tuple[str, ...]) -> None:
+        self.names = names
+        self.index = {nm: i for i, nm in enumerate(names)}
+        self.state = joint_state_layout(names)
+        self.command = command_layout(names)
+
+    def _block(self, group: list[Message], lay: FixedLayout) -> np.ndarray | None:
+        if any(len(m.data) != lay.size for m in group):
+            return None
+        block = np.frombuffer(b"".join(m.data for m in group), dtype=np.uint8).reshape(len(group), lay.size)
+        return block if bool(lay.matches(block).all()) else None
+
+    def states(self, group: list[Message], out: _Columns) -> None:
+        block = self._block(group, self.state)
+        if block is None:
+            for m in group:
+                self._one(m, out, ("position", "velocity", "effort"))
+            return
+        i = out.reserve(len(group))
+        out.time[i : i + len(group)] = [m.log_time for m in group]
+        for fld in _STATE_FIELDS:
+            out.arrays[fld][i : i + len(group)] = self.state.column(block, fld)
+
+    def commands(self, group: list[Message], out: _Columns) -> None:
+        block = self._block(group, self.command)
+        if block is None:
+            for m in group:
+                self._one(m, out, ("position", "velocity", "effort", "target", "kp", "kd", "mode", "enabled"))
+            return
+        i = out.reserve(len(group))
+        out.time[i : i + len(group)] = [m.log_time for m in group]
+        for fld in _COMMAND_FIELDS:
+            col = self.command.column(block, fld)
+            out.arrays[fld][i : i + len(group)] = col.view(bool) if fld == "enabled" else col
+
+    def _one(self, m: Message, out: _Columns, fields: tuple[str, ...]) -> None:
+        """A message whose names differ from the recording's (order, subset): decoded field by field."""
+        r = CdrReader(m.data)
+        r.header()
+        names = [r.string() for _ in range(r.u32())]
+        cols = np.array([self.index.get(nm, -1) for nm in names], dtype=np.intp)
+        ok = cols >= 0
+        i = out.reserve(1)
+        out.time[i] = m.log_time
+        for fld in fields:
+            count = r.u32()
+            dt = np.dtype("u1") if fld in ("mode", "enabled") else np.dtype("<f8")
+            if count and dt.itemsize == 8:
+                r.pos += -r.pos % 8
+            values = np.frombuffer(r.data, dtype=dt, count=count, offset=r.pos)
+            r.pos += count * dt.itemsize
+            row = out.arrays[fld][i]
+            row[...] = 0 if fld in ("mode", "enabled") else np.nan
+            if count == len(cols):
+                row[cols[ok]] = values[ok]
+
+    def event(self, m: Message) -> dict[str, Any]:
+        r = CdrReader(m.data)
+        r.header()
+        kind, joint, detail = r.string(), r.string(), r.string()
+        return {"time": m.log_time / NS_PER_S, "kind": kind, "joint": joint or None, "detail": detail}
+
+    def transition(self, m: Message) -> dict[str, Any]:
+        r = CdrReader(m.data)
+        r.header()
+        machine, source, target, event, note = (r.string() for _ in range(5))
+        out: dict[str, Any] = {
+            "time": m.log_time / NS_PER_S, "machine": machine, "source": source or None,
+            "target": target or None, "event": event or None, "note": note,
+        }
+        if r.pos < len(r.data):  # since the state-machine introspection: configuration and duration
+            out["configuration"] = r.string()
+            duration = r.f64()
+            out["duration"] = None if math.isnan(duration) else duration
+        return out
+
+
+class _JsonDecoder:
+    """The JSON messages of recordings written by earlier versions (format ``agentsdk-recording/1``)."""
+
+    def __init__(self, names: tuple[str, ...]) -> None:
+        self.n = len(names)
+
+    def states(self, group: list[Message], out: _Columns) -> None:
+        for m in group:
+            msg = json.loads(m.data)
+            i = out.reserve(1)
+            out.time[i] = m.log_time
+            for fld in _STATE_FIELDS:
+                out.arrays[fld][i] = np.array(msg[fld], dtype=float)  # JSON null (a NaN) -> nan
+
+    def commands(self, group: list[Message], out: _Columns) -> None:
+        for m in group:
+            msg = json.loads(m.data)
+            i = out.reserve(1)
+            out.time[i] = m.log_time
+            for fld in ("position", "velocity", "effort", "kp", "kd", "target"):
+                out.arrays[fld][i] = np.array(msg[fld], dtype=float)
+            out.arrays["enabled"][i] = msg["enabled"]
+            out.arrays["mode"][i] = [ModeCode.of(x) for x in msg["mode"]]
+
+    def _side(self, m: Message) -> dict[str, Any]:
+        msg = json.loads(m.data)
+        msg.pop("header", None)
+        return {"time": m.log_time / NS_PER_S, **msg}
+
+    event = transition = _side

@@ -110,10 +110,13 @@ async def replay(
             if config_changed:
                 log.warning("robot.yaml of %s differs from the recorded one; replay may diverge", bot.name)
         cols = np.array([index[n] for n in data.names], dtype=np.intp)
+        # the replay samples the joint states at the recording's rate, so every recorded sample has its twin
+        recorded_rate = data.metadata.get("record_rate", "")
         rec = Recorder(
             bot,
             record,
             keep=True,
+            rate=float(recorded_rate) if recorded_rate else None,
             metadata={
                 "robot": robot_spec_for_metadata(robot),
                 "backend_options": json.dumps(opts, sort_keys=True, default=str),

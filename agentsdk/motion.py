@@ -322,6 +322,16 @@ class Motion:
         self._cancel_requested = True
         self._mgr._request_stop(self, ResultCode.CANCELED, "canceled")
 
+    def stop_early(self, reason: str) -> None:
+        """End SUCCESSFUL before the goal (a guarded move's condition held): decelerate within the limits, hold.
+
+        Idempotent; never raises. See :mod:`agentsdk.sensors`.
+        """
+        if self._future.done() or self._cancel_requested:
+            return
+        self._cancel_requested = True
+        self._mgr._request_stop(self, ResultCode.SUCCESSFUL, reason)
+
     def feedback(self, rate: float = 50.0, *, links: Sequence[str] | str = ()) -> AsyncIterator[Feedback]:
         """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included).
 

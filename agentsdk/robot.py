@@ -69,6 +69,7 @@ class Robot:
         self._kinematics: Kinematics | None = None
         self._kinematics_error: Exception | None = None
         motions.kinematics_source = lambda: self.kinematics  # link poses in motion feedback
+        motions.sensors_source = lambda: self.sensors  # sensor readings in motion feedback
 
     # ------------------------------------------------------------ metadata
     @property

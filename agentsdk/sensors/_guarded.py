@@ -24,6 +24,9 @@ def check_condition(sensors: Sensors, until: Condition) -> bool:
     """Evaluate ``until`` once (before the motion starts): a wrong sensor name or type raises here, not in the tick."""
     if not callable(until):
         raise InvalidValueError(f"until must be a condition: a callable cond(robot.sensors) -> bool, got {until!r}")
+    start = getattr(until, "start", None)
+    if callable(start):
+        start(sensors)  # bind, tare
     return bool(until(sensors))
 
 

@@ -134,13 +134,15 @@ class PybulletSensors:
             elif kind in _FT:
                 self._wrench(s, out)
             elif kind == "contact":
-                pts = p.getContactPoints(bodyA=self._body, linkIndexA=s.link, physicsClientId=self._cid)
+                # the link as either side of a contact (a contact with another link of the robot is listed once,
+                # with the link on side A or on side B)
                 total = 0.0
                 n = 0
-                for c in pts:
-                    if c[9] > 0.0:
-                        total += c[9]
-                        n += 1
+                for side in ({"bodyA": self._body, "linkIndexA": s.link}, {"bodyB": self._body, "linkIndexB": s.link}):
+                    for c in p.getContactPoints(physicsClientId=self._cid, **side):
+                        if c[9] > 0.0:
+                            total += c[9]
+                            n += 1
                 out[0] = total
                 out[1] = n
             elif kind in ("rangefinder", "lidar"):

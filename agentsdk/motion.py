@@ -414,7 +414,9 @@ class Motion:
         return f"<Motion {list(self.joint_names)} {state}>"
 
 
-async def _with_sensors(stream: AsyncIterator[Feedback], sensors: Any, names: tuple[str, ...]) -> AsyncIterator[Feedback]:
+async def _with_sensors(
+    stream: AsyncIterator[Feedback], sensors: Any, names: tuple[str, ...]
+) -> AsyncIterator[Feedback]:
     async for fb in stream:
         yield dataclasses.replace(fb, sensors=sensors.snapshot(names))
 

@@ -35,7 +35,7 @@ class SensorChannel:
             if cam.depth:
                 self.depth = np.zeros((cam.height, cam.width), dtype=np.float32)
         if spec.kind in ("imu", "orientation"):
-            self.values[3 if spec.kind == "imu" else 3] = 1.0  # a unit quaternion before the first sample
+            self.values[3] = 1.0  # a unit quaternion (x, y, z, w) before the first sample
         #: set by the loop: sample this channel in this tick
         self.due = True
 

@@ -95,7 +95,10 @@ def force_above(sensor: str, newtons: float, *, axis: int | None = None, tare: b
 
 
 def torque_above(sensor: str, newton_metres: float, *, axis: int | None = None, tare: bool = False) -> Condition:
-    """True once the torque measured by ``sensor`` (force-torque or torque) exceeds ``newton_metres`` (``tare``: as above)."""
+    """True once the torque measured by ``sensor`` (force-torque or torque) exceeds ``newton_metres``.
+
+    ``tare``: as for :func:`force_above`.
+    """
     if axis is not None and axis not in (0, 1, 2):
         raise InvalidValueError(f"axis must be 0, 1 or 2, got {axis!r}")
     return _Norm(sensor, newton_metres, {"force_torque": slice(3, 6), "torque": slice(0, 3)}, "torque_above",

@@ -87,6 +87,10 @@ def _mjcf_sensors(path: str) -> tuple[SensorSpec, ...]:
             body = int(model.site_bodyid[objid])
             xyz = tuple(float(x) for x in model.site_pos[objid])  # type: ignore[assignment]
             w, x, y, z = (float(v) for v in model.site_quat[objid])
+            if kind == "rangefinder":
+                # MuJoCo's rangefinder looks along the site's +z; the SDK's sensor frame looks along +x
+                c = math.sqrt(0.5)
+                w, x, y, z = (c * (w + y), c * (x + z), c * (y - w), c * (z - x))
             quat = (x, y, z, w)
         elif objtype == obj.mjOBJ_JOINT:
             joint = mujoco.mj_id2name(model, obj.mjOBJ_JOINT, objid)
@@ -307,7 +311,7 @@ def _yaml_sensors(config: RobotConfig, description: RobotDescription) -> list[Se
             c = entry.camera if entry.camera is not None else None
             camera = CameraSpec(**c.model_dump()) if c is not None else CameraSpec()
         ray = None
-        if entry.type == "lidar":
+        if entry.type in ("lidar", "rangefinder"):
             ray = RaySpec(**entry.ray.model_dump()) if entry.ray is not None else RaySpec()
         specs.append(SensorSpec(
             name=entry.name, kind=entry.type, link=link, joint=joint, xyz=entry.xyz,

@@ -20,7 +20,7 @@ import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -45,7 +45,7 @@ from ._spec import JOINT_KINDS, SensorLimits, SensorSpec
 if TYPE_CHECKING:
     from ..backend import Backend, SetpointView
     from ..loop import ControlLoop, HookHandle, StateView
-    from ..safety import SafetyLayer, SafetyViolation
+    from ..safety import SafetyLayer
 
 __all__ = ["SENSOR_OBSERVE_ORDER", "SensorHub", "SensorInfo", "Sensors", "UnknownSensorError"]
 
@@ -84,8 +84,25 @@ class _Slot:
     """One sensor's published sample, its realism and its latency ring (all preallocated)."""
 
     __slots__ = (
-        "channel", "count", "decim", "head", "image", "depth", "info", "latency", "noise", "noise_idx",
-        "ring_depth", "ring_image", "ring_stamp", "ring_values", "rng", "scratch", "spec", "stamp", "values",
+        "channel",
+        "count",
+        "decim",
+        "depth",
+        "head",
+        "image",
+        "info",
+        "latency",
+        "noise",
+        "noise_idx",
+        "ring_depth",
+        "ring_image",
+        "ring_stamp",
+        "ring_values",
+        "rng",
+        "scratch",
+        "spec",
+        "stamp",
+        "values",
     )
 
     def __init__(self, channel: SensorChannel, info: SensorInfo, decim: int, seed: int, period: float) -> None:
@@ -109,7 +126,7 @@ class _Slot:
         self.rng = np.random.default_rng([seed, zlib.crc32(spec.name.encode("utf-8"))])
         self.latency = spec.latency
         # a ring of samples waiting for their latency to pass
-        depth = int(math.ceil(spec.latency / (decim * period) - 1e-9)) + 1 if spec.latency > 0 else 0
+        depth = math.ceil(spec.latency / (decim * period) - 1e-9) + 1 if spec.latency > 0 else 0
         self.ring_values = np.zeros((depth, size))
         self.ring_stamp = np.full(depth, math.inf)
         self.ring_image = None if self.image is None or depth == 0 else np.zeros((depth, *self.image.shape), np.uint8)

@@ -104,8 +104,8 @@ class MujocoSensors:
                 sensor.type = stype
                 sensor.objtype = _SITE
                 sensor.objname = site.name
-                if stype == _S.mjSENS_RANGEFINDER and s.ray is not None:
-                    sensor.cutoff = s.ray.range_max
+                if stype == _S.mjSENS_RANGEFINDER:
+                    sensor.intprm[0] = 1  # the distance (what the MJCF parser sets by default)
 
     # ------------------------------------------------------------ bind
     def bind(self, model: mujoco.MjModel, data: mujoco.MjData) -> None:
@@ -126,7 +126,8 @@ class MujocoSensors:
 
     def _view(self, model: mujoco.MjModel, data: mujoco.MjData, name: str) -> np.ndarray:
         adr, dim = self._adr(model, name)
-        return data.sensordata[adr : adr + dim]
+        view: np.ndarray = data.sensordata[adr : adr + dim]
+        return view
 
     def _reader(self, s: SensorSpec, model: mujoco.MjModel, data: mujoco.MjData) -> Any:
         kind = s.kind

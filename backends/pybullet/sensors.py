@@ -76,7 +76,9 @@ class PybulletSensors:
                 out.append(None)
                 continue
             if s.link not in links:
-                raise BackendStartError(f"sensor {s.name!r} of {self.label}: link {s.link!r} is not in the PyBullet model")
+                raise BackendStartError(
+                    f"sensor {s.name!r} of {self.label}: link {s.link!r} is not in the PyBullet model"
+                )
             li = links[s.link]
             sensor = _Sensor(s, li, Pose(s.xyz, s.quat))
             if s.kind in _FT:

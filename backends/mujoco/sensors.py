@@ -258,9 +258,9 @@ class _Renderer:
 
     def __init__(self, model: mujoco.MjModel) -> None:
         from agentsdk.errors import BackendUnavailableError
-        from agentsdk.video import _gl_context_class
+        from agentsdk.video import offscreen_gl_context_class
 
-        gl = _gl_context_class()
+        gl = offscreen_gl_context_class()
         if gl is None:
             raise BackendUnavailableError(
                 "no offscreen OpenGL for the MuJoCo camera sensors: install EGL (Debian: libegl1 libegl-mesa0 "

@@ -73,6 +73,12 @@ def _rtf(quick: bool) -> list[Section]:
     return [overhead.run_rtf(quick)]
 
 
+def _sensors(quick: bool) -> list[Section]:
+    from agentsdk.bench import sensors
+
+    return [sensors.run(quick)]
+
+
 def _realtime(quick: bool) -> list[Section]:
     from agentsdk.bench import realtime
 
@@ -481,6 +487,7 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "can_cycle": ("CAN cycle rates on vcan0 vs raw python-can and the wire limit", _can_cycle),
     "safety_latency": ("e-stop and stall latency", _safety_latency),
     "planning": ("trajectory planning time vs raw ruckig", _planning),
+    "sensors": ("MuJoCo camera sensor per frame vs mujoco.Renderer; sensors' cost per tick", _sensors),
 }
 ALIASES = {
     "feedback": "feedback_timing",

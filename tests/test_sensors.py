@@ -379,3 +379,25 @@ async def test_sensors_in_feedback_loops_and_motion_feedback() -> None:
         fbs = [fb async for fb in motion.feedback(50.0, sensors=("wrist_ft",))]
         assert fbs and all(isinstance(fb.sensors["wrist_ft"], WrenchStamped) for fb in fbs)
         assert (await motion).code is ResultCode.SUCCESSFUL
+
+
+# --------------------------------------------------------------------------- cameras
+@pytest.mark.parametrize("backend", SIMS)
+async def test_camera_renders_headless_in_lockstep_with_depth_in_metres(backend: str) -> None:
+    from agentsdk.sensors import Image
+
+    async with agentsdk.connect(backend, ARM_CAM, safety={"stall_timeout": None}) as robot:
+        info = robot.sensors["overhead"]
+        assert (info.type, info.frame_id, info.rate) == ("camera", "world", 50.0)
+        await robot.clock.sleep(0.1)
+        img = robot.sensors.read("overhead")
+        depth = robot.sensors.depth("overhead")
+        assert isinstance(img, Image) and img.encoding == "rgb8" and img.data.shape == (240, 320, 3)
+        assert depth.encoding == "32FC1" and depth.data.shape == (240, 320)
+        assert img.header.stamp == pytest.approx(0.1) and depth.header.stamp == img.header.stamp
+        assert img.data.std() > 0 or img.data.mean() > 0  # something was drawn
+        # the camera looks straight down from 1.0 m at the table top (0.10 m): a plane 0.90 m away
+        centre = depth.data[100:140, 140:180]
+        np.testing.assert_allclose(centre, 0.9, rtol=0.01)
+        with pytest.raises(InvalidValueError, match="no depth"):
+            robot.sensors.depth("wrist_ft")

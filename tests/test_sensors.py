@@ -401,3 +401,42 @@ async def test_camera_renders_headless_in_lockstep_with_depth_in_metres(backend:
         np.testing.assert_allclose(centre, 0.9, rtol=0.01)
         with pytest.raises(InvalidValueError, match="no depth"):
             robot.sensors.depth("wrist_ft")
+
+
+# --------------------------------------------------------------------------- CAN
+async def test_can_motors_report_temperature_and_torque_estimate_as_sensors(tmp_path: Path) -> None:
+    import os
+
+    import can
+    import yaml
+
+    from agentsdk.backends.can.emulator import MotorEmulator
+
+    src = Path(__file__).resolve().parents[1] / "robots" / "mit_leg" / "robot.yaml"
+    cfg = yaml.safe_load(src.read_text())
+    cfg["description"] = str(src.parent / cfg["description"])
+    cfg["sensors"] = [{"name": "knee_torque", "type": "joint_effort", "joint": "knee"}]
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    channel = f"agentsdk-sensor-test-{os.getpid()}"
+    bus = can.Bus(interface="virtual", channel=channel)
+    try:
+        emu = MotorEmulator.from_robot(path, bus)
+        emu.start()
+        try:
+            async with agentsdk.connect("can", robot=path, interface="virtual", channel=channel,
+                                        max_missed_replies=250, safety=SAFETY) as robot:
+                names = robot.sensors.names
+                assert names == ("knee_torque", "hip_abduction_temperature", "hip_pitch_temperature",
+                                 "knee_temperature")
+                await robot.clock.sleep(0.1)
+                temp = robot.sensors.read("knee_temperature")
+                assert isinstance(temp, JointSensorReading) and temp.joint == "knee"
+                assert temp.value == pytest.approx(30.0, abs=1.0)  # the emulated motors report 30 °C
+                torque = robot.sensors.read("knee_torque")
+                assert isinstance(torque, JointSensorReading)
+                assert torque.value == pytest.approx(float(robot.latest_state().effort[2]), abs=1e-9)
+        finally:
+            emu.stop()
+    finally:
+        bus.shutdown()

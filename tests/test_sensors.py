@@ -404,13 +404,8 @@ async def test_camera_renders_headless_in_lockstep_with_depth_in_metres(backend:
 
 
 # --------------------------------------------------------------------------- CAN
-async def test_can_motors_report_temperature_and_torque_estimate_as_sensors(tmp_path: Path) -> None:
-    import os
-
-    import can
+def _mit_leg_with_torque_sensor(tmp_path: Path) -> Path:
     import yaml
-
-    from agentsdk.backends.can.emulator import MotorEmulator
 
     src = Path(__file__).resolve().parents[1] / "robots" / "mit_leg" / "robot.yaml"
     cfg = yaml.safe_load(src.read_text())
@@ -418,6 +413,17 @@ async def test_can_motors_report_temperature_and_torque_estimate_as_sensors(tmp_
     cfg["sensors"] = [{"name": "knee_torque", "type": "joint_effort", "joint": "knee"}]
     path = tmp_path / "robot.yaml"
     path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+async def test_can_motors_report_temperature_and_torque_estimate_as_sensors(tmp_path: Path) -> None:
+    import os
+
+    import can
+
+    from agentsdk.backends.can.emulator import MotorEmulator
+
+    path = _mit_leg_with_torque_sensor(tmp_path)
     channel = f"agentsdk-sensor-test-{os.getpid()}"
     bus = can.Bus(interface="virtual", channel=channel)
     try:

@@ -446,3 +446,38 @@ async def test_can_motors_report_temperature_and_torque_estimate_as_sensors(tmp_
             emu.stop()
     finally:
         bus.shutdown()
+
+
+# --------------------------------------------------------------------------- the tick stays allocation-free
+async def test_mujoco_sensor_sampling_allocates_no_arrays() -> None:
+    """tracemalloc peak of the sensor hook's segment of the tick (IMU, F/T, contact, range, joint; noise on)."""
+    import tracemalloc
+
+    from agentsdk.sensors import SENSOR_OBSERVE_ORDER
+
+    async with agentsdk.connect("mujoco", ARM, safety={"stall_timeout": 10.0}) as robot:
+        seg: dict[str, list[int]] = {"sensors": [], "empty": []}
+
+        def end_of(name: str) -> object:
+            out = seg[name]
+
+            def probe(t: float, st: object, sp: object) -> None:
+                if tracemalloc.is_tracing():
+                    cur, peak = tracemalloc.get_traced_memory()
+                    out.append(peak - cur)
+                    tracemalloc.reset_peak()
+
+            return probe
+
+        robot.add_tick_hook(Phase.OBSERVE, end_of("empty"), order=SENSOR_OBSERVE_ORDER - 2)
+        robot.add_tick_hook(Phase.OBSERVE, end_of("empty"), order=SENSOR_OBSERVE_ORDER - 1)
+        robot.add_tick_hook(Phase.OBSERVE, end_of("sensors"), order=SENSOR_OBSERVE_ORDER + 1)
+        await robot.clock.sleep(0.05)  # warm up (the per-channel copy plans are made on first use)
+        tracemalloc.start()
+        try:
+            await robot.clock.sleep(0.3)
+        finally:
+            tracemalloc.stop()
+    empty = float(np.median(seg["empty"][3:]))
+    # no arrays (a numpy array is >= 100 bytes); at most a few Python scalars
+    assert float(np.median(seg["sensors"][3:])) <= empty + 64, seg["sensors"][:20]

@@ -94,6 +94,7 @@ class _Slot:
         "latency",
         "noise",
         "noise_idx",
+        "noise_view",
         "ring_depth",
         "ring_image",
         "ring_stamp",
@@ -123,6 +124,8 @@ class _Slot:
             self.noise = 0.0
         n_noise = len(range(size)[self.noise_idx])
         self.scratch = np.zeros(n_noise)
+        #: the channel's values the noise and bias apply to (a view made once)
+        self.noise_view = channel.values[self.noise_idx]
         self.rng = np.random.default_rng([seed, zlib.crc32(spec.name.encode("utf-8"))])
         self.latency = spec.latency
         # a ring of samples waiting for their latency to pass
@@ -152,9 +155,13 @@ class SensorHub:
             self._slots[spec.name] = _Slot(ch, info, decim, seed, period)
         self._ordered = tuple(self._slots.values())
         self._backend_channels = tuple(ch for ch in self.channels if ch.spec.kind not in JOINT_KINDS)
+        # joint sensors: one-element views of the loop's state rows (the buffer lives as long as the loop)
+        block = loop.state.block
+        assert block is not None
         self._joint = tuple(
-            (self._slots[ch.spec.name], _JOINT_ROW[ch.spec.kind], loop.index[ch.spec.joint or ""])
+            (self._slots[ch.spec.name], block[_JOINT_ROW[ch.spec.kind], j : j + 1])
             for ch in self.channels if ch.spec.kind in JOINT_KINDS
+            for j in (loop.index[ch.spec.joint or ""],)
         )
         self._tick = 0
         self._handle: HookHandle | None = None
@@ -198,11 +205,9 @@ class SensorHub:
     def _sample(self, t: float, st: StateView) -> None:
         if self._backend_channels:
             self._backend.read_sensors(self._backend_channels)
-        rows = st.block
-        for slot, row, j in self._joint:
+        for slot, src in self._joint:
             if slot.channel.due:
-                slot.channel.values[0] = rows[row, j] if rows is not None else (st.position, st.velocity,
-                                                                                   st.effort)[row][j]
+                np.copyto(slot.channel.values, src)
         for slot in self._ordered:
             ch = slot.channel
             if ch.due:
@@ -224,7 +229,7 @@ class SensorHub:
         spec = slot.spec
         if slot.noise <= 0.0 and spec.bias == 0.0:
             return
-        part = slot.channel.values[slot.noise_idx]
+        part = slot.noise_view
         if spec.bias != 0.0:
             part += spec.bias
         if slot.noise > 0.0:

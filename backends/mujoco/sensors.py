@@ -67,6 +67,7 @@ class MujocoSensors:
         self.label = label
         self._readers: list[Any] = []
         self._renderer: _Renderer | None = None
+        self._plans: dict[int, tuple[np.ndarray, list[tuple[int, Any, Any]]]] = {}
 
     # ------------------------------------------------------------ build
     def add_to(self, spec: mujoco.MjSpec) -> None:
@@ -159,46 +160,66 @@ class MujocoSensors:
 
     # ------------------------------------------------------------ sample
     def read(self, channels: Sequence[SensorChannel]) -> None:
-        """Write every due channel's sample."""
-        readers = self._readers
+        """Write every due channel's sample (copies between views made once per channel: no arrays per tick)."""
+        plans = self._plans
         for ch in channels:
             if not ch.due:
                 continue
-            r = readers[ch.index]
-            kind = r[0]
-            out = ch.values
-            if kind == "imu":
-                _, acc, gyro, quat = r
-                out[0:3] = quat[1:4]
-                out[3] = quat[0]
-                out[4:7] = gyro
-                out[7:10] = acc
-            elif kind in ("accelerometer", "gyro"):
-                out[:] = r[1]
-            elif kind == "orientation":
-                q = r[1]
-                out[0:3] = q[1:4]
-                out[3] = q[0]
-            elif kind == "force_torque":
-                np.negative(r[1], out=out[0:3])
-                np.negative(r[2], out=out[3:6])
-            elif kind in ("force", "torque"):
-                np.negative(r[1], out=out)
-            elif kind == "contact":
-                if len(r) == 3 and r[2] is None:  # an MJCF touch sensor
-                    f = float(r[1][0])
-                    out[0] = f
-                    out[1] = 1.0 if f > 0.0 else 0.0
+            plan = plans.get(ch.index)
+            if plan is None or plan[0] is not ch.values:
+                plan = plans[ch.index] = (ch.values, self._plan(ch))
+            for op, a, b in plan[1]:
+                if op == 0:
+                    np.copyto(a, b)
+                elif op == 1:
+                    np.negative(b, out=a)
+                elif op == 2:
+                    self._contact(a, b, ch.values)
+                elif op == 3:
+                    self._touch(b, ch.values)
+                elif op == 4:
+                    self._range(b, ch)
+                elif op == 5:
+                    self._lidar(b, ch.values)
                 else:
-                    self._contact(r[1], r[2], out)
-            elif kind == "rangefinder":
-                d = float(r[1][0])
-                cutoff = ch.spec.ray.range_max if ch.spec.ray is not None else math.inf
-                out[0] = d if 0.0 <= d <= cutoff else math.inf
-            elif kind == "lidar":
-                self._lidar(r, out)
-            elif kind == "camera":
-                self._render(ch, r[1])
+                    self._render(ch, b)
+
+    def _plan(self, ch: SensorChannel) -> list[tuple[int, Any, Any]]:
+        """The copies that write one channel's sample: (op, destination, source) with views made here."""
+        r = self._readers[ch.index]
+        out = ch.values
+        kind = r[0]
+        if kind == "imu":
+            _, acc, gyro, quat = r
+            return [(0, out[0:3], quat[1:4]), (0, out[3:4], quat[0:1]), (0, out[4:7], gyro), (0, out[7:10], acc)]
+        if kind in ("accelerometer", "gyro"):
+            return [(0, out, r[1])]
+        if kind == "orientation":
+            q = r[1]
+            return [(0, out[0:3], q[1:4]), (0, out[3:4], q[0:1])]
+        if kind == "force_torque":
+            return [(1, out[0:3], r[1]), (1, out[3:6], r[2])]
+        if kind in ("force", "torque"):
+            return [(1, out, r[1])]
+        if kind == "contact":
+            if r[2] is None:  # an MJCF touch sensor
+                return [(3, None, r[1])]
+            return [(2, r[1], r[2])]
+        if kind == "rangefinder":
+            return [(4, None, r[1])]
+        if kind == "lidar":
+            return [(5, None, r)]
+        return [(6, None, r[1])]
+
+    def _touch(self, view: np.ndarray, out: np.ndarray) -> None:
+        f = float(view[0])
+        out[0] = f
+        out[1] = 1.0 if f > 0.0 else 0.0
+
+    def _range(self, view: np.ndarray, ch: SensorChannel) -> None:
+        d = float(view[0])
+        cutoff = ch.spec.ray.range_max if ch.spec.ray is not None else math.inf
+        ch.values[0] = d if 0.0 <= d <= cutoff else math.inf
 
     def _contact(self, body: int, buf: np.ndarray, out: np.ndarray) -> None:
         m, d = self._model, self._data

@@ -481,3 +481,49 @@ async def test_mujoco_sensor_sampling_allocates_no_arrays() -> None:
     empty = float(np.median(seg["empty"][3:]))
     # no arrays (a numpy array is >= 100 bytes); at most a few Python scalars
     assert float(np.median(seg["sensors"][3:])) <= empty + 64, seg["sensors"][:20]
+
+
+# --------------------------------------------------------------------------- lidar, tilt limit
+def _with_lidar(tmp_path: Path) -> Path:
+    import yaml
+
+    data = yaml.safe_load(ARM.read_text())
+    data["description"] = str(FIXTURES / "sensor_arm" / "sensor_arm.urdf")
+    # the scan plane is vertical: x points down, y along the world's y; the table top is 0.2 m below
+    data["sensors"] = [{
+        "name": "scan", "type": "lidar", "link": "carriage", "xyz": [0.1, 0.0, 0.0],
+        "rpy": [0.0, 1.5707963267948966, 0.0],
+        "ray": {"samples": 21, "min_angle": -0.6, "max_angle": 0.6, "range_max": 0.3},
+    }]
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.mark.parametrize("backend", SIMS)
+async def test_lidar_scan_of_a_plane(backend: str, tmp_path: Path) -> None:
+    from agentsdk.sensors import LaserScan
+
+    async with agentsdk.connect(backend, _with_lidar(tmp_path), safety=SAFETY) as robot:
+        await robot.clock.sleep(0.1)
+        scan = robot.sensors.read("scan")
+        assert isinstance(scan, LaserScan) and len(scan.ranges) == 21
+        assert scan.angle_increment == pytest.approx(0.06)
+        angles = scan.angle_min + scan.angle_increment * np.arange(21)
+        expected = 0.2 / np.cos(angles)
+        expected[expected > 0.3] = np.inf  # beyond range_max: nothing in range
+        finite = np.isfinite(expected)
+        np.testing.assert_allclose(scan.ranges[finite], expected[finite], rtol=1e-3)
+        assert np.all(np.isinf(scan.ranges[~finite]))
+
+
+@pytest.mark.parametrize("backend", SIMS)
+async def test_tilt_limit_latches_a_stop_naming_the_imu(backend: str) -> None:
+    async with agentsdk.connect(backend, FIXTURES / "imu_turntable" / "robot.yaml", safety=SAFETY) as robot:
+        await robot.clock.sleep(0.05)
+        assert robot.safety.state.name == "OK"
+        robot.sensors.add_limit("table_imu", max_tilt=1.0, category=1)  # the mount is rolled 90°: tilt pi/2
+        await robot.clock.sleep(0.05)
+        assert robot.safety.state.name == "ESTOP"
+        detail = next(e.detail for e in robot.safety.events if e.kind == "sensor_limit")
+        assert "sensor 'table_imu'" in detail and "tilt 1.57 rad" in detail

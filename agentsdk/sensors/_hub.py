@@ -112,9 +112,12 @@ class _Slot:
         self.spec = spec
         self.info = info
         self.decim = decim
-        self.values = channel.values.copy()
-        self.image = None if channel.image is None else channel.image.copy()
-        self.depth = None if channel.depth is None else channel.depth.copy()
+        delayed = spec.latency > 0.0
+        # without latency the published sample *is* the channel's (the backend writes it in the tick):
+        # no copy per tick; with latency it is the ring's oldest sample whose time has come
+        self.values = channel.values.copy() if delayed else channel.values
+        self.image = None if channel.image is None else (channel.image.copy() if delayed else channel.image)
+        self.depth = None if channel.depth is None else (channel.depth.copy() if delayed else channel.depth)
         self.stamp = -math.inf
         # white noise on the measured components (an IMU's orientation is left exact)
         self.noise = spec.noise
@@ -188,19 +191,13 @@ class SensorHub:
     def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
         self._tick += 1
         tick = self._tick
-        any_due = False
+        work = False
         for slot in self._ordered:
             due = tick % slot.decim == 0
             slot.channel.due = due
-            any_due |= due
-        if any_due or self._pending():
+            work = work or due or slot.count > 0
+        if work:
             self._sample(t, st)
-
-    def _pending(self) -> bool:
-        for slot in self._ordered:
-            if slot.count:
-                return True
-        return False
 
     def _sample(self, t: float, st: StateView) -> None:
         if self._backend_channels:
@@ -214,12 +211,7 @@ class SensorHub:
                 self._realism(slot)
                 if slot.latency > 0.0:
                     self._push(slot, t)
-                else:
-                    np.copyto(slot.values, ch.values)
-                    if slot.image is not None and ch.image is not None:
-                        np.copyto(slot.image, ch.image)
-                    if slot.depth is not None and ch.depth is not None:
-                        np.copyto(slot.depth, ch.depth)
+                else:  # published in place (slot.values is ch.values)
                     slot.stamp = t
             if slot.count:
                 self._pop(slot, t)

@@ -178,7 +178,8 @@ class MujocoSensors:
                 elif op == 3:
                     self._touch(b, ch.values)
                 elif op == 4:
-                    self._range(b, ch)
+                    d = float(b[0])
+                    ch.values[0] = d if 0.0 <= d <= a else math.inf  # MuJoCo: -1 when nothing is hit
                 elif op == 5:
                     self._lidar(b, ch.values)
                 else:
@@ -206,7 +207,8 @@ class MujocoSensors:
                 return [(3, None, r[1])]
             return [(2, r[1], r[2])]
         if kind == "rangefinder":
-            return [(4, None, r[1])]
+            ray = ch.spec.ray
+            return [(4, ray.range_max if ray is not None else math.inf, r[1])]
         if kind == "lidar":
             return [(5, None, r)]
         return [(6, None, r[1])]
@@ -215,11 +217,6 @@ class MujocoSensors:
         f = float(view[0])
         out[0] = f
         out[1] = 1.0 if f > 0.0 else 0.0
-
-    def _range(self, view: np.ndarray, ch: SensorChannel) -> None:
-        d = float(view[0])
-        cutoff = ch.spec.ray.range_max if ch.spec.ray is not None else math.inf
-        ch.values[0] = d if 0.0 <= d <= cutoff else math.inf
 
     def _contact(self, body: int, buf: np.ndarray, out: np.ndarray) -> None:
         m, d = self._model, self._data

@@ -527,3 +527,14 @@ async def test_tilt_limit_latches_a_stop_naming_the_imu(backend: str) -> None:
         assert robot.safety.state.name == "ESTOP"
         detail = next(e.detail for e in robot.safety.events if e.kind == "sensor_limit")
         assert "sensor 'table_imu'" in detail and "tilt 1.57 rad" in detail
+
+
+async def test_latency_delays_the_same_noisy_samples(tmp_path: Path) -> None:
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    prompt, _ = await _imu_series(_realistic(tmp_path / "a", noise=0.05, bias=0.1), n=300)
+    late, stamps = await _imu_series(_realistic(tmp_path / "b", noise=0.05, bias=0.1, latency=0.01), n=300)
+    lag = 5  # 10 ms at 500 Hz
+    # the same seeded samples, published 5 ticks later, with the stamps of when they were taken
+    np.testing.assert_array_equal(late[lag + 1 :], prompt[1:-lag])
+    np.testing.assert_allclose(stamps[lag + 1 :], np.arange(2, len(stamps) - lag + 1) * 0.002, atol=1e-9)

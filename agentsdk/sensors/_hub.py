@@ -95,6 +95,8 @@ class _Slot:
         "noise",
         "noise_idx",
         "noise_view",
+        "noisy",
+        "raw",
         "ring_depth",
         "ring_image",
         "ring_stamp",
@@ -113,9 +115,14 @@ class _Slot:
         self.info = info
         self.decim = decim
         delayed = spec.latency > 0.0
-        # without latency the published sample *is* the channel's (the backend writes it in the tick):
+        #: noise or bias configured: they apply to a copy of the backend's sample (never accumulate)
+        # (an orientation quaternion stays exact: noise and bias apply to measured rates and forces)
+        self.noisy = (spec.noise > 0.0 or spec.bias != 0.0) and spec.kind != "orientation"
+        # without realism the published sample *is* the channel's (the backend writes it in the tick):
         # no copy per tick; with latency it is the ring's oldest sample whose time has come
-        self.values = channel.values.copy() if delayed else channel.values
+        self.values = channel.values.copy() if delayed or self.noisy else channel.values
+        #: the sample with its noise and bias (what is published or delayed)
+        self.raw = channel.values.copy() if delayed and self.noisy else self.values
         self.image = None if channel.image is None else (channel.image.copy() if delayed else channel.image)
         self.depth = None if channel.depth is None else (channel.depth.copy() if delayed else channel.depth)
         self.stamp = -math.inf
@@ -127,8 +134,8 @@ class _Slot:
             self.noise = 0.0
         n_noise = len(range(size)[self.noise_idx])
         self.scratch = np.zeros(n_noise)
-        #: the channel's values the noise and bias apply to (a view made once)
-        self.noise_view = channel.values[self.noise_idx]
+        #: the values the noise and bias apply to (a view made once)
+        self.noise_view = self.raw[self.noise_idx]
         self.rng = np.random.default_rng([seed, zlib.crc32(spec.name.encode("utf-8"))])
         self.latency = spec.latency
         # a ring of samples waiting for their latency to pass
@@ -208,10 +215,12 @@ class SensorHub:
         for slot in self._ordered:
             ch = slot.channel
             if ch.due:
-                self._realism(slot)
+                if slot.noisy:
+                    np.copyto(slot.raw, ch.values)
+                    self._realism(slot)
                 if slot.latency > 0.0:
                     self._push(slot, t)
-                else:  # published in place (slot.values is ch.values)
+                else:  # published in place (slot.values is ch.values, or the noisy copy)
                     slot.stamp = t
             if slot.count:
                 self._pop(slot, t)
@@ -238,7 +247,7 @@ class SensorHub:
             slot.head = (slot.head + 1) % n
             slot.count -= 1
         ch = slot.channel
-        slot.ring_values[k] = ch.values
+        slot.ring_values[k] = slot.raw if slot.noisy else ch.values
         slot.ring_stamp[k] = t
         if slot.ring_image is not None and ch.image is not None:
             slot.ring_image[k] = ch.image

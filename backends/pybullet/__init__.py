@@ -222,8 +222,10 @@ class PybulletController(Backend):
         )
         self._load_body()
         self._sensors = PybulletSensors(self.sensors, f"robot {self.description.name!r}")
+        desc = self.description
+        world = (desc.root_link,) if self.floating_base and desc.base_link != desc.root_link else ()
         self._sensors.bind(cid, self._body, self._links, opts.gravity,
-                           getattr(self, "_base_inertial", None))
+                           getattr(self, "_base_inertial", None), world)
         self._reset_state()
 
     def _load_body(self) -> None:

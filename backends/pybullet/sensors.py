@@ -37,6 +37,8 @@ SERVED = frozenset({
 })
 
 _FT = ("force_torque", "force", "torque")
+#: the link index of a frame that stands still at the world origin
+_WORLD = -1000
 _INERTIAL = ("imu", "accelerometer", "gyro", "orientation")
 
 
@@ -63,8 +65,12 @@ class PybulletSensors:
         self._sensors: list[_Sensor | None] = []
 
     def bind(self, cid: int, body: int, links: dict[str, int], gravity: Sequence[float],
-             base_inertial: Pose | None) -> None:
-        """Resolve link indices, enable the force-torque sensors."""
+             base_inertial: Pose | None, world_links: Sequence[str] = ()) -> None:
+        """Resolve link indices, enable the force-torque sensors.
+
+        ``world_links``: links PyBullet does not hold that stand still at the world origin (a floating
+        robot's massless root, which MuJoCo also keeps as its world body).
+        """
         self._cid, self._body = cid, body
         self._g = np.array(gravity, dtype=float)
         self._base_inertial = base_inertial if base_inertial is not None else Pose(
@@ -75,6 +81,8 @@ class PybulletSensors:
             if s.kind not in SERVED:
                 out.append(None)
                 continue
+            if s.link in world_links and s.link not in links:
+                links = {**links, s.link: _WORLD}
             if s.link not in links:
                 raise BackendStartError(
                     f"sensor {s.name!r} of {self.label}: link {s.link!r} is not in the PyBullet model"
@@ -110,6 +118,9 @@ class PybulletSensors:
     def _link_frame(self, li: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(origin, rotation, com, com velocity, angular velocity) of link ``li`` in the world."""
         cid, body = self._cid, self._body
+        if li == _WORLD:
+            zero = np.zeros(3)
+            return zero, np.eye(3), zero, zero, zero
         if li < 0:
             pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=cid)
             lin, ang = p.getBaseVelocity(body, physicsClientId=cid)

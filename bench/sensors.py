@@ -60,6 +60,8 @@ async def _per_tick(path: Path, ticks: int) -> tuple[float, Any]:
     import agentsdk
 
     async with agentsdk.connect("mujoco", path, safety={"stall_timeout": None}) as robot:
+        if "cam" in robot.sensors:
+            robot.sensors.read("cam")  # a camera renders in the tick once it has been read
         await robot.clock.sleep(5 * robot.control_period)  # warm
         t0 = time.perf_counter()
         await robot.clock.sleep(ticks * robot.control_period)

@@ -538,3 +538,37 @@ async def test_latency_delays_the_same_noisy_samples(tmp_path: Path) -> None:
     # the same seeded samples, published 5 ticks later, with the stamps of when they were taken
     np.testing.assert_array_equal(late[lag + 1 :], prompt[1:-lag])
     np.testing.assert_allclose(stamps[lag + 1 :], np.arange(2, len(stamps) - lag + 1) * 0.002, atol=1e-9)
+
+
+def _gazebo_camera_arm(tmp_path: Path) -> Path:
+    urdf = (FIXTURES / "sensor_arm" / "sensor_arm.urdf").read_text().replace("</robot>", """
+  <gazebo reference="column">
+    <sensor name="side_cam" type="depth">
+      <update_rate>25</update_rate>
+      <pose>0.6 0 1.0 0 1.5707963267948966 0</pose>
+      <camera><horizontal_fov>0.6</horizontal_fov><image><width>160</width><height>120</height></image>
+        <clip><near>0.05</near><far>10</far></clip></camera>
+    </sensor>
+  </gazebo>
+</robot>""")
+    (tmp_path / "sensor_arm.urdf").write_text(urdf)
+    (tmp_path / "robot.yaml").write_text(ARM.read_text())
+    return tmp_path / "robot.yaml"
+
+
+@pytest.mark.parametrize("backend", SIMS)
+async def test_a_description_camera_renders_once_started(backend: str, tmp_path: Path) -> None:
+    async with agentsdk.connect(backend, _gazebo_camera_arm(tmp_path), safety={"stall_timeout": None}) as robot:
+        info = robot.sensors["side_cam"]
+        assert (info.type, info.frame_id, info.rate, info.source) == ("camera", "column", 25.0, "gazebo")
+        assert "side_cam" not in robot.sensors.started
+        with pytest.raises(InvalidValueError, match="not started"):
+            robot.sensors.read("side_cam")
+        await robot.clock.sleep(0.02)
+        await robot.sensors.start("side_cam")
+        first = robot.sensors.depth("side_cam")
+        assert first.header.stamp == pytest.approx(robot.clock.now())
+        await robot.clock.sleep(0.1)
+        later = robot.sensors.depth("side_cam")
+        assert later.header.stamp > first.header.stamp and later.data.shape == (120, 160)
+        np.testing.assert_allclose(later.data[50:70, 70:90], 0.9, rtol=0.01)

@@ -234,7 +234,7 @@ def _gazebo_sensor(sensor: Any, ref: str | None, links: set[str], joints: Mappin
     return SensorSpec(
         name=name, kind=kind, link=link, joint=joint, xyz=xyz, quat=quat,
         rate=rate_value if rate_value > 0 else None, noise=noise, bias=bias, source="gazebo",
-        camera=camera, ray=ray,
+        camera=camera, ray=ray, active=kind != "camera",
     )
 
 

@@ -95,6 +95,7 @@ class _Slot:
         "noise",
         "noise_idx",
         "noise_view",
+        "active",
         "noisy",
         "raw",
         "ring_depth",
@@ -114,6 +115,9 @@ class _Slot:
         self.spec = spec
         self.info = info
         self.decim = decim
+        #: sampled in the tick; a camera declared only by the description starts inactive (like a ROS camera
+        #: without subscribers, it costs nothing) until ``robot.sensors.start`` it
+        self.active = spec.active
         delayed = spec.latency > 0.0
         #: noise or bias configured: they apply to a copy of the backend's sample (never accumulate)
         # (an orientation quaternion stays exact: noise and bias apply to measured rates and forces)
@@ -184,9 +188,29 @@ class SensorHub:
         """Take a first sample of every sensor at the current state (called once the loop runs)."""
         if not self.channels:
             return
-        for ch in self.channels:
-            ch.due = True
+        for slot in self._ordered:
+            slot.channel.due = slot.active
         self._sample(self._loop.stamp, self._loop.state)
+
+    def prepare(self, name: str) -> None:
+        """Take one sample of sensor ``name`` into its channel (from a worker thread: a renderer's set-up)."""
+        slot = self.slot(name)
+        slot.channel.due = True
+        self._backend.read_sensors((slot.channel,))  # raises (e.g. no offscreen GL) before activating
+
+    def activate(self, name: str) -> None:
+        """Sample sensor ``name`` in the tick at its rate from now on, publishing the sample taken now."""
+        slot = self.slot(name)
+        if slot.active:
+            return
+        for other in self._ordered:
+            other.channel.due = other is slot
+        self._backend.read_sensors((slot.channel,))
+        slot.active = True
+        if slot.latency > 0.0:
+            self._push(slot, self._loop.stamp)
+        else:
+            slot.stamp = self._loop.stamp
 
     def remove(self) -> None:
         """Stop sampling (the robot closes)."""
@@ -200,7 +224,7 @@ class SensorHub:
         tick = self._tick
         work = False
         for slot in self._ordered:
-            due = tick % slot.decim == 0
+            due = slot.active and tick % slot.decim == 0
             slot.channel.due = due
             work = work or due or slot.count > 0
         if work:
@@ -333,8 +357,14 @@ class Sensors:
         return self._hub.slot(name).stamp
 
     def read(self, name: str) -> SensorReading:
-        """The latest reading of sensor ``name``, shaped like its ROS message (private copies)."""
+        """The latest reading of sensor ``name``, shaped like its ROS message (private copies).
+
+        A camera declared only by the description (a URDF Gazebo camera) is sampled once started
+        (:meth:`start`); reading it before raises :class:`~agentsdk.errors.InvalidValueError`.
+        """
         slot = self._hub.slot(name)
+        if not slot.active:
+            self._not_started(name)
         spec = slot.spec
         header = Header(slot.stamp, spec.link)
         v = slot.values
@@ -369,6 +399,8 @@ class Sensors:
     def depth(self, name: str) -> Image:
         """The latest depth image of camera ``name``: ``32FC1``, metres along the optical axis."""
         slot = self._hub.slot(name)
+        if slot.depth is not None and not slot.active:
+            self._not_started(name)
         if slot.depth is None:
             raise InvalidValueError(
                 f"sensor {name!r} has no depth image (a camera with depth: robot.yaml camera.depth: true, "
@@ -377,10 +409,37 @@ class Sensors:
         h, w = slot.depth.shape
         return Image(Header(slot.stamp, slot.spec.link), h, w, "32FC1", slot.depth.copy())
 
+    def _not_started(self, name: str) -> None:
+        raise InvalidValueError(
+            f"camera {name!r} is declared by the robot description and not started: "
+            f"`await robot.sensors.start({name!r})` (or declare it in robot.yaml sensors:, which starts it at connect)"
+        )
+
+    @property
+    def started(self) -> tuple[str, ...]:
+        """Names of the sensors sampled in the tick (every one but cameras not started yet)."""
+        return tuple(i.name for i in self._hub.infos() if self._hub.slot(i.name).active)
+
+    async def start(self, name: str) -> None:
+        """Start sampling camera ``name`` at its rate (its offscreen renderer is prepared off the event loop).
+
+        Its first frame is taken at once. Idempotent; other sensors are always sampled.
+        """
+        from ..threads import run_blocking
+
+        slot = self._hub.slot(name)
+        if slot.active:
+            return
+        await run_blocking(self._hub.prepare, name, name=f"agentsdk-sensor-start-{name}")
+        self._hub.activate(name)
+
     def snapshot(self, names: tuple[str, ...] | None = None) -> MappingProxyType[str, SensorReading]:
         """``{name: reading}`` of the given sensors (default: every one but cameras, whose images are large)."""
         if names is None:
             names = tuple(i.name for i in self._hub.infos() if i.type != "camera")
+        for n in names:
+            if not self._hub.slot(n).active:
+                self._not_started(n)
         return MappingProxyType({n: self.read(n) for n in names})
 
     # ------------------------------------------------------------------ safety

@@ -143,6 +143,8 @@ class SensorSpec:
     camera: CameraSpec | None = None
     ray: RaySpec | None = None
     limits: SensorLimits = field(default_factory=SensorLimits)
+    #: sampled from connect on; False for cameras declared only by the description (``Sensors.start`` them)
+    active: bool = True
 
     @property
     def size(self) -> int:

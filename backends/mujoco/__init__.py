@@ -351,8 +351,9 @@ class MujocoController(Backend):
         # nothing to release: the model and data are freed with the object
         if hasattr(self, "data"):
             self.data.ctrl[:] = 0.0
-        if hasattr(self, "_sensors"):
-            self._sensors.close()
+        if hasattr(self, "_sensors") and self._sensors.rendering:
+            # freeing a GL context and the model's uploaded meshes takes up to a second: off the event loop
+            await run_blocking(self._sensors.close, name="agentsdk-mujoco-gl-free")
 
     def _write(self, sp: SetpointView) -> None:
         # ctrl = kp*q_des + kd*v_des + ff, computed in place in MuJoCo's ctrl (no temporaries)

@@ -27,7 +27,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from agentsdk.errors import BackendStartError
+from agentsdk.errors import AgentSDKError, BackendStartError
 from agentsdk.sensors import SensorChannel, SensorSpec
 
 __all__ = ["MujocoSensors"]
@@ -68,6 +68,7 @@ class MujocoSensors:
         self._readers: list[Any] = []
         self._renderer: _Renderer | None = None
         self._plans: dict[int, tuple[np.ndarray, list[tuple[int, Any, Any]]]] = {}
+        self._gl_error: AgentSDKError | None = None
 
     # ------------------------------------------------------------ build
     def add_to(self, spec: mujoco.MjSpec) -> None:
@@ -113,11 +114,15 @@ class MujocoSensors:
         """Resolve every sensor's addresses in the compiled model (views made once)."""
         self._model, self._data = model, data
         self._readers = [self._reader(s, model, data) for s in self.specs]
-        if any(s.kind == "camera" for s in self.specs):
+        if any(s.kind == "camera" and s.active for s in self.specs):
             # the GL context is made here (the backend builds off the event loop: it takes ~0.1-0.5 s)
             # and released; the control tick makes it current in its own thread when it renders
-            self._renderer = _Renderer(model)
-            self._renderer.warm_up(data, [c for c in self._channels_for_warm_up()])
+            try:
+                self._renderer = _Renderer(model)
+            except AgentSDKError as exc:  # no offscreen GL here: reading a camera raises this, nothing else fails
+                self._gl_error = exc
+            else:
+                self._renderer.warm_up(data, self._channels_for_warm_up())
 
     def _adr(self, model: mujoco.MjModel, name: str) -> tuple[int, int]:
         sid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SENSOR, name)
@@ -156,7 +161,7 @@ class MujocoSensors:
 
     def _channels_for_warm_up(self) -> list[tuple[int, SensorChannel]]:
         return [(r[1], SensorChannel(s, k)) for k, (s, r) in enumerate(zip(self.specs, self._readers, strict=True))
-                if r is not None and r[0] == "camera"]
+                if r is not None and r[0] == "camera" and s.active]
 
     # ------------------------------------------------------------ sample
     def read(self, channels: Sequence[SensorChannel]) -> None:
@@ -246,12 +251,19 @@ class MujocoSensors:
         out[(out < 0.0) | (out > ray.range_max)] = math.inf
 
     def _render(self, ch: SensorChannel, cam: int) -> None:
+        if self._gl_error is not None:
+            raise self._gl_error
         if self._renderer is None:
             self._renderer = _Renderer(self._model)
         self._renderer.render(self._data, cam, ch)
 
+    @property
+    def rendering(self) -> bool:
+        """True while an offscreen GL context is held (cameras)."""
+        return self._renderer is not None
+
     def close(self) -> None:
-        """Release the offscreen GL context (if a camera rendered)."""
+        """Release the offscreen GL context (if a camera rendered); from any thread."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
@@ -318,7 +330,16 @@ class _Renderer:
                 mujoco.MjrRect(0, 0, w, h), np.zeros((h, w, 3), np.uint8), np.zeros((h, w), np.float32),
             )
         rect, rgb, depth = bufs
-        self._ctx.make_current()
+        current = getattr(self._ctx, "as_current", None)
+        # current only while rendering (released after): the context may render from the control loop's
+        # thread or, when a camera is started, once from a worker thread
+        with current() if current is not None else contextlib.nullcontext(self._ctx.make_current()):
+            self._draw(data, cam, ch, rect, rgb, depth)
+
+    def _draw(self, data: mujoco.MjData, cam: int, ch: SensorChannel, rect: Any, rgb: np.ndarray,
+              depth: np.ndarray) -> None:
+        image = ch.image
+        assert image is not None
         self._cam.fixedcamid = cam
         mujoco.mjv_updateScene(self.model, data, self._opt, None, self._cam, mujoco.mjtCatBit.mjCAT_ALL, self._scene)
         mujoco.mjr_render(rect, self._scene, self._con)
@@ -336,7 +357,9 @@ class _Renderer:
             np.divide(near, out, out=out)
 
     def close(self) -> None:
+        current = getattr(self._ctx, "as_current", None)
         try:
-            self._con.free()
+            with current() if current is not None else contextlib.nullcontext():
+                self._con.free()
         finally:
             self._ctx.free()

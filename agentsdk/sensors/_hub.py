@@ -84,6 +84,7 @@ class _Slot:
     """One sensor's published sample, its realism and its latency ring (all preallocated)."""
 
     __slots__ = (
+        "active",
         "channel",
         "count",
         "decim",
@@ -95,7 +96,6 @@ class _Slot:
         "noise",
         "noise_idx",
         "noise_view",
-        "active",
         "noisy",
         "raw",
         "ring_depth",

@@ -82,7 +82,7 @@ class _Norm:
 
 
 def force_above(sensor: str, newtons: float, *, axis: int | None = None, tare: bool = False) -> Condition:
-    """True once the force measured by ``sensor`` exceeds ``newtons`` (|force|, or |force[axis]|).
+    """True once the force measured by ``sensor`` exceeds ``newtons`` (``|force|``, or ``|force[axis]|``).
 
     Works on force-torque, force and contact sensors (a contact sensor: its normal force).
     ``tare=True`` measures from the reading when the move starts (a tool's own weight on a wrist

@@ -454,8 +454,8 @@ class Sensors:
     ) -> HookHandle:
         """Latch a protective stop of ``category`` when sensor ``name`` exceeds a limit; ``handle.remove()`` undoes it.
 
-        ``max_force`` (N): a force-torque or force sensor's |force|, a contact sensor's normal force;
-        ``max_torque`` (N·m): a force-torque or torque sensor's |torque|; ``max_tilt`` (rad): the angle
+        ``max_force`` (N): a force-torque or force sensor's ``|force|``, a contact sensor's normal force;
+        ``max_torque`` (N·m): a force-torque or torque sensor's ``|torque|``; ``max_tilt`` (rad): the angle
         of an IMU's (or orientation sensor's) z axis from the world's up axis. The event names the sensor.
         """
         from ._limits import SensorLimitCheck, check_limits

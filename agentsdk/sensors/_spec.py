@@ -100,9 +100,9 @@ class RaySpec:
 class SensorLimits:
     """Safety limits on a sensor's reading: exceeding one latches a protective stop of ``category``."""
 
-    #: force (N): |force| of a force-torque sensor, the normal force of a contact sensor
+    #: force (N): ``|force|`` of a force-torque sensor, the normal force of a contact sensor
     max_force: float | None = None
-    #: |torque| of a force-torque sensor (N·m)
+    #: ``|torque|`` of a force-torque sensor (N·m)
     max_torque: float | None = None
     #: tilt (rad) of an IMU's or orientation sensor's z axis from the world's up axis
     max_tilt: float | None = None

@@ -25,6 +25,11 @@ Hooks receive values and return values; none of them sees the loop's buffers::
 Optional hooks: ``async _enable()`` (re-arm actuators after an e-stop) and
 ``async _recover()`` (bring a faulted backend back; default: not recoverable).
 
+Sensors (:mod:`agentsdk.sensors`): a backend declares the kinds it can sample in
+``sensor_kinds`` and implements ``_read_sensors(channels)``, which writes each due channel's
+sample into its preallocated arrays; :attr:`Backend.sensors` lists the declared sensors it
+serves (joint sensors are filled by the loop for every backend).
+
 The joint servo law every backend implements is the MIT / ros2_control one, plus the
 model's gravity torque::
 
@@ -69,7 +74,7 @@ import enum
 import functools
 import logging
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable
+from collections.abc import Awaitable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 
@@ -86,6 +91,7 @@ if TYPE_CHECKING:
     from .description import RobotDescription
     from .description.start import StartPose
     from .dynamics import DynamicsModel, GainReport
+    from .sensors import SensorChannel, SensorSpec
 
 log = logging.getLogger("agentsdk")
 
@@ -184,7 +190,7 @@ class Backend(ABC):
 
     #: the public methods the loop calls; a subclass implements the hooks instead
     _FINAL: ClassVar[tuple[str, ...]] = (
-        "open", "close", "write", "step", "read", "emergency_stop", "enable", "recover",
+        "open", "close", "write", "step", "read", "emergency_stop", "enable", "recover", "read_sensors",
     )
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -202,6 +208,8 @@ class Backend(ABC):
     capabilities: Capabilities
     #: pydantic model validating the backend options (robot.yaml ``backends.<name>`` + connect kwargs)
     options_model: ClassVar[type[BaseModel] | None] = None
+    #: sensor kinds the backend samples in ``_read_sensors`` (joint sensors are served by the loop for every backend)
+    sensor_kinds: ClassVar[frozenset[str]] = frozenset()
 
     def __init__(
         self,
@@ -304,6 +312,34 @@ class Backend(ABC):
         model = self.model_gain_report.as_gains()
         return tuple(g if g is not None else model[k] for k, g in enumerate(explicit))
 
+    @functools.cached_property
+    def sensors(self) -> tuple[SensorSpec, ...]:
+        """The sensors this backend serves: the declared ones of a kind in :attr:`sensor_kinds` or a joint sensor.
+
+        Declared sensors of other kinds are left out (one warning naming them); a backend adds
+        sensors of its own (motor temperatures) with :meth:`_backend_sensors`.
+        """
+        from .sensors import JOINT_KINDS, declared_sensors
+
+        served: list[SensorSpec] = []
+        skipped: list[str] = []
+        for spec in (*declared_sensors(self.description, self.config), *self._backend_sensors()):
+            if spec.kind in JOINT_KINDS and spec.joint in self.index:
+                served.append(spec)
+            elif spec.kind in self.sensor_kinds and spec.kind not in JOINT_KINDS:
+                served.append(spec)
+            else:
+                skipped.append(f"{spec.name} ({spec.kind})")
+        if skipped:
+            log.warning("backend %r does not serve the sensors %s of robot %r; they are left out",
+                        self.name, ", ".join(skipped), self.description.name)
+        names = [s.name for s in served]
+        return tuple(s for k, s in enumerate(served) if s.name not in names[:k])
+
+    def _backend_sensors(self) -> tuple[SensorSpec, ...]:
+        """Optional: sensors the backend itself provides beside the declared ones (e.g. motor temperatures)."""
+        return ()
+
     def base_state(self) -> BaseState:
         """The base's pose and velocity in the world; a fixed base (the default) is the identity at rest."""
         return BaseState(Pose())
@@ -383,6 +419,11 @@ class Backend(ABC):
         self._emergency_stop(category)
 
     @final
+    def read_sensors(self, channels: Sequence[SensorChannel]) -> None:
+        """Fill the due sensor channels (the ``_read_sensors`` hook); once per tick after :meth:`read`."""
+        self._read_sensors(channels)
+
+    @final
     async def enable(self) -> None:
         """Re-arm the actuators after an emergency stop (the ``_enable`` hook)."""
         await self._enable()
@@ -420,6 +461,13 @@ class Backend(ABC):
         Called from any thread (the loop-stall watchdog, ``estop_threadsafe``).
         Categories 1 and 2 are driven by the safety layer through setpoints; this
         hook does what the backend can do without the loop (always torque off).
+        """
+
+    def _read_sensors(self, channels: Sequence[SensorChannel]) -> None:  # noqa: B027 - optional hook
+        """Optional: write the sample of every channel whose ``due`` flag is set (see :class:`SensorChannel`).
+
+        ``channels[k].spec`` is one of :attr:`sensors`; ``channels[k].index`` its position there.
+        Called in the control tick after ``_read``: write into the channel's arrays in place.
         """
 
     async def _enable(self) -> None:  # noqa: B027 - optional hook

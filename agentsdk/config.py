@@ -139,6 +139,10 @@ class RobotConfig(_Strict):
     #: Coulomb friction coefficient of the robot on the ground plane (floating base), the same on every simulator
     ground_friction: PositiveFloat = 0.8
     safety: dict[str, Any] = Field(default_factory=dict)
+    #: sensors beside those the description declares (validated by :mod:`agentsdk.sensors`)
+    sensors: list[dict[str, Any]] = Field(default_factory=list)
+    #: seed of the sensors' simulated noise (deterministic in lockstep)
+    sensor_seed: int = 0
     backends: dict[str, dict[str, Any]] = Field(default_factory=dict)
     #: refuse a description that needs repairs (DescriptionError) instead of repairing it with a warning
     strict: bool = False

@@ -74,7 +74,7 @@ import math
 from abc import ABC, abstractmethod
 from array import array
 from collections.abc import Awaitable, Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, ClassVar, Literal
 
@@ -88,6 +88,7 @@ if TYPE_CHECKING:
     from .kinematics import Kinematics
     from .pose import Pose
     from .robot import Robot
+    from .sensors import SensorReading
 
 __all__ = ["FeedbackAgent", "FeedbackState", "LoopStats", "UpdateFn", "run_feedback"]
 
@@ -115,6 +116,8 @@ class FeedbackState(JointState):
 
     #: ``{link: Pose}`` of the chosen links (read-only mapping)
     poses: Mapping[str, Pose]
+    #: ``{sensor: reading}`` of the chosen sensors (``sensors=``), shaped like their ROS messages
+    sensors: Mapping[str, SensorReading] = field(default_factory=lambda: MappingProxyType({}))
 
 
 def _pose_links(robot: Robot, links: Sequence[str] | str) -> tuple[tuple[str, ...], Kinematics | None]:
@@ -352,6 +355,8 @@ class FeedbackAgent(ABC):
     rate: ClassVar[float] = 500.0
     #: links whose poses ``update`` receives (a :class:`FeedbackState`); default of ``run_feedback(links=)``
     links: ClassVar[tuple[str, ...]] = ()
+    #: sensors whose latest readings every period's state carries (``FeedbackState.sensors``)
+    sensors: ClassVar[tuple[str, ...]] = ()
     stats: LoopStats | None = None
 
     async def setup(self, robot: Robot) -> None:  # noqa: B027 - optional hook
@@ -453,6 +458,7 @@ async def run_feedback(
     hold_on_exit: bool = True,
     max_samples: int = 1_000_000,
     links: Sequence[str] | str | None = None,
+    sensors: Sequence[str] | str | None = None,
 ) -> LoopStats:
     """Run ``agent`` at ``rate`` Hz (default ``agent.rate``) until ``duration``, ``stop`` or an error.
 
@@ -460,6 +466,8 @@ async def run_feedback(
     ``duration`` is in robot seconds; ``None`` runs until ``stop`` is set or the
     task is cancelled. ``links`` (default ``agent.links``) names links whose poses
     every period's state carries: ``update`` then receives a :class:`FeedbackState`.
+    ``sensors`` (default ``agent.sensors``) names sensors whose latest readings it carries too
+    (``FeedbackState.sensors``; an unknown name raises :class:`~agentsdk.sensors.UnknownSensorError`).
     Returns the :class:`LoopStats` (also set as ``agent.stats``).
 
     Raises :class:`~agentsdk.errors.InvalidValueError` for a bad rate or duration,
@@ -487,6 +495,10 @@ async def run_feedback(
     if robot.closed:
         raise RobotClosedError(f"robot {robot.name!r} is closed")
     pose_links, kin = _pose_links(robot, agent.links if links is None else links)
+    chosen = agent.sensors if sensors is None else sensors
+    sensor_names = (chosen,) if isinstance(chosen, str) else tuple(chosen)
+    for name in sensor_names:
+        robot.sensors[name]  # UnknownSensorError naming it and the robot's sensors
 
     clock = robot.clock
     realtime = not clock.lockstep
@@ -546,6 +558,10 @@ async def run_feedback(
             state = await robot.read()
             if kin is not None:
                 state = _with_poses(state, pose_links, kin)
+            if sensor_names:
+                poses = state.poses if isinstance(state, FeedbackState) else MappingProxyType({})
+                state = FeedbackState(state.names, state.position, state.velocity, state.effort, state.stamp, poses,
+                                      robot.sensors.snapshot(sensor_names))
             t_update = clock.now()
             cmd = await agent.update(state)
             update_time = clock.now() - t_update

@@ -210,6 +210,8 @@ class Feedback:
     #: ``{link: Pose}`` of the chosen links with the motion's joints at their desired positions
     #: (the robot's other joints at their measured positions)
     desired_poses: Mapping[str, Pose] = field(default_factory=lambda: _NO_POSES)
+    #: ``{sensor: reading}`` of the sensors chosen with ``motion.feedback(sensors=...)``, latest at ``time``
+    sensors: Mapping[str, Any] = field(default_factory=lambda: _NO_POSES)
 
 
 def _link_names(links: Sequence[str] | str) -> tuple[str, ...]:
@@ -322,7 +324,19 @@ class Motion:
         self._cancel_requested = True
         self._mgr._request_stop(self, ResultCode.CANCELED, "canceled")
 
-    def feedback(self, rate: float = 50.0, *, links: Sequence[str] | str = ()) -> AsyncIterator[Feedback]:
+    def stop_early(self, reason: str) -> None:
+        """End SUCCESSFUL before the goal (a guarded move's condition held): decelerate within the limits, hold.
+
+        Idempotent; never raises. See :mod:`agentsdk.sensors`.
+        """
+        if self._future.done() or self._cancel_requested:
+            return
+        self._cancel_requested = True
+        self._mgr._request_stop(self, ResultCode.SUCCESSFUL, reason)
+
+    def feedback(
+        self, rate: float = 50.0, *, links: Sequence[str] | str = (), sensors: Sequence[str] | str = ()
+    ) -> AsyncIterator[Feedback]:
         """Yield feedback at ``rate`` Hz of robot time until the motion ends (the last one included).
 
         ``links`` (a link name or a sequence of them, e.g. ``("tool0",)``) adds their poses to
@@ -331,6 +345,7 @@ class Motion:
         ``robot.kinematics`` (the same on every backend). Checked here, at the call: a bad
         rate raises :class:`~agentsdk.errors.InvalidValueError`, an unknown link
         :class:`~agentsdk.errors.UnknownLinkError` naming it and listing the robot's links.
+        ``sensors`` adds the latest readings of those sensors (:attr:`Feedback.sensors`).
         """
         if not (rate > 0 and math.isfinite(rate)):
             raise InvalidValueError(f"feedback rate must be a positive number of Hz, got {format_value(rate)}")
@@ -340,7 +355,17 @@ class Motion:
             kin = self._mgr.kinematics()
             for link in names:
                 kin.body_id(link)  # UnknownLinkError naming the link and the valid ones
-        return self._feedback_stream(1.0 / rate, names, kin)
+        stream = self._feedback_stream(1.0 / rate, names, kin)
+        chosen = (sensors,) if isinstance(sensors, str) else tuple(sensors)
+        if not chosen:
+            return stream
+        source = self._mgr.sensors_source
+        if source is None:
+            raise InvalidValueError("this robot has no sensors to add to motion feedback")
+        robot_sensors = source()
+        for name in chosen:
+            robot_sensors[name]  # UnknownSensorError naming it and the robot's sensors
+        return _with_sensors(stream, robot_sensors, chosen)
 
     async def _feedback_stream(
         self, period: float, links: tuple[str, ...], kin: Kinematics | None
@@ -387,6 +412,13 @@ class Motion:
     def __repr__(self) -> str:
         state = self._future.result().code.name if self._future.done() else "running"
         return f"<Motion {list(self.joint_names)} {state}>"
+
+
+async def _with_sensors(
+    stream: AsyncIterator[Feedback], sensors: Any, names: tuple[str, ...]
+) -> AsyncIterator[Feedback]:
+    async for fb in stream:
+        yield dataclasses.replace(fb, sensors=sensors.snapshot(names))
 
 
 class _FeedbackSnapshot:
@@ -560,6 +592,8 @@ class MotionManager:
         self._report: Callable[[str, str, str | None], Any] | None = None
         #: the robot's kinematics (set by the Robot), for link poses in motion feedback
         self.kinematics_source: Callable[[], Kinematics] | None = None
+        #: the robot's sensors (set by the Robot), for ``motion.feedback(sensors=...)``
+        self.sensors_source: Callable[[], Any] | None = None
 
     # ------------------------------------------------------------ wiring
     def attach_limiter(

@@ -38,6 +38,7 @@ if TYPE_CHECKING:
     from .kinematics import Kinematics
     from .motion import Motion, MotionManager, MotionResult, Tolerances
     from .pose import BaseState, Pose
+    from .sensors import Condition, Sensors
     from .trajectory import Trajectory
 
 __all__ = ["Robot", "connect"]
@@ -52,14 +53,23 @@ class Robot:
     After :meth:`close` every call raises :class:`RobotClosedError`.
     """
 
-    def __init__(self, loop: ControlLoop, safety: SafetyLayer, motions: MotionManager) -> None:
+    def __init__(
+        self, loop: ControlLoop, safety: SafetyLayer, motions: MotionManager, sensors: Sensors | None = None
+    ) -> None:
         self._loop = loop
         #: the safety layer (state, events, e-stop)
         self.safety = safety
+        if sensors is None:
+            from .sensors import SensorHub, Sensors
+
+            sensors = Sensors(SensorHub(loop, loop.backend), safety)
+        #: the robot's sensors: names, types, frames and latest readings (:mod:`agentsdk.sensors`)
+        self.sensors: Sensors = sensors
         self._motions = motions
         self._kinematics: Kinematics | None = None
         self._kinematics_error: Exception | None = None
         motions.kinematics_source = lambda: self.kinematics  # link poses in motion feedback
+        motions.sensors_source = lambda: self.sensors  # sensor readings in motion feedback
 
     # ------------------------------------------------------------ metadata
     @property
@@ -346,11 +356,26 @@ class Robot:
         positions: Mapping[str, float],
         duration: float | None = None,
         tolerances: Tolerances | None = None,
+        *,
+        until: Condition | None = None,
     ) -> MotionResult:
-        """Plan from the current desired state to ``positions`` and follow it to the end."""
+        """Plan from the current desired state to ``positions`` and follow it to the end.
+
+        ``until`` (a guarded move): a sensor condition (``agentsdk.sensors.force_above("wrist", 5.0)``,
+        or any ``cond(robot.sensors) -> bool``) checked every tick; once it holds the motion decelerates
+        to rest within the limits and ends SUCCESSFUL, its message naming the condition.
+        """
         self._loop.check_open()
         self.safety.check_motion_allowed()
+        if until is not None:
+            from .sensors._guarded import check_condition
+
+            check_condition(self.sensors, until)  # a wrong sensor name or type raises here
         motion = self._motions.move_to(positions, duration, tolerances)
+        if until is not None:
+            from .sensors._guarded import guard
+
+            guard(self._loop, self.sensors, motion, until)
         return await motion
 
     async def move_to_pose(
@@ -462,6 +487,7 @@ async def _open_robot(
         bounds = PositionBounds(joints, safety_cfg.position_margin)
         backend_obj = cls(config, description, joints, realtime=realtime, **options)
         backend_obj.servo_gains  # noqa: B018 - gains from the model (a compile) here, not on the event loop
+        backend_obj.sensors  # noqa: B018 - the declared sensors (parsing, an MJCF compile) here too
         # the kinematic model and the IK solver (the first ``import mink`` loads scipy's shared
         # libraries, holding the GIL for up to a second on a slow machine): built here, before the
         # control loop runs, so that neither the loop nor the stall watchdog waits for them. A
@@ -487,7 +513,9 @@ async def _open_robot(
         raise BackendStartError(f"backend {backend!r} failed to start: {exc}") from exc
     layer.start()
     log.debug("connected %s on %s (%d joints)", backend_obj.description.name, backend, len(backend_obj.joints))
-    robot_obj = Robot(loop, layer, motions)
+    from .sensors import connect_sensors
+
+    robot_obj = Robot(loop, layer, motions, connect_sensors(loop, layer))
     robot_obj._adopt_kinematics(kin)
     return robot_obj
 

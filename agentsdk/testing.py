@@ -44,7 +44,7 @@ from .registry import load_backend
 from .robot import Robot, connect
 from .types import MODES, JointCommand
 
-__all__ = ["BackendConformance"]
+__all__ = ["BackendConformance", "SensorConformance"]
 
 
 def _block(seconds: float) -> None:
@@ -366,3 +366,68 @@ class BackendConformance:
             await robot.command(JointCommand(mode, {j: 0.0}))
             await robot.clock.sleep(0.02)
             assert np.isfinite((await robot.read()).position).all()
+
+
+class SensorConformance:
+    """The sensor clauses of the contract: subclass with ``backend`` and a ``robot`` that declares sensors.
+
+    Every sensor the backend lists reads a value of its kind's shape, stamped on the robot's clock at
+    a sample time, attached to a link of the robot, with finite numbers (a range may be ``inf``:
+    nothing in range); a deterministic lockstep backend samples identically in two runs.
+    """
+
+    backend: ClassVar[str] = ""
+    robot: ClassVar[str] = ""
+    connect_options: ClassVar[dict[str, Any]] = {}
+    #: sensors the backend must serve (a subset of the robot's declared ones)
+    expected_sensors: ClassVar[tuple[str, ...]] = ()
+
+    @contextlib.asynccontextmanager
+    async def open_robot(self) -> AsyncIterator[Robot]:
+        """Connect a robot on the backend under test (lockstep where the backend can)."""
+        async with connect(self.backend, robot=self.robot, **self.connect_options) as robot:
+            yield robot
+
+    async def _samples(self) -> dict[str, np.ndarray]:
+        async with self.open_robot() as robot:
+            await robot.clock.sleep(0.1)
+            return {name: robot.sensors.values(name).copy() for name in robot.sensors.names}
+
+    async def test_sensors_read_well_formed_values(self) -> None:
+        """Each listed sensor: its kind's layout, a link frame, a stamp at a sample time, finite values."""
+        from .sensors import KINDS, Image
+
+        async with self.open_robot() as robot:
+            listed = robot.sensors.names
+            assert set(self.expected_sensors) <= set(listed), listed
+            assert len(set(listed)) == len(listed)
+            await robot.clock.sleep(0.1)
+            now = robot.clock.now()
+            links = set(robot.description.links)
+            for info in robot.sensors:
+                reading = robot.sensors.read(info.name)
+                header = reading.header
+                assert header.frame_id == info.frame_id and header.frame_id in links, info
+                assert math.isfinite(header.stamp) and 0.0 <= header.stamp <= now + 1e-9, (info, header)
+                values = robot.sensors.values(info.name)
+                if info.type == "camera":
+                    assert isinstance(reading, Image) and reading.data.shape[2] == 3
+                    continue
+                expected = info.spec.size if info.type == "lidar" else KINDS[info.type]
+                assert values.shape == (expected,), info
+                finite = np.isfinite(values) | (np.isposinf(values) & (info.type in ("rangefinder", "lidar")))
+                assert finite.all(), (info.name, values)
+                if info.type in ("imu", "orientation"):
+                    assert abs(float(np.linalg.norm(values[0:4])) - 1.0) < 1e-6, (info.name, values)
+
+    async def test_sensor_sampling_is_deterministic_in_lockstep(self) -> None:
+        """Two lockstep runs sample every sensor identically (skipped unless the backend is deterministic)."""
+        async with self.open_robot() as robot:
+            caps = robot.capabilities
+            if not (caps.lockstep and caps.deterministic) or robot.realtime:
+                pytest.skip("backend is not a deterministic lockstep backend")
+        first = await self._samples()
+        second = await self._samples()
+        assert first.keys() == second.keys()
+        for name, values in first.items():
+            assert np.array_equal(values, second[name]), name

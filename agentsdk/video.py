@@ -37,7 +37,7 @@ from .errors import BackendUnavailableError, ConfigurationError
 if TYPE_CHECKING:
     from .robot import Robot
 
-__all__ = ["VIDEO_SUFFIXES", "VideoRecorder", "check_video_path"]
+__all__ = ["VIDEO_SUFFIXES", "VideoRecorder", "check_video_path", "offscreen_gl_context_class"]
 
 log = logging.getLogger(__name__)
 
@@ -98,6 +98,11 @@ def _gl_context_class() -> Any:
         break
     _GL_STATE["cls"] = cls
     return cls
+
+
+def offscreen_gl_context_class() -> Any:
+    """MuJoCo's offscreen GL context class (EGL, else OSMesa; ``MUJOCO_GL`` picks first), or None when neither works."""
+    return _gl_context_class()
 
 
 class _MujocoRenderer:

@@ -73,6 +73,12 @@ def _rtf(quick: bool) -> list[Section]:
     return [overhead.run_rtf(quick)]
 
 
+def _sensors(quick: bool) -> list[Section]:
+    from agentsdk.bench import sensors
+
+    return [sensors.run(quick)]
+
+
 def _realtime(quick: bool) -> list[Section]:
     from agentsdk.bench import realtime
 
@@ -497,6 +503,7 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "recording": (
         "recording cost: arm3 lockstep recorded vs unrecorded, MB per robot-minute, read-back memory", _recording
     ),
+    "sensors": ("MuJoCo camera sensor per frame vs mujoco.Renderer; sensors' cost per tick", _sensors),
 }
 ALIASES = {
     "ros2": "ros2_serve",

@@ -5,13 +5,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from tiny_backend import TinyController
 
 import agentsdk
 from agentsdk.backends.can.testing import EmulatedCanConformance
 from agentsdk.registry import available_backends
-from agentsdk.testing import BackendConformance
+from agentsdk.testing import BackendConformance, SensorConformance
 
 pytest_plugins = ["pytester"]
 
@@ -48,7 +49,7 @@ BROKEN = '''
 import threading
 import numpy as np
 import agentsdk
-from agentsdk.testing import BackendConformance
+from agentsdk.testing import BackendConformance, SensorConformance
 from tiny_backend import TinyController
 
 
@@ -117,3 +118,54 @@ def test_kit_fails_broken_backends(pytester: pytest.Pytester) -> None:
         "*FAILED test_broken.py::TestIgnoresTorqueOff::test_threadsafe_estop_removes_torque_within_one_tick*",
         "*FAILED test_broken.py::TestIgnoresTorqueOff::test_loop_stall_is_detected_and_removes_torque*",
     ])
+
+
+# -------------------------------------------------- sensors (issue 25)
+_SENSOR_ARM = str(Path(__file__).parent / "fixtures" / "sensor_arm" / "nocam.yaml")
+_SERVED = {
+    "mock": ("lift_position",),
+    "mujoco": ("wrist_ft", "tool_contact", "carriage_imu", "lift_position", "height"),
+    "pybullet": ("wrist_ft", "tool_contact", "carriage_imu", "lift_position", "height"),
+}
+for _name, _expected in _SERVED.items():
+    globals()[f"TestSensorConformance_{_name}"] = type(
+        f"TestSensorConformance_{_name}", (SensorConformance,),
+        {"backend": _name, "robot": _SENSOR_ARM, "expected_sensors": _expected,
+         "connect_options": {"safety": {"stall_timeout": 5.0}}},
+    )
+
+
+class _NanImu(TinyController):
+    """Serves an IMU but writes NaN into it: the sensor clause must fail."""
+
+    name = "nan_imu"
+    sensor_kinds = frozenset({"imu"})
+
+    def _read_sensors(self, channels: Any) -> None:
+        for ch in channels:
+            if ch.due:
+                ch.values[:] = np.nan
+
+
+def _arm3_with_imu(tmp_path: Path) -> Path:
+    import yaml
+
+    src = Path(__file__).resolve().parents[1] / "robots" / "arm3"
+    cfg = yaml.safe_load((src / "robot.yaml").read_text())
+    cfg["description"] = str(src / cfg["description"])
+    cfg["sensors"] = [{"name": "imu", "type": "imu", "link": "link1"}]
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+async def test_sensor_kit_fails_a_backend_that_writes_nan(tmp_path: Path) -> None:
+    path = _arm3_with_imu(tmp_path)
+    agentsdk.register_backend("nan_imu", _NanImu)
+    try:
+        kit = type("K", (SensorConformance,), {"backend": "nan_imu", "robot": str(path),
+                                              "expected_sensors": ("imu",)})()
+        with pytest.raises(AssertionError, match="imu"):
+            await kit.test_sensors_read_well_formed_values()
+    finally:
+        agentsdk.unregister_backend("nan_imu")

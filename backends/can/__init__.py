@@ -48,8 +48,10 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -59,6 +61,7 @@ from pydantic import Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
 from agentsdk.errors import BackendFault, BackendStartError, CommandRejected, ConfigurationError, UnknownJointError
+from agentsdk.sensors import SensorChannel, SensorSpec
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
@@ -137,6 +140,9 @@ class CanController(Backend):
     name = "can"
     capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True)
     options_model = CanOptions
+    #: the motors' reported temperatures (when the vendor profile carries one); their torque estimate
+    #: is every backend's ``joint_effort`` sensor
+    sensor_kinds = frozenset({"temperature"})
 
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
@@ -602,6 +608,24 @@ class CanController(Backend):
     def _read(self) -> JointReading:
         self._fill_state()
         return self._q, self._v, self._tau
+
+    def _backend_sensors(self) -> tuple[SensorSpec, ...]:
+        """``<joint>_temperature`` per motor when the vendor profile's replies carry a temperature byte."""
+        if self._temp_offset is None or self._profile.reply_dlc < 7:
+            return ()
+        child = {j.name: j.child for j in self.description.all_joints}
+        return tuple(
+            SensorSpec(name=f"{j.name}_temperature", kind="temperature", link=child.get(j.name, j.name),
+                       joint=j.name, source="backend")
+            for j in self.joints
+        )
+
+    def _read_sensors(self, channels: Sequence[SensorChannel]) -> None:
+        index, stats = self.index, self.stats
+        for ch in channels:
+            if ch.due and ch.spec.kind == "temperature":
+                temp = stats[index[ch.spec.joint or ""]].temperature
+                ch.values[0] = math.nan if temp is None else temp  # NaN until the motor first replied
 
     @property
     def stale(self) -> np.ndarray:

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from math import inf
 from typing import Annotated, Any, Literal
 
@@ -43,8 +44,11 @@ from agentsdk.description.model import quat_from_rpy
 from agentsdk.dynamics import GravityTerm
 from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
 from agentsdk.pose import BaseState, Pose
+from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
+
+from .sensors import SERVED, MujocoSensors
 
 __all__ = ["MujocoController", "MujocoOptions"]
 
@@ -113,6 +117,7 @@ class MujocoController(Backend):
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )
     options_model = MujocoOptions
+    sensor_kinds = SERVED
 
     model: mujoco.MjModel
     data: mujoco.MjData
@@ -151,6 +156,8 @@ class MujocoController(Backend):
             raise
         except Exception as exc:
             raise BackendStartError(f"MuJoCo could not build {label}: {_one_line(exc)}") from exc
+        self._sensors = MujocoSensors(self.sensors, label)
+        self._sensors.add_to(spec)
         spec.option.timestep = opts.timestep
         spec.option.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{opts.integrator.upper()}")
         spec.option.gravity = list(opts.gravity)
@@ -179,6 +186,7 @@ class MujocoController(Backend):
         except Exception as exc:
             raise BackendStartError(f"MuJoCo could not compile {label}: {_one_line(exc)}") from exc
         self.data = mujoco.MjData(self.model)
+        self._sensors.bind(self.model, self.data)
         m = self.model
         jids = [m.joint(j.name).id for j in self.joints]
         self._qadr = np.array([m.jnt_qposadr[i] for i in jids], dtype=np.intp)
@@ -343,6 +351,9 @@ class MujocoController(Backend):
         # nothing to release: the model and data are freed with the object
         if hasattr(self, "data"):
             self.data.ctrl[:] = 0.0
+        if hasattr(self, "_sensors") and self._sensors.rendering:
+            # freeing a GL context and the model's uploaded meshes takes up to a second: off the event loop
+            await run_blocking(self._sensors.close, name="agentsdk-mujoco-gl-free")
 
     def _write(self, sp: SetpointView) -> None:
         # ctrl = kp*q_des + kd*v_des + ff, computed in place in MuJoCo's ctrl (no temporaries)
@@ -417,6 +428,9 @@ class MujocoController(Backend):
             self._qpos.take(self._qadr, out=self._q)
             self._qvel.take(self._dadr, out=self._v)
         return self._q, self._v, self._force
+
+    def _read_sensors(self, channels: Sequence[SensorChannel]) -> None:
+        self._sensors.read(channels)
 
     def _emergency_stop(self, category: int) -> None:
         # thread-safe enough: plain stores into arrays the loop thread reads at its next step

@@ -55,6 +55,7 @@ import math
 import os
 import sys
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -76,8 +77,11 @@ from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel
 from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
 from agentsdk.pose import BaseState, Pose
+from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
+
+from .sensors import SERVED, PybulletSensors
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
 
@@ -130,6 +134,7 @@ class PybulletController(Backend):
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )
     options_model = PybulletOptions
+    sensor_kinds = SERVED
     #: the self-collision model in use (None for an MJCF model)
     collision: SelfCollision | None = None
 
@@ -216,6 +221,11 @@ class PybulletController(Backend):
             physicsClientId=cid,
         )
         self._load_body()
+        self._sensors = PybulletSensors(self.sensors, f"robot {self.description.name!r}")
+        desc = self.description
+        world = (desc.root_link,) if self.floating_base and desc.base_link != desc.root_link else ()
+        self._sensors.bind(cid, self._body, self._links, opts.gravity,
+                           getattr(self, "_base_inertial", None), world)
         self._reset_state()
 
     def _load_body(self) -> None:
@@ -445,6 +455,8 @@ class PybulletController(Backend):
             p.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
         self._tau[:] = 0.0
         self._time = 0.0
+        if hasattr(self, "_sensors"):
+            self._sensors.reset()
         self._sense()
 
     async def _close(self) -> None:
@@ -629,6 +641,9 @@ class PybulletController(Backend):
         self._q_all.take(self._sel, out=self._rq)
         self._v_all.take(self._sel, out=self._rv)
         return self._rq, self._rv, self._tau
+
+    def _read_sensors(self, channels: Sequence[SensorChannel]) -> None:
+        self._sensors.read(channels, self._time)
 
     def _emergency_stop(self, category: int) -> None:
         # plain stores into arrays the loop thread reads at its next substep; no PyBullet call here

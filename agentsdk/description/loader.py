@@ -44,6 +44,8 @@ def load_description(
     *,
     strict: bool = False,
     warn: bool = True,
+    trusted: bool = False,
+    roots: Sequence[Path] = (),
 ) -> RobotDescription:
     """Load a ``.urdf``, ``.xacro`` or MJCF ``.xml`` file into a :class:`RobotDescription`.
 
@@ -55,6 +57,13 @@ def load_description(
     listing every repair. ``strict=True`` raises a ``DescriptionError`` listing
     the repairs instead. Broken files raise ``DescriptionError`` naming the
     file, line and element.
+
+    Robot files are data: xacro expressions are checked before they run and
+    expansion has time and memory limits (:mod:`agentsdk.description.xacro_sandbox`),
+    and every file the description reaches must lie inside a package root (the
+    package the file is in, the package search path, ``roots``); a refusal is a
+    ``DescriptionError`` naming the file, line and construct. ``trusted=True``
+    lifts the checks for a file you trust.
     """
     path = Path(path).expanduser()
     if not path.is_file():
@@ -67,7 +76,7 @@ def load_description(
 
         description = load_mjcf(path)
     else:
-        description = load_urdf(path, xacro_args, package_path)
+        description = load_urdf(path, xacro_args, package_path, trusted=trusted, roots=roots)
     if description.repairs:
         if strict:
             raise DescriptionError(repair_report(description, strict=True))

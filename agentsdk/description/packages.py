@@ -30,7 +30,6 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 from urllib.parse import unquote, urlparse
-from urllib.request import url2pathname
 
 from lxml import etree
 
@@ -260,6 +259,8 @@ class Resolver:
                 return None, f"{problem}: {path} (package '{package}' is {root})"
             return path.resolve(), ""
         if uri.startswith("file://"):
+            from urllib.request import url2pathname  # imported here: slow to import, rarely needed
+
             parsed = urlparse(uri)
             text = url2pathname(parsed.path)
             if parsed.netloc and parsed.netloc != "localhost":  # file://relative/path

@@ -382,15 +382,21 @@ def xacro_error_text(exc: BaseException, own: tuple[type[BaseException], ...] = 
     return " ".join(text.split())
 
 
-def _refusal_in(exc: BaseException) -> SandboxRefusal | None:
+def _in_chain(exc: BaseException, kind: type[BaseException]) -> BaseException | None:
+    """The first exception of type ``kind`` in ``exc``'s chain (xacro's ``.exc``, causes, contexts)."""
     seen: set[int] = set()
     cur: BaseException | None = exc
     while cur is not None and id(cur) not in seen:
         seen.add(id(cur))
-        if isinstance(cur, SandboxRefusal):
+        if isinstance(cur, kind):
             return cur
         cur = getattr(cur, "exc", None) or cur.__cause__ or cur.__context__
     return None
+
+
+def _refusal_in(exc: BaseException) -> SandboxRefusal | None:
+    found = _in_chain(exc, SandboxRefusal)
+    return found if isinstance(found, SandboxRefusal) else None
 
 
 # --------------------------------------------------------------------------- the worker
@@ -644,8 +650,10 @@ def _expand(job: Mapping[str, Any]) -> dict[str, Any]:
         refusal = _refusal_in(exc)
         if refusal is not None:
             return {"ok": False, "refused": True, "error": str(refusal), "warnings": warnings}
-        if isinstance(exc, MemoryError):
+        if _in_chain(exc, MemoryError):
             return {"ok": False, "limit": "memory", "error": "", "warnings": warnings}
+        if _in_chain(exc, RecursionError):
+            return {"ok": False, "where": "", "error": "nested too deeply (RecursionError)", "warnings": warnings}
         where = ""
         macros = [m.body.getAttribute("name") for m in (xacro.macrostack or []) if hasattr(m, "body")]
         files = [f for f in (xacro.filestack or []) if f]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -16,6 +17,9 @@ log = logging.getLogger("agentsdk.description")
 
 #: file suffixes read as MuJoCo MJCF models
 MJCF_SUFFIXES = (".xml", ".mjcf")
+#: the largest link mass (kg) and inertia (kg·m²) a description may give; beyond, no simulator integrates it
+MAX_MASS = 1e6
+MAX_INERTIA = 1e6
 
 
 def is_mjcf(path: Path) -> bool:
@@ -35,6 +39,24 @@ def repair_report(description: RobotDescription, strict: bool = False) -> str:
             "(strict: true refuses them):"
         )
     return "\n".join([head, *(f"  - {r}" for r in description.repairs)])
+
+
+def _check_physical(description: RobotDescription) -> None:
+    """Refuse masses, inertias and origins no simulator can integrate (1e308, inf, NaN), naming the link."""
+    for rec in description.link_records:
+        inertial = rec.inertial
+        if inertial is None:
+            continue
+        where = f"{description.source}: link '{rec.name}'"
+        if not (math.isfinite(inertial.mass) and 0 <= inertial.mass <= MAX_MASS):
+            raise DescriptionError(f"{where}: mass {inertial.mass:g} kg is not physical (0 to {MAX_MASS:g} kg)")
+        if not all(math.isfinite(v) and abs(v) <= MAX_INERTIA for v in inertial.inertia):
+            values = " ".join(f"{v:g}" for v in inertial.inertia)
+            raise DescriptionError(
+                f"{where}: inertia ({values}) kg·m² is not physical (each element within ±{MAX_INERTIA:g})"
+            )
+        if not all(math.isfinite(v) for v in (*inertial.xyz, *inertial.rpy)):
+            raise DescriptionError(f"{where}: the inertial origin is not finite")
 
 
 def load_description(
@@ -66,9 +88,14 @@ def load_description(
     lifts the checks for a file you trust.
     """
     path = Path(path).expanduser()
-    if not path.is_file():
-        raise DescriptionError(f"robot description not found: {path}" + (" (a directory)" if path.is_dir() else ""))
-    path = path.resolve()
+    try:
+        if not path.is_file():
+            raise DescriptionError(
+                f"robot description not found: {path}" + (" (a directory)" if path.is_dir() else "")
+            )
+        path = path.resolve()
+    except (OSError, ValueError) as exc:  # a name too long, a NUL byte
+        raise DescriptionError(f"robot description {str(path)[:200]!r}: cannot read: {exc}") from exc
     if is_mjcf(path):
         if xacro_args:
             raise DescriptionError(f"{path}: xacro_args {dict(xacro_args)} given, but the file is an MJCF model")
@@ -77,6 +104,7 @@ def load_description(
         description = load_mjcf(path)
     else:
         description = load_urdf(path, xacro_args, package_path, trusted=trusted, roots=roots)
+    _check_physical(description)
     if description.repairs:
         if strict:
             raise DescriptionError(repair_report(description, strict=True))

@@ -145,6 +145,15 @@ def _effort(model: Any, jid: int) -> float:
 
 def load_mjcf(path: Path) -> RobotDescription:
     """Read an MJCF model into a :class:`RobotDescription` (see the module docstring)."""
+    try:
+        return _load_mjcf(path)
+    except UnicodeDecodeError as exc:  # a name in the model (or an included file) that is not UTF-8
+        raise DescriptionError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start} of a name)") from exc
+    except OSError as exc:  # an asset path too long for the filesystem
+        raise DescriptionError(f"{path}: cannot read a file of the model: {exc}") from exc
+
+
+def _load_mjcf(path: Path) -> RobotDescription:
     import mujoco
 
     spec, m = _compile(path)

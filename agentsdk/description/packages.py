@@ -120,6 +120,15 @@ def find_package(
     Searches ``package_path``, ``$AGENTSDK_PACKAGE_PATH``, ``$ROS_PACKAGE_PATH``,
     then ``near`` (a file or directory) and its parents; see the module docstring.
     """
+    try:
+        return _find_package(package, package_path, near)
+    except (OSError, ValueError):  # a package name too long for the filesystem, a NUL byte
+        return None
+
+
+def _find_package(
+    package: str, package_path: Sequence[str | Path] | None, near: str | Path | None
+) -> Path | None:
     search = [d for _, d in package_search_path(package_path)]
     for directory in search:
         if not directory.is_dir():

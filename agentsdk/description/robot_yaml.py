@@ -217,12 +217,15 @@ def resolve_robot(
                 f"unknown robot '{text}'; available robots: {', '.join(known) if known else '(none)'} "
                 f"(in {directory}), or pass a path to a .urdf, .xacro, MJCF .xml or robot.yaml"
             )
-    if path.is_dir():
-        if not (path / "robot.yaml").is_file():
-            raise ConfigurationError(f"{path} is a directory without a robot.yaml")
-        path = path / "robot.yaml"
-    if not path.exists():
-        raise ConfigurationError(f"robot description not found: {path}")
+    try:
+        if path.is_dir():
+            if not (path / "robot.yaml").is_file():
+                raise ConfigurationError(f"{path} is a directory without a robot.yaml")
+            path = path / "robot.yaml"
+        if not path.exists():
+            raise ConfigurationError(f"robot description not found: {path}")
+    except (OSError, ValueError) as exc:  # a name too long for the filesystem, a NUL byte
+        raise ConfigurationError(f"robot {text[:200]!r}: cannot read: {exc}") from exc
 
     lower = path.name.lower()
     if lower.endswith(_CONFIG_SUFFIXES):

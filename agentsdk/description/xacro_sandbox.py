@@ -55,6 +55,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "MAX_INCLUDE_DEPTH",
     "MAX_INT_BITS",
     "MAX_SEQUENCE",
     "ExpressionRefused",
@@ -67,6 +68,8 @@ __all__ = [
 MAX_INT_BITS = 1 << 14
 #: the longest string/list/tuple an expression may produce by ``*`` (items)
 MAX_SEQUENCE = 1 << 20
+#: how deep ``xacro:include`` may nest
+MAX_INCLUDE_DEPTH = 32
 
 _REFUSED_NODES: dict[type[ast.AST], str] = {
     ast.Lambda: "a lambda",
@@ -623,6 +626,16 @@ def _expand(job: Mapping[str, Any]) -> dict[str, Any]:
         original_parse = xacro.parse
 
         def parse(inp: Any, filename: str | None = None) -> Any:
+            if inp is None and filename is not None and len(xacro.filestack) > 1:
+                stack = [os.path.realpath(f) for f in xacro.filestack[:-1] if f]
+                problem = ""
+                if os.path.realpath(filename) in stack:
+                    problem = f"xacro:include of '{filename}' refused: an include cycle (the file includes itself)"
+                elif len(stack) >= MAX_INCLUDE_DEPTH:
+                    problem = f"xacro:include of '{filename}' refused: includes nested more than {MAX_INCLUDE_DEPTH} deep"
+                if problem:
+                    xacro.filestack.pop()
+                    raise place(PathRefused(problem), os.path.basename(filename))
             if inp is None and filename is not None and not packages.path_inside(filename, roots):
                 exc = PathRefused(
                     f"xacro:include of '{filename}' refused: {os.path.realpath(filename)} is outside the package "

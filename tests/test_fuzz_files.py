@@ -24,8 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from agentsdk.description import apply_overrides, resolve_robot
-from agentsdk.description import xacro_expand
+from agentsdk.description import apply_overrides, resolve_robot, xacro_expand
 from agentsdk.errors import AgentSDKError
 from agentsdk.probe import ProbePool
 from agentsdk.registry import load_backend
@@ -161,7 +160,8 @@ def _mutate(rng: random.Random, kind: str, text: str, name: str) -> tuple[str, b
         key = rng.choice(["update_rate", "gains", "joint_limits", "initial_positions", "safety", "backends",
                           "strict", "xacro_args", "model_gains", "description", "name", "trusted", "srdf"])
         value = rng.choice([".nan", ".inf", "-.inf", "1e308", "-1", "[]", "{}", "null", "'x'", "{a: {b: .nan}}",
-                            "{joint1: {p: 1e308, d: .inf}}", "{default: {max_velocity: -1}}", "!!python/object:os.system x"])
+                            "{joint1: {p: 1e308, d: .inf}}", "{default: {max_velocity: -1}}",
+                            "!!python/object:os.system x"])
         if re.search(rf"^{key}:", text, re.M):
             data = re.sub(rf"^{key}:.*$", f"{key}: {value}", text, count=1, flags=re.M)
         else:

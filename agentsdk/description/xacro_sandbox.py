@@ -632,7 +632,9 @@ def _expand(job: Mapping[str, Any]) -> dict[str, Any]:
                 if os.path.realpath(filename) in stack:
                     problem = f"xacro:include of '{filename}' refused: an include cycle (the file includes itself)"
                 elif len(stack) >= MAX_INCLUDE_DEPTH:
-                    problem = f"xacro:include of '{filename}' refused: includes nested more than {MAX_INCLUDE_DEPTH} deep"
+                    problem = (
+                        f"xacro:include of '{filename}' refused: includes nested more than {MAX_INCLUDE_DEPTH} deep"
+                    )
                 if problem:
                     xacro.filestack.pop()
                     raise place(PathRefused(problem), os.path.basename(filename))

@@ -41,6 +41,12 @@ def repair_report(description: RobotDescription, strict: bool = False) -> str:
     return "\n".join([head, *(f"  - {r}" for r in description.repairs)])
 
 
+def _short(path: Path | str, limit: int = 120) -> str:
+    """A path for a message: quoted, its middle elided when longer than ``limit`` characters."""
+    text = str(path)
+    return repr(text if len(text) <= limit else f"{text[: limit // 2]}...{text[-limit // 2 :]}")
+
+
 def _check_physical(description: RobotDescription) -> None:
     """Refuse masses, inertias and origins no simulator can integrate (1e308, inf, NaN), naming the link."""
     for rec in description.link_records:
@@ -95,7 +101,8 @@ def load_description(
             )
         path = path.resolve()
     except (OSError, ValueError) as exc:  # a name too long, a NUL byte
-        raise DescriptionError(f"robot description {str(path)[:200]!r}: cannot read: {exc}") from exc
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise DescriptionError(f"robot description {_short(path)}: cannot read: {reason}") from exc
     if is_mjcf(path):
         if xacro_args:
             raise DescriptionError(f"{path}: xacro_args {dict(xacro_args)} given, but the file is an MJCF model")

@@ -8,7 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..config import JointLimitsOverride, RobotConfig, did_you_mean, load_robot_config
-from ..errors import ConfigurationError
+from ..errors import ConfigurationError, DescriptionError
 from ..types import JointInfo
 from .loader import load_description
 from .model import RobotDescription
@@ -225,7 +225,9 @@ def resolve_robot(
         if not path.exists():
             raise ConfigurationError(f"robot description not found: {path}")
     except (OSError, ValueError) as exc:  # a name too long for the filesystem, a NUL byte
-        raise ConfigurationError(f"robot {text[:200]!r}: cannot read: {exc}") from exc
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        shown = text if len(text) <= 120 else f"{text[:60]}...{text[-60:]}"
+        raise ConfigurationError(f"robot {shown!r}: cannot read: {reason}") from exc
 
     lower = path.name.lower()
     if lower.endswith(_CONFIG_SUFFIXES):
@@ -234,6 +236,12 @@ def resolve_robot(
             config = config.model_copy(update={"strict": strict})
         if trusted is not None and trusted != config.trusted:
             config = config.model_copy(update={"trusted": trusted})
+        try:
+            config.description_path.is_file()
+        except (OSError, ValueError) as exc:  # a name too long for the filesystem: say which file named it
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            shown = config.description if len(config.description) <= 120 else f"{config.description[:60]}..."
+            raise DescriptionError(f"{path}: description: {shown!r}: cannot read: {reason}") from exc
         description = load_description(
             config.description_path, config.xacro_args, strict=config.strict, trusted=config.trusted, roots=roots
         )

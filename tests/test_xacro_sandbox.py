@@ -234,3 +234,22 @@ def test_a_worker_that_cannot_start_is_a_description_error(tmp_path: Path, monke
     monkeypatch.setattr(sys, "executable", os.fspath(tmp_path / "no-python"))
     with pytest.raises(DescriptionError, match="cannot start the xacro worker"):
         load_description(path)
+
+
+def test_mjcf_includes_and_assets_stay_inside_the_package(tmp_path: Path) -> None:
+    import shutil
+
+    pkg = _package(tmp_path / "pkg")
+    shutil.copytree(Path(__file__).parent / "fixtures" / "mjcf_arm", pkg / "arm")
+    assert load_description(pkg / "arm" / "scene.xml").joint_names  # inside: loads
+    (tmp_path / "outside.xml").write_text("<mujoco/>")
+    scene = (pkg / "arm" / "scene.xml").read_text()
+    for target in ("/etc/passwd", "../../outside.xml", str(tmp_path / "outside.xml")):
+        (pkg / "arm" / "evil.xml").write_text(scene.replace('<include file="arm.xml"/>',
+                                                            f'<include file="arm.xml"/><include file="{target}"/>'))
+        with pytest.raises(DescriptionError, match=r"evil\.xml, line \d+: <include file=.* refused: .*outside"):
+            load_description(pkg / "arm" / "evil.xml")
+    arm = (pkg / "arm" / "arm.xml").read_text()
+    (pkg / "arm" / "arm2.xml").write_text(arm.replace('meshdir="assets"', f'meshdir="{tmp_path}"'))
+    with pytest.raises(DescriptionError, match=r"<mesh file=.* refused"):
+        load_description(pkg / "arm" / "arm2.xml")

@@ -108,7 +108,7 @@ def load_description(
             raise DescriptionError(f"{path}: xacro_args {dict(xacro_args)} given, but the file is an MJCF model")
         from .mjcf import load_mjcf
 
-        description = load_mjcf(path)
+        description = load_mjcf(path, trusted=trusted, roots=roots)
     else:
         description = load_urdf(path, xacro_args, package_path, trusted=trusted, roots=roots)
     _check_physical(description)

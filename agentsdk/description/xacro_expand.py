@@ -10,12 +10,16 @@ expanded XML or a one-line error, which becomes a :class:`DescriptionError`.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
+import os
 import signal
 import subprocess
 import sys
-from collections.abc import Mapping
+import threading
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +41,55 @@ TRUST_HINT = (
 )
 
 _WORKER = Path(__file__).with_name("xacro_sandbox.py")
+
+# Expansions are cached in this process (a worker process costs a few hundred ms, and a test suite
+# connects to the same xacro robot hundreds of times): an entry is used only while the job (file,
+# args, search path, trust, limits), the environment and the working directory are the same and
+# every file the expansion read has the same content (SHA-256).
+_CACHE_SIZE = 32
+_MAX_CACHED_FILE = 1 << 24
+_cache: OrderedDict[str, tuple[dict[str, Any], tuple[tuple[str, str], ...]]] = OrderedDict()
+_cache_lock = threading.Lock()
+
+
+def _stamps(files: Sequence[str]) -> tuple[tuple[str, str], ...] | None:
+    out = []
+    for name in files:
+        try:
+            with open(name, "rb") as f:
+                digest = hashlib.sha256(f.read(_MAX_CACHED_FILE + 1)).hexdigest()
+        except (OSError, ValueError):
+            return None
+        out.append((name, digest))
+    return tuple(out)
+
+
+def _cache_key(job: Mapping[str, Any]) -> str:
+    return json.dumps([job, sorted(os.environ.items()), os.getcwd()], sort_keys=True)
+
+
+def _cached(key: str) -> dict[str, Any] | None:
+    with _cache_lock:
+        entry = _cache.get(key)
+        if entry is not None:
+            _cache.move_to_end(key)
+    if entry is None:
+        return None
+    result, stamps = entry
+    if _stamps([name for name, _ in stamps]) != stamps:
+        return None
+    return result
+
+
+def _remember(key: str, result: dict[str, Any]) -> None:
+    stamps = _stamps([str(f) for f in result.get("files", ())])
+    if stamps is None:
+        return
+    with _cache_lock:
+        _cache[key] = (result, stamps)
+        _cache.move_to_end(key)
+        while len(_cache) > _CACHE_SIZE:
+            _cache.popitem(last=False)
 
 
 def _worker_result(path: Path, job: Mapping[str, Any], seconds: float) -> dict[str, Any]:
@@ -97,7 +150,12 @@ def run_xacro(
         "seconds": seconds,
         "memory": XACRO_MEMORY_LIMIT if memory is None else memory,
     }
-    result = _worker_result(path, job, seconds)
+    key = _cache_key(job)
+    result = _cached(key)
+    if result is None:
+        result = _worker_result(path, job, seconds)
+        if result.get("ok"):
+            _remember(key, result)
     for line in str(result.get("warnings", "")).splitlines():
         if line.strip():
             log.warning("%s: xacro: %s", path, line.strip())

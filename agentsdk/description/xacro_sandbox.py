@@ -678,7 +678,14 @@ def _expand(job: Mapping[str, Any]) -> dict[str, Any]:
             where += f" (in included file {files[-1]})"
         detail = xacro_error_text(exc, (_PackageNotFound,))
         return {"ok": False, "where": where, "error": detail, "warnings": warnings}
-    return {"ok": True, "xml": text, "queried": sorted(mappings.queried), "warnings": captured.getvalue()}
+    files = [str(path), *(str(f) for f in getattr(xacro, "all_includes", []) if f)]
+    return {
+        "ok": True,
+        "xml": text,
+        "queried": sorted(mappings.queried),
+        "warnings": captured.getvalue(),
+        "files": files,
+    }
 
 
 def main() -> int:

@@ -323,7 +323,10 @@ class Evaluator:
         if isinstance(obj, self._namespaces):
             space: Any = obj
             if name in space:
-                return space[name]
+                value = space[name]
+                if any(value is unsafe for unsafe in _UNSAFE_BUILTINS):
+                    raise ExpressionRefused(f"reads {name!r}, which reaches object internals and is not allowed")
+                return value
             if isinstance(obj, dict) and name in _SAFE_METHODS[dict]:
                 return getattr(obj, name)
             raise NameError(f"name '{name}' is not defined")

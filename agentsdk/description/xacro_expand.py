@@ -111,7 +111,7 @@ def _worker_result(path: Path, job: Mapping[str, Any], seconds: float) -> dict[s
             f"{path}: xacro expansion took longer than {seconds:g} s and was stopped (an expression too costly "
             "to evaluate, or an include that never ends)"
         ) from None
-    if proc.returncode == -signal.SIGXCPU:
+    if proc.returncode == -getattr(signal, "SIGXCPU", 0) != 0:
         raise DescriptionError(f"{path}: xacro expansion used more than {seconds:g} s of CPU time and was stopped")
     try:
         result: dict[str, Any] = json.loads(out.decode("utf-8"))

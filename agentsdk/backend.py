@@ -73,6 +73,7 @@ import asyncio
 import enum
 import functools
 import logging
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Sequence
 from dataclasses import dataclass
@@ -81,8 +82,8 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-from .config import Gains
-from .errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError
+from .config import MAX_GAIN, Gains
+from .errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, DescriptionError
 from .pose import BaseState, Pose
 from .types import MODES, CommandMode, FloatArray, JointInfo
 
@@ -309,7 +310,18 @@ class Backend(ABC):
         explicit = [self.config.gains_for(j.name) for j in self.joints]
         if all(g is not None for g in explicit):
             return tuple(g for g in explicit if g is not None)
-        model = self.model_gain_report.as_gains()
+        report = self.model_gain_report
+        bad = [
+            f"{j.name} (kp {p:g}, kd {d:g})"
+            for j, p, d in zip(self.joints, report.kp, report.kd, strict=True)
+            if not (math.isfinite(p) and math.isfinite(d) and 0 <= p <= MAX_GAIN and 0 <= d <= MAX_GAIN)
+        ]
+        if bad:  # a degenerate mass model (an inertia of 1e30 beside one of 1e-4): no usable servo
+            raise DescriptionError(
+                f"{self.description.source}: the model's masses and inertias give no usable servo gains for "
+                f"{', '.join(bad)}; fix the description's <inertial> values or set gains for them in robot.yaml"
+            )
+        model = report.as_gains()
         return tuple(g if g is not None else model[k] for k, g in enumerate(explicit))
 
     @functools.cached_property

@@ -79,6 +79,7 @@ def check_robot(
     backends: Sequence[str] | None = None,
     strict: bool | None = None,
     timeout: float = 300.0,
+    trusted: bool | None = None,
 ) -> CheckReport:
     """Check ``robot`` (see the module docstring); ``backends`` defaults to the installed simulators."""
     from .description import apply_overrides, resolve_robot
@@ -87,7 +88,7 @@ def check_robot(
     report = CheckReport()
     out = report.lines
     try:
-        config, desc = resolve_robot(robot, strict=strict)
+        config, desc = resolve_robot(robot, strict=strict, trusted=trusted)
         joints = apply_overrides(desc, config)
     except AgentSDKError as exc:
         report.problems.append(" ".join(str(exc).split()) if "\n" not in str(exc) else str(exc).splitlines()[0])
@@ -172,9 +173,9 @@ def check_robot(
     out.extend(not_installed)
     report.problems.extend(_broken_plugins())
     jobs = [{"robot": str(robot), "backend": b, "duration": 0.05, "options": {}} for b in chosen]
-    if strict is not None:
-        for job in jobs:
-            job["options"] = {"strict": strict}
+    options = {k: v for k, v in (("strict", strict), ("trusted", trusted)) if v is not None}
+    for job in jobs:
+        job["options"] = dict(options)
     with ProbePool(workers=min(2, max(1, len(jobs))), timeout=timeout) as pool:
         results = pool.run(jobs)
     for backend, r in zip(chosen, results, strict=True):

@@ -600,7 +600,7 @@ def _cmd_robots(args: argparse.Namespace) -> int:
 def _cmd_describe(args: argparse.Namespace) -> int:
     from .description import apply_overrides, resolve_robot
 
-    config, desc = resolve_robot(args.robot)
+    config, desc = resolve_robot(args.robot, trusted=True if args.trusted else None)
     joints = apply_overrides(desc, config)
     print(f"robot name is: {desc.name}")
     print(f"---------- Successfully parsed {desc.source} ----------")
@@ -619,7 +619,13 @@ def _cmd_describe(args: argparse.Namespace) -> int:
 def _cmd_check(args: argparse.Namespace) -> int:
     from .check import check_robot
 
-    report = check_robot(args.robot, backends=args.backend, strict=True if args.strict else None, timeout=args.timeout)
+    report = check_robot(
+        args.robot,
+        backends=args.backend,
+        strict=True if args.strict else None,
+        timeout=args.timeout,
+        trusted=True if args.trusted else None,
+    )
     for line in report.lines:
         print(line)
     if report.problems:
@@ -678,6 +684,12 @@ def _cmd_vcan(rest: list[str]) -> int:
     return subprocess.call(["bash", str(script), *rest])
 
 
+_TRUST_HELP = (
+    "load a robot file you trust as code: xacro expressions unchecked, files outside its package allowed "
+    "(default: robot files are data)"
+)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="agentsdk", description="Run robot behaviors on any backend.")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
@@ -727,11 +739,13 @@ def _parser() -> argparse.ArgumentParser:
     sub.add_parser("robots", help="list the shipped robots")
     d = sub.add_parser("describe", help="print a robot's joint tree and limits (URDF, xacro, MJCF, robot.yaml)")
     d.add_argument("robot")
+    d.add_argument("--trusted", action="store_true", help=_TRUST_HELP)
     c = sub.add_parser("check", help="check a robot description and load it on each installed simulator")
     c.add_argument("robot", help="robot name, or a .urdf, .xacro, MJCF .xml or robot.yaml")
     c.add_argument("--backend", action="append", metavar="NAME",
                    help="simulator(s) to load on (default: every installed one of mujoco, pybullet)")
     c.add_argument("--strict", action="store_true", help="treat every repair as an error")
+    c.add_argument("--trusted", action="store_true", help=_TRUST_HELP)
     c.add_argument("--timeout", type=float, default=300.0, help="seconds allowed per simulator load")
     g = sub.add_parser("graph", help="print the Mermaid diagram of a behavior's state machines")
     g.add_argument("behavior")

@@ -19,6 +19,7 @@ Example::
     ground_friction: 0.8                # ground contact friction coefficient (floating base)
     safety: {command_timeout: 0.2}      # see agentsdk.safety.SafetyConfig
     strict: false                       # true: refuse descriptions that need repairs
+    trusted: false                      # true: a file you trust (xacro unchecked, files outside its package)
     self_collision: auto                # auto | true | false, the same on every simulator
     srdf: arm3.srdf                     # <disable_collisions> pairs (default: an SRDF beside the URDF)
     backends:                           # backend-specific sections, free-form per backend
@@ -146,6 +147,9 @@ class RobotConfig(_Strict):
     backends: dict[str, dict[str, Any]] = Field(default_factory=dict)
     #: refuse a description that needs repairs (DescriptionError) instead of repairing it with a warning
     strict: bool = False
+    #: load the description as trusted code: xacro expressions unchecked, files outside the package roots
+    #: allowed (default false: robot files are data; see README "Bring your own robot")
+    trusted: bool = False
     #: self-collision on every simulator: ``auto`` (on, except pairs that are adjacent, rigidly attached,
     #: touching at the start pose or disabled in the SRDF), ``true`` (on, except adjacent, rigidly
     #: attached and SRDF pairs), ``false`` (links of the robot never collide with each other)
@@ -204,11 +208,17 @@ def load_robot_config(path: str | Path) -> RobotConfig:
     """Read and validate a robot.yaml; errors name the file and the field."""
     path = Path(path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.safe_load(path.read_text(encoding="utf-8"))
     except FileNotFoundError as exc:
         raise ConfigurationError(f"robot config not found: {path}") from exc
+    except UnicodeDecodeError as exc:
+        raise ConfigurationError(f"{path}: not UTF-8 text (byte {exc.start}: {exc.reason})") from exc
+    except OSError as exc:
+        raise ConfigurationError(f"{path}: cannot read: {exc.strerror or exc}") from exc
     except yaml.YAMLError as exc:
         raise ConfigurationError(f"{path}: invalid YAML: {exc}") from exc
+    except RecursionError as exc:
+        raise ConfigurationError(f"{path}: invalid YAML: nested too deeply") from exc
     if not isinstance(raw, dict):
         raise ConfigurationError(f"{path}: expected a mapping at the top level")
     raw.setdefault("name", path.parent.name)

@@ -474,6 +474,7 @@ async def _open_robot(
     safety: SafetyConfig | Mapping[str, Any] | None,
     options: dict[str, Any],
     strict: bool | None = None,
+    trusted: bool | None = None,
 ) -> Robot:
     from .motion import MotionManager
 
@@ -481,7 +482,7 @@ async def _open_robot(
         # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
         # so that other robots on this event loop keep their deadlines while this one loads
         cls = load_backend(backend)
-        config, description = resolve_robot(robot, strict=strict)
+        config, description = resolve_robot(robot, strict=strict, trusted=trusted)
         joints = apply_overrides(description, config)
         safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
         bounds = PositionBounds(joints, safety_cfg.position_margin)
@@ -556,6 +557,7 @@ def connect(
     realtime: bool | None = None,
     safety: SafetyConfig | Mapping[str, Any] | None = None,
     strict: bool | None = None,
+    trusted: bool | None = None,
     **options: Any,
 ) -> _Connection:
     """Connect to ``robot`` on ``backend``.
@@ -564,12 +566,15 @@ def connect(
     MJCF ``.xml`` or ``robot.yaml``. ``realtime=None`` picks the backend's default
     (lockstep for simulators). ``strict=True`` (or robot.yaml ``strict: true``)
     refuses a description that needs repairs (``DescriptionError`` listing them)
-    instead of repairing it with a warning. ``safety`` overrides fields of the
+    instead of repairing it with a warning. ``trusted=True`` (or robot.yaml
+    ``trusted: true``) loads a robot file you trust as code: xacro expressions
+    unchecked, files outside its package allowed (by default a robot file is data,
+    see README "Bring your own robot"). ``safety`` overrides fields of the
     robot.yaml ``safety`` section;
     other keyword options go to the backend (they override robot.yaml
     ``backends.<name>``). Use as ``async with connect(...) as robot`` or
     ``robot = await connect(...)`` (then ``await robot.close()``).
     """
-    return _Connection((backend, robot, realtime, safety, dict(options), strict))
+    return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted))
 
 

@@ -513,6 +513,7 @@ def test_missing_file_inside_a_found_package(tmp_path: Path, monkeypatch: pytest
 
 def test_relative_and_file_uri_mesh_paths(tmp_path: Path) -> None:
     (tmp_path / "meshes").mkdir()
+    (tmp_path / "package.xml").write_text("<package><name>r</name></package>")  # ../meshes stays in the package
     shutil.copy(MESH_PKG / "meshes" / "link.stl", tmp_path / "meshes" / "link.stl")
     shutil.copy(MESH_PKG / "meshes" / "ee.obj", tmp_path / "meshes" / "ee.obj")
     text = (
@@ -592,6 +593,7 @@ def test_resolve_robot_from_another_robots_dir(tmp_path: Path) -> None:
 def test_robot_yaml_xacro_args_are_used(tmp_path: Path) -> None:
     shutil.copytree(ROBOTS_DIR / "arm3", tmp_path / "arm3")
     shutil.copytree(ROBOTS_DIR / "common", tmp_path / "common")
+    shutil.copy(ROBOTS_DIR / "package.xml", tmp_path)  # arm3 includes ../common: one package holds both
     yaml_path = tmp_path / "arm3" / "robot.yaml"
     yaml_path.write_text(yaml_path.read_text().replace("xacro_args: {}", "xacro_args: {link2_length: 0.5}"))
     _, desc = resolve_robot(yaml_path)
@@ -601,6 +603,7 @@ def test_robot_yaml_xacro_args_are_used(tmp_path: Path) -> None:
 def test_robot_yaml_with_unknown_gain_joint(tmp_path: Path) -> None:
     shutil.copytree(ROBOTS_DIR / "arm3", tmp_path / "arm3")
     shutil.copytree(ROBOTS_DIR / "common", tmp_path / "common")
+    shutil.copy(ROBOTS_DIR / "package.xml", tmp_path)  # arm3 includes ../common: one package holds both
     yaml_path = tmp_path / "arm3" / "robot.yaml"
     yaml_path.write_text(yaml_path.read_text() + "\ninitial_positions: {joint4: 0.1}\n")
     with pytest.raises(

@@ -139,7 +139,11 @@ def robots(draw: st.DrawFn) -> str:
 
 @pytest.fixture(scope="module")
 def pool() -> Iterator[ProbePool]:
-    with ProbePool(workers=2, timeout=120) as workers:
+    # the random robots use a fixture mesh by absolute path: a robot file reaches only files inside its
+    # package roots, so the mesh's package is put on the package path (a root)
+    env = {"AGENTSDK_PACKAGE_PATH": os.pathsep.join(filter(None, [str(MESH.parents[1]),
+                                                                 os.environ.get("AGENTSDK_PACKAGE_PATH")]))}
+    with ProbePool(workers=2, timeout=120, env=env) as workers:
         yield workers
 
 

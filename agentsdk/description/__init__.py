@@ -1,6 +1,7 @@
 """Robot descriptions: URDF, xacro and MJCF files loaded into an immutable :class:`RobotDescription`.
 
-``load_description`` expands xacro (``xacro.process_file``), parses URDF by
+``load_description`` expands xacro (``xacro.process_file``, in a sandboxed
+worker process: :mod:`agentsdk.description.xacro_sandbox`), parses URDF by
 ROS's urdfdom rules (errors name the file, the line for plain URDF files, and
 the link or joint), resolves every mesh to an absolute filesystem path, and
 repairs - visibly, once - what the simulators cannot take, so that MuJoCo
@@ -10,7 +11,8 @@ MJCF models (MuJoCo Menagerie style) are read through MuJoCo itself
 (:mod:`agentsdk.description.mjcf`).
 
 Mesh and ``$(find pkg)`` resolution follows ROS conventions
-(:mod:`agentsdk.description.packages`). The self-collision model both
+(:mod:`agentsdk.description.packages`); a robot file is data: the files it
+reaches stay inside its package roots unless it is loaded ``trusted``. The self-collision model both
 simulators use is decided once from the description
 (:mod:`agentsdk.description.collision`).
 

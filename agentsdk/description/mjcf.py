@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal, cast
 
@@ -45,6 +47,8 @@ from .model import (
     RobotDescription,
     rpy_from_rotation,
 )
+from .packages import Resolver
+from .xacro_expand import TRUST_HINT
 
 __all__ = ["colliding_body_pairs", "load_mjcf", "mjcf_unsupported_by_pybullet"]
 
@@ -143,8 +147,71 @@ def _effort(model: Any, jid: int) -> float:
     return best if best > 0 else math.inf
 
 
-def load_mjcf(path: Path) -> RobotDescription:
-    """Read an MJCF model into a :class:`RobotDescription` (see the module docstring)."""
+_ASSET_DIR = {"mesh": "meshdir", "skin": "meshdir", "texture": "texturedir", "hfield": "texturedir"}
+_MAX_INCLUDES = 256
+
+
+def _check_files(path: Path, roots: list[Path]) -> None:
+    """Refuse an MJCF whose ``<include>`` or asset ``file`` leaves the package roots (before MuJoCo reads it)."""
+    from lxml import etree
+
+    from .packages import path_inside
+
+    model_dir = path.parent
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, huge_tree=False)
+    dirs: dict[str, str] = {}
+    pending, seen = [path], set()
+    while pending:
+        current = pending.pop()
+        if current in seen:
+            raise DescriptionError(f"{current}: <include> cycle")
+        seen.add(current)
+        if len(seen) > _MAX_INCLUDES:
+            raise DescriptionError(f"{path}: more than {_MAX_INCLUDES} included files")
+        try:
+            root = etree.parse(str(current), parser).getroot()
+        except (OSError, etree.XMLSyntaxError):
+            return  # MuJoCo reports the unreadable or malformed file itself
+        for elem in root.iter("compiler"):
+            for key in ("meshdir", "texturedir", "assetdir"):
+                if elem.get(key) is not None:
+                    dirs[key] = elem.get(key) or ""
+        for elem in root.iter():
+            if not isinstance(elem.tag, str) or elem.get("file") is None:
+                continue
+            name = elem.get("file") or ""
+            if elem.tag == "include":
+                target = model_dir / name
+            else:
+                sub = dirs.get(_ASSET_DIR.get(elem.tag, "assetdir"), dirs.get("assetdir", ""))
+                target = model_dir / sub / name
+            if not path_inside(target, roots):
+                listed = ", ".join(str(r) for r in dict.fromkeys(roots))
+                raise DescriptionError(
+                    f"{current}, line {elem.sourceline}: <{elem.tag} file=\"{name}\"> refused: "
+                    f"{os.path.realpath(target)} is outside the package roots ({listed}) ({TRUST_HINT})"
+                )
+            if elem.tag == "include":
+                pending.append(Path(os.path.realpath(target)))
+
+
+def load_mjcf(path: Path, *, trusted: bool = False, roots: Sequence[Path] = ()) -> RobotDescription:
+    """Read an MJCF model into a :class:`RobotDescription` (see the module docstring).
+
+    Unless ``trusted``, every included file and asset must lie inside the package roots
+    (the package the model is in, the package search path, ``roots``).
+    """
+    try:
+        if not trusted:
+            _check_files(path, Resolver(path.parent, None, roots).roots())
+        return _load_mjcf(path)
+    except UnicodeDecodeError as exc:  # a name in the model (or an included file) that is not UTF-8
+        raise DescriptionError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start} of a name)") from exc
+    except OSError as exc:  # an asset path too long for the filesystem
+        raise DescriptionError(f"{path}: cannot read a file of the model: {exc}") from exc
+
+
+def _load_mjcf(path: Path) -> RobotDescription:
     import mujoco
 
     spec, m = _compile(path)

@@ -13,6 +13,13 @@
 * ``file:///abs/path`` and absolute paths are used as is.
 * relative paths (and ``file://rel/path``) are relative to the directory of the
   URDF/xacro file.
+
+Robot files are data: every file a description reaches (meshes, ``xacro:include``,
+``load_yaml``) must lie inside a *package root* (:meth:`Resolver.roots`): the package
+the description is in (the nearest directory at or above it holding a
+``package.xml``, else the description's own directory), the directories of the
+package search path, and the packages found in them or declared by a ``package.xml``.
+Real paths are compared, so neither ``..`` nor a symlink leaves a root.
 """
 
 from __future__ import annotations
@@ -23,11 +30,18 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 from urllib.parse import unquote, urlparse
-from urllib.request import url2pathname
 
 from lxml import etree
 
-__all__ = ["PACKAGE_PATH_ENV_VARS", "Resolver", "find_package", "package_search_path", "search_path_text"]
+__all__ = [
+    "PACKAGE_PATH_ENV_VARS",
+    "Resolver",
+    "description_root",
+    "find_package",
+    "package_search_path",
+    "path_inside",
+    "search_path_text",
+]
 
 log = logging.getLogger("agentsdk.description")
 
@@ -106,6 +120,15 @@ def find_package(
     Searches ``package_path``, ``$AGENTSDK_PACKAGE_PATH``, ``$ROS_PACKAGE_PATH``,
     then ``near`` (a file or directory) and its parents; see the module docstring.
     """
+    try:
+        return _find_package(package, package_path, near)
+    except (OSError, ValueError):  # a package name too long for the filesystem, a NUL byte
+        return None
+
+
+def _find_package(
+    package: str, package_path: Sequence[str | Path] | None, near: str | Path | None
+) -> Path | None:
     search = [d for _, d in package_search_path(package_path)]
     for directory in search:
         if not directory.is_dir():
@@ -140,13 +163,82 @@ def search_path_text(package_path: Sequence[str | Path] | None, near: Path) -> s
     return f"search path: {described}; then {near} and its parents"
 
 
+def path_inside(path: str | os.PathLike[str], roots: Sequence[str | os.PathLike[str]]) -> bool:
+    """True when the real path of ``path`` (symlinks and ``..`` resolved) lies inside one of ``roots``."""
+    try:
+        real = Path(os.path.realpath(path))
+    except (OSError, ValueError):
+        return False
+    for root in roots:
+        try:
+            top = Path(os.path.realpath(root))
+        except (OSError, ValueError):
+            continue
+        if real == top or top in real.parents:
+            return True
+    return False
+
+
+def description_root(directory: Path) -> Path:
+    """The package a description in ``directory`` belongs to: the nearest directory at or above it
+    holding a ``package.xml``, else ``directory`` itself.
+    """
+    start = Path(os.path.realpath(directory))
+    for candidate in (start, *start.parents):
+        try:
+            if (candidate / "package.xml").is_file():
+                return candidate
+        except OSError:
+            continue
+    return start
+
+
 class Resolver:
     """Maps URDF resource URIs to absolute paths, caching package lookups."""
 
-    def __init__(self, base_dir: Path, package_path: Sequence[str | Path] | None) -> None:
+    def __init__(
+        self,
+        base_dir: Path,
+        package_path: Sequence[str | Path] | None,
+        extra_roots: Sequence[Path] = (),
+        *,
+        trusted: bool = False,
+    ) -> None:
         self.base_dir = base_dir
         self.package_path = list(package_path or ())
+        self.extra_roots = list(extra_roots)
+        #: a trusted description may reach files outside its package roots
+        self.trusted = trusted
         self._packages: dict[str, Path | None] = {}
+
+    def roots(self) -> list[Path]:
+        """The package roots known before any lookup: the description's package and the search path."""
+        search = [d for _, d in package_search_path(self.package_path)]
+        return [description_root(self.base_dir), *self.extra_roots, *search]
+
+    def is_package_root(self, root: Path) -> bool:
+        """True when a found package directory may be read: it has a package.xml or is on the search path."""
+        try:
+            if (root / "package.xml").is_file():
+                return True
+        except OSError:
+            return False
+        return path_inside(root, [d for _, d in package_search_path(self.package_path)])
+
+    def allowed_roots(self) -> list[Path]:
+        """:meth:`roots` and every package found so far that :meth:`is_package_root` accepts."""
+        found = [p for p in self._packages.values() if p is not None and self.is_package_root(p)]
+        return [*self.roots(), *found]
+
+    def escape(self, path: Path) -> str | None:
+        """Why ``path`` may not be read (outside every package root), or None (inside one, or trusted)."""
+        if self.trusted:
+            return None
+        roots = self.allowed_roots()
+        if path_inside(path, roots):
+            return None
+        listed = ", ".join(str(r) for r in dict.fromkeys(roots))
+        return f"{os.path.realpath(path)} is outside the package roots ({listed})"
 
     def package(self, name: str) -> Path | None:
         """Directory of package ``name`` (cached), or None."""
@@ -171,10 +263,13 @@ class Resolver:
                     f"Add the directory that contains '{package}' to AGENTSDK_PACKAGE_PATH"
                 )
             path = root / unquote(rel)
-            if not path.is_file():
-                return None, f"file not found: {path} (package '{package}' is {root})"
+            problem = _not_a_file(path)
+            if problem:
+                return None, f"{problem}: {path} (package '{package}' is {root})"
             return path.resolve(), ""
         if uri.startswith("file://"):
+            from urllib.request import url2pathname  # imported here: slow to import, rarely needed
+
             parsed = urlparse(uri)
             text = url2pathname(parsed.path)
             if parsed.netloc and parsed.netloc != "localhost":  # file://relative/path
@@ -183,8 +278,22 @@ class Resolver:
         elif re.match(r"^[A-Za-z][A-Za-z0-9+.-]+://", uri):
             return None, f"unsupported URI scheme '{uri.split('://', 1)[0]}' (use package://, file:// or a path)"
         else:
-            candidate = Path(uri).expanduser()
+            try:
+                candidate = Path(uri).expanduser()
+            except RuntimeError:  # ~user that does not exist
+                candidate = Path(uri)
         path = candidate if candidate.is_absolute() else self.base_dir / candidate
-        if not path.is_file():
-            return None, f"file not found: {path}"
+        problem = _not_a_file(path)
+        if problem:
+            return None, f"{problem}: {path}"
         return path.resolve(), ""
+
+
+def _not_a_file(path: Path) -> str:
+    """Why ``path`` is not a readable regular file ("" when it is); OSErrors become the reason."""
+    try:
+        if path.is_file():
+            return ""
+        return "file not found"
+    except (OSError, ValueError) as exc:  # a name too long, a NUL byte, permissions
+        return f"cannot read ({exc.strerror if isinstance(exc, OSError) and exc.strerror else exc})"

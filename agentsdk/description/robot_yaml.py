@@ -8,7 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..config import JointLimitsOverride, RobotConfig, did_you_mean, load_robot_config
-from ..errors import ConfigurationError
+from ..errors import ConfigurationError, DescriptionError
 from ..types import JointInfo
 from .loader import load_description
 from .model import RobotDescription
@@ -181,7 +181,7 @@ _CONFIG_SUFFIXES = (".yaml", ".yml")
 
 
 def resolve_robot(
-    spec: str | Path, robots_dir: Path | None = None, *, strict: bool | None = None
+    spec: str | Path, robots_dir: Path | None = None, *, strict: bool | None = None, trusted: bool | None = None
 ) -> tuple[RobotConfig, RobotDescription]:
     """Turn a robot name or path into a validated ``(RobotConfig, RobotDescription)``.
 
@@ -190,8 +190,11 @@ def resolve_robot(
     ``.xml``, ``robot.yaml`` or a directory holding a ``robot.yaml``. A bare
     description gets a default ``RobotConfig``. ``strict`` (default: robot.yaml
     ``strict``) turns the loader's repairs into a ``DescriptionError``; without
-    it they are logged as one warning. Raises ``ConfigurationError`` (or its
-    subclass ``DescriptionError``) naming what is wrong.
+    it they are logged as one warning. ``trusted`` (default: robot.yaml
+    ``trusted``) lifts the checks that load a robot file as data (see
+    :func:`load_description`); a robot named from ``robots_dir`` may reach the
+    files in that directory. Raises ``ConfigurationError`` (or its subclass
+    ``DescriptionError``) naming what is wrong.
     """
     directory = Path(robots_dir) if robots_dir is not None else _default_robots_dir()
     text = os.fspath(spec)
@@ -202,33 +205,54 @@ def resolve_robot(
         and not text.lower().endswith(_DESCRIPTION_SUFFIXES + _CONFIG_SUFFIXES)
     )
     path = Path(text).expanduser()
+    roots: list[Path] = []
     if bare_name:
         candidate = directory / text / "robot.yaml"
         if text and candidate.is_file():
             path = candidate
+            roots.append(directory)
         elif not path.exists():
             known = list_robots(directory)
             raise ConfigurationError(
                 f"unknown robot '{text}'; available robots: {', '.join(known) if known else '(none)'} "
                 f"(in {directory}), or pass a path to a .urdf, .xacro, MJCF .xml or robot.yaml"
             )
-    if path.is_dir():
-        if not (path / "robot.yaml").is_file():
-            raise ConfigurationError(f"{path} is a directory without a robot.yaml")
-        path = path / "robot.yaml"
-    if not path.exists():
-        raise ConfigurationError(f"robot description not found: {path}")
+    try:
+        if path.is_dir():
+            if not (path / "robot.yaml").is_file():
+                raise ConfigurationError(f"{path} is a directory without a robot.yaml")
+            path = path / "robot.yaml"
+        if not path.exists():
+            raise ConfigurationError(f"robot description not found: {path}")
+    except (OSError, ValueError) as exc:  # a name too long for the filesystem, a NUL byte
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        shown = text if len(text) <= 120 else f"{text[:60]}...{text[-60:]}"
+        raise ConfigurationError(f"robot {shown!r}: cannot read: {reason}") from exc
 
     lower = path.name.lower()
     if lower.endswith(_CONFIG_SUFFIXES):
         config = load_robot_config(path)
         if strict is not None and strict != config.strict:
             config = config.model_copy(update={"strict": strict})
-        description = load_description(config.description_path, config.xacro_args, strict=config.strict)
+        if trusted is not None and trusted != config.trusted:
+            config = config.model_copy(update={"trusted": trusted})
+        try:
+            config.description_path.is_file()
+        except (OSError, ValueError) as exc:  # a name too long for the filesystem: say which file named it
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            shown = config.description if len(config.description) <= 120 else f"{config.description[:60]}..."
+            raise DescriptionError(f"{path}: description: {shown!r}: cannot read: {reason}") from exc
+        description = load_description(
+            config.description_path, config.xacro_args, strict=config.strict, trusted=config.trusted, roots=roots
+        )
     elif lower.endswith(_DESCRIPTION_SUFFIXES):
-        description = load_description(path, strict=bool(strict))
+        description = load_description(path, strict=bool(strict), trusted=bool(trusted))
         config = RobotConfig(
-            name=description.name, description=path.name, base_dir=path.resolve().parent, strict=bool(strict)
+            name=description.name,
+            description=path.name,
+            base_dir=path.resolve().parent,
+            strict=bool(strict),
+            trusted=bool(trusted),
         )
     else:
         raise ConfigurationError(f"{path}: expected a .urdf, .xacro, MJCF .xml or robot.yaml file")

@@ -22,7 +22,9 @@ Repairs (each listed once in a warning, refused with ``strict=True``):
 degenerate inertias and massless moving links (see :mod:`.inertia`),
 ``effort``/``velocity`` limits of 0 (the SolidWorks exporter writes
 ``<limit lower="0" upper="0" effort="0" velocity="0"/>`` when nothing was
-entered: that placeholder means "no limits"), ``lower > upper`` (swapped),
+entered: that placeholder means "no limits"), negative ``effort``/``velocity``
+limits (repairs only tighten: the magnitude is kept, the velocity capped at the
+default), ``lower > upper`` (no valid range: the joint is held fixed),
 zero-size shapes and unreadable or missing meshes (dropped), mimic joints
 that name a missing or fixed joint (the mimic is ignored), floating and
 planar joints (held fixed: the SDK commands revolute, continuous and
@@ -59,7 +61,7 @@ from .model import (
     RobotDescription,
 )
 from .packages import Resolver
-from .xacro_expand import run_xacro
+from .xacro_expand import TRUST_HINT, run_xacro
 
 __all__ = ["find_srdf", "load_urdf"]
 
@@ -192,6 +194,14 @@ def _declare_prefixes(data: bytes, prefixes: set[str]) -> bytes:
 # --------------------------------------------------------------------------- links
 
 
+class _OutsideRoots(Exception):
+    """A mesh outside the package roots: refused (not dropped like a missing mesh)."""
+
+    def __init__(self, error: DescriptionError) -> None:
+        super().__init__(str(error))
+        self.error = error
+
+
 def _geometry(
     where: Where,
     elem: Any,
@@ -205,6 +215,8 @@ def _geometry(
     """Parse one <visual>/<collision>; a malformed one is dropped (urdfdom skips it too), with a repair."""
     try:
         return _parse_geometry(where, elem, kind, owner, resolver, repairs, mesh_files, dropped)
+    except _OutsideRoots as exc:
+        raise exc.error from None
     except DescriptionError as exc:
         label = f"{owner} <{kind}>" + (f" '{elem.get('name')}'" if elem.get("name") else "")
         problem = str(exc).split(f"{owner}: ", 1)[-1]
@@ -287,6 +299,9 @@ def _parse_geometry(
     if resolved is None:
         drop(f"cannot resolve mesh '{uri}': {problem}", shape)
         return None
+    escape = resolver.escape(resolved)
+    if escape:
+        raise _OutsideRoots(where(shape, f"{label}: mesh '{uri}' refused: {escape} ({TRUST_HINT})"))
     if resolved.suffix.lower() not in MESH_SUFFIXES:
         drop(f"mesh '{uri}': format '{resolved.suffix}' is not readable (use {', '.join(MESH_SUFFIXES)})", shape)
         return None
@@ -423,13 +438,23 @@ def _parse_joint(
                 notes.append('<limit lower="0" upper="0" effort="0" velocity="0"/> is an exporter placeholder: '
                              "no position limits")
             elif lower > upper:
-                notes.append(f"lower={lower:g} > upper={upper:g}: swapped")
-                lower, upper = upper, lower
-            if velocity <= 0:
-                notes.append(f"velocity limit {velocity:g} -> {DEFAULT_VELOCITY[jtype]:g}")
-                velocity = DEFAULT_VELOCITY[jtype]
-            if effort <= 0:
-                notes.append(f"effort limit {effort:g} -> unlimited")
+                # no valid range: which end was meant is unknown, so the joint does not move at all
+                repairs.append(
+                    Repair(owner, f"lower={lower:g} > upper={upper:g} leaves no valid range: joint held fixed",
+                           where.line(limit))
+                )
+                jtype, mimic = "fixed", None
+                lower = upper = velocity = effort = None
+            if velocity is not None and velocity <= 0:
+                # a negative limit keeps its magnitude where that is tighter than the default
+                fallback = DEFAULT_VELOCITY[jtype] if velocity == 0 else min(-velocity, DEFAULT_VELOCITY[jtype])
+                notes.append(f"velocity limit {velocity:g} -> {fallback:g}")
+                velocity = fallback
+            if effort is not None and effort < 0:
+                notes.append(f"effort limit {effort:g} -> {-effort:g} (the sign dropped, the clamp kept)")
+                effort = -effort
+            elif effort == 0:
+                notes.append("effort limit 0 -> unlimited")  # an exporter's 'not entered'
                 effort = math.inf
             if notes:
                 repairs.append(Repair(owner, "; ".join(notes), where.line(limit)))
@@ -687,9 +712,16 @@ def load_urdf(
     path: Path,
     xacro_args: Mapping[str, str] | None = None,
     package_path: Sequence[Path] | None = None,
+    *,
+    trusted: bool = False,
+    roots: Sequence[Path] = (),
 ) -> RobotDescription:
-    """Load a ``.urdf`` or ``.xacro`` file (see the module docstring); ``path`` is absolute and exists."""
-    resolver = Resolver(path.parent, package_path)
+    """Load a ``.urdf`` or ``.xacro`` file (see the module docstring); ``path`` is absolute and exists.
+
+    Unless ``trusted``, xacro runs sandboxed (:mod:`.xacro_sandbox`) and every file the
+    description reaches must lie inside a package root (:meth:`.Resolver.roots`, plus ``roots``).
+    """
+    resolver = Resolver(path.parent, package_path, roots, trusted=trusted)
     try:
         raw = path.read_bytes()
     except OSError as exc:
@@ -697,7 +729,7 @@ def load_urdf(
 
     is_xacro = _is_xacro(path, raw)
     if is_xacro:
-        data = run_xacro(path, xacro_args or {}, resolver).encode("utf-8")
+        data = run_xacro(path, xacro_args or {}, resolver, trusted=trusted).encode("utf-8")
     else:
         if xacro_args:
             raise DescriptionError(

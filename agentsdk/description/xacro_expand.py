@@ -1,160 +1,180 @@
-"""xacro expansion with ``$(find pkg)`` answered by the SDK's package search."""
+"""xacro expansion in a sandboxed worker process (see :mod:`.xacro_sandbox`).
+
+The caller's process never runs xacro: each expansion starts ``python -P
+xacro_sandbox.py`` with the job as JSON on its stdin, under a wall-clock deadline
+(:data:`XACRO_TIME_LIMIT`) and an address-space limit (:data:`XACRO_MEMORY_LIMIT`).
+The worker answers ``$(find pkg)`` with the SDK's package search, checks every
+expression and every file it opens unless the file is ``trusted``, and returns the
+expanded XML or a one-line error, which becomes a :class:`DescriptionError`.
+"""
 
 from __future__ import annotations
 
-import contextlib
-import io
+import hashlib
+import json
 import logging
-import re
+import os
+import signal
+import subprocess
 import sys
 import threading
-import types
-from collections.abc import Callable, Iterator, Mapping
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import cast
-from xml.parsers.expat import ExpatError
+from typing import Any
 
 from ..errors import DescriptionError
-from .packages import Resolver, search_path_text
+from .packages import Resolver
 
-__all__ = ["run_xacro"]
+__all__ = ["TRUST_HINT", "XACRO_MEMORY_LIMIT", "XACRO_TIME_LIMIT", "run_xacro"]
 
 log = logging.getLogger("agentsdk.description")
 
-# xacro keeps its state in module globals: one expansion at a time
-_XACRO_LOCK = threading.Lock()
+#: seconds one xacro expansion may take (wall clock; the worker also gets this much CPU time)
+XACRO_TIME_LIMIT = 20.0
+#: bytes of address space the expansion worker may use
+XACRO_MEMORY_LIMIT = 1 << 30
+#: how to lift the checks, appended to a refusal
+TRUST_HINT = (
+    "robot files are loaded as data; for a file you trust, pass trusted=True "
+    "(robot.yaml `trusted: true`, CLI --trusted)"
+)
+
+_WORKER = Path(__file__).with_name("xacro_sandbox.py")
+
+# Expansions are cached in this process (a worker process costs a few hundred ms, and a test suite
+# connects to the same xacro robot hundreds of times): an entry is used only while the job (file,
+# args, search path, trust, limits), the environment and the working directory are the same and
+# every file the expansion read has the same content (SHA-256).
+_CACHE_SIZE = 32
+_MAX_CACHED_FILE = 1 << 24
+_cache: OrderedDict[str, tuple[dict[str, Any], tuple[tuple[str, str], ...]]] = OrderedDict()
+_cache_lock = threading.Lock()
 
 
-class _TrackedArgs(dict[str, str]):
-    """The xacro ``mappings`` dict, recording which arg names the document asked about."""
-
-    def __init__(self, values: Mapping[str, str]) -> None:
-        super().__init__(values)
-        self.queried: set[str] = set()
-
-    def __contains__(self, key: object) -> bool:
-        if isinstance(key, str):
-            self.queried.add(key)
-        return super().__contains__(key)
-
-    def __getitem__(self, key: str) -> str:
-        self.queried.add(key)
-        return super().__getitem__(key)
+def _stamps(files: Sequence[str]) -> tuple[tuple[str, str], ...] | None:
+    out = []
+    for name in files:
+        try:
+            with open(name, "rb") as f:
+                digest = hashlib.sha256(f.read(_MAX_CACHED_FILE + 1)).hexdigest()
+        except (OSError, ValueError):
+            return None
+        out.append((name, digest))
+    return tuple(out)
 
 
-class _PackageNotFound(Exception):
-    pass
+def _cache_key(job: Mapping[str, Any]) -> str:
+    return json.dumps([job, sorted(os.environ.items()), os.getcwd()], sort_keys=True)
 
 
-@contextlib.contextmanager
-def _xacro_find(find: Callable[[str], str]) -> Iterator[None]:
-    """Answer xacro's ``$(find pkg)`` with our package search, through xacro's documented route.
+def _cached(key: str) -> dict[str, Any] | None:
+    with _cache_lock:
+        entry = _cache.get(key)
+        if entry is not None:
+            _cache.move_to_end(key)
+    if entry is None:
+        return None
+    result, stamps = entry
+    if _stamps([name for name, _ in stamps]) != stamps:
+        return None
+    return result
 
-    In ROS 2, xacro resolves ``$(find pkg)`` with
-    ``ament_index_python.packages.get_package_share_directory`` (imported when the
-    substitution is evaluated). Outside a ROS install that module does not exist, so for
-    the duration of one expansion (under ``_XACRO_LOCK``) an ``ament_index_python``
-    module answered by :func:`find` is registered in ``sys.modules``; the ROS one, if any,
-    is put back afterwards (and ``find`` falls back to it for packages we cannot find).
-    No attribute of xacro itself is touched.
+
+def _remember(key: str, result: dict[str, Any]) -> None:
+    stamps = _stamps([str(f) for f in result.get("files", ())])
+    if stamps is None:
+        return
+    with _cache_lock:
+        _cache[key] = (result, stamps)
+        _cache.move_to_end(key)
+        while len(_cache) > _CACHE_SIZE:
+            _cache.popitem(last=False)
+
+
+def _worker_result(path: Path, job: Mapping[str, Any], seconds: float) -> dict[str, Any]:
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, "-P", str(_WORKER)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+        )
+    except OSError as exc:
+        raise DescriptionError(f"{path}: cannot start the xacro worker: {exc}") from exc
+    try:
+        out, err = proc.communicate(json.dumps(job).encode("utf-8"), timeout=seconds)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        raise DescriptionError(
+            f"{path}: xacro expansion took longer than {seconds:g} s and was stopped (an expression too costly "
+            "to evaluate, or an include that never ends)"
+        ) from None
+    if proc.returncode == -getattr(signal, "SIGXCPU", 0) != 0:
+        raise DescriptionError(f"{path}: xacro expansion used more than {seconds:g} s of CPU time and was stopped")
+    try:
+        result: dict[str, Any] = json.loads(out.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        tail = " ".join(err.decode("utf-8", "replace").strip().splitlines()[-1:])
+        if "MemoryError" in tail:
+            return {"ok": False, "limit": "memory", "error": "", "warnings": ""}
+        raise DescriptionError(
+            f"{path}: the xacro worker failed (exit status {proc.returncode}){': ' + tail if tail else ''}"
+        ) from None
+    return result
+
+
+def run_xacro(
+    path: Path,
+    args: Mapping[str, str],
+    resolver: Resolver,
+    *,
+    trusted: bool = False,
+    seconds: float | None = None,
+    memory: int | None = None,
+) -> str:
+    """Expand ``path`` with xacro args ``args``; raises DescriptionError naming the file, macro and problem.
+
+    Unless ``trusted``, expressions are checked against the allow-list and files stay inside
+    ``resolver``'s package roots (a refusal names the file, the line and the construct).
+    ``seconds``/``memory`` default to :data:`XACRO_TIME_LIMIT` and :data:`XACRO_MEMORY_LIMIT`.
     """
-    names = ("ament_index_python", "ament_index_python.packages")
-    saved = {name: sys.modules.get(name) for name in names}
-    real = saved["ament_index_python.packages"]
-
-    def get_package_share_directory(package_name: str, print_warning: bool = True) -> str:
-        try:
-            return find(package_name)
-        except _PackageNotFound:
-            if real is not None and hasattr(real, "get_package_share_directory"):
-                try:
-                    return str(real.get_package_share_directory(package_name))
-                except Exception:
-                    pass
-            raise
-
-    root = types.ModuleType("ament_index_python")
-    packages = types.ModuleType("ament_index_python.packages")
-    packages.get_package_share_directory = get_package_share_directory  # type: ignore[attr-defined]
-    packages.PackageNotFoundError = _PackageNotFound  # type: ignore[attr-defined]
-    root.packages = packages  # type: ignore[attr-defined]
-    sys.modules["ament_index_python"] = root
-    sys.modules["ament_index_python.packages"] = packages
-    try:
-        yield
-    finally:
-        for name, module in saved.items():
-            if module is None:
-                sys.modules.pop(name, None)
-            else:
-                sys.modules[name] = module
-
-
-def _xacro_error_text(exc: BaseException) -> str:
-    seen: set[int] = set()
-    cur: BaseException | None = exc
-    while cur is not None and id(cur) not in seen:  # unwrap to our own error, if any
-        seen.add(id(cur))
-        if isinstance(cur, _PackageNotFound):
-            return str(cur)
-        cur = getattr(cur, "exc", None) or cur.__cause__ or cur.__context__
-    inner = getattr(exc, "exc", None)
-    if isinstance(exc, ExpatError) or isinstance(inner, ExpatError):
-        return f"malformed XML: {inner if isinstance(inner, ExpatError) else exc}"
-    if isinstance(inner, OSError) and exc.args and exc.args[0]:
-        text = str(exc.args[0])  # xacro repeats the OSError text after its own message
-    else:
-        text = str(exc) or repr(exc)
-    text = re.sub(r"<class '[\w.]+'>: ", "", text)
-    return " ".join(text.split())
-
-
-def run_xacro(path: Path, args: Mapping[str, str], resolver: Resolver) -> str:
-    """Expand ``path`` with xacro args ``args``; raises DescriptionError naming the file, macro and problem."""
-    try:
-        import xacro
-    except ImportError as exc:  # pragma: no cover - xacro is a dependency
-        raise DescriptionError(f"{path}: the 'xacro' package is needed to expand xacro files") from exc
-
-    def find(package: str) -> str:
-        root = resolver.package(package)
-        if root is None:
-            raise _PackageNotFound(
-                f"$(find {package}): package '{package}' not found; "
-                f"{search_path_text(resolver.package_path, resolver.base_dir)}"
-            )
-        return str(root)
-
-    mappings = _TrackedArgs({str(k): str(v) for k, v in args.items()})
-    captured = io.StringIO()
-    with _XACRO_LOCK:
-        try:
-            with contextlib.redirect_stderr(captured), _xacro_find(find):
-                doc = xacro.process_file(str(path), mappings=mappings)
-                text = cast(str, doc.toxml())
-        except (Exception, SystemExit) as exc:
-            where = ""
-            macros = [m.body.getAttribute("name") for m in (xacro.macrostack or []) if hasattr(m, "body")]
-            files = [f for f in (xacro.filestack or []) if f]
-            if macros:
-                where += f" (in macro '{macros[-1]}')"
-            if files and Path(files[-1]).resolve() != path:
-                where += f" (in included file {files[-1]})"
-            detail = _xacro_error_text(exc)
-            hint = ""
-            if "Undefined substitution argument" in detail:
-                hint = "; pass it in xacro_args (robot.yaml) or give the <xacro:arg> a default"
-            raise DescriptionError(f"{path}: xacro failed{where}: {detail}{hint}") from exc
-        finally:
-            xacro.substitution_args_context["arg"] = {}
-    for line in captured.getvalue().splitlines():
+    seconds = XACRO_TIME_LIMIT if seconds is None else seconds
+    job = {
+        "path": str(path),
+        "args": {str(k): str(v) for k, v in args.items()},
+        "package_path": [str(p) for p in resolver.package_path],
+        "roots": [str(p) for p in resolver.extra_roots],
+        "trusted": trusted,
+        "seconds": seconds,
+        "memory": XACRO_MEMORY_LIMIT if memory is None else memory,
+    }
+    key = _cache_key(job)
+    result = _cached(key)
+    if result is None:
+        result = _worker_result(path, job, seconds)
+        if result.get("ok"):
+            _remember(key, result)
+    for line in str(result.get("warnings", "")).splitlines():
         if line.strip():
             log.warning("%s: xacro: %s", path, line.strip())
-    unused = sorted(set(mappings) - mappings.queried)
+    if not result.get("ok"):
+        if result.get("refused"):
+            raise DescriptionError(f"{result['error']} ({TRUST_HINT})")
+        if result.get("limit") == "memory":
+            raise DescriptionError(f"{path}: xacro expansion ran out of its memory limit and was stopped")
+        detail = str(result.get("error", ""))
+        hint = ""
+        if "Undefined substitution argument" in detail:
+            hint = "; pass it in xacro_args (robot.yaml) or give the <xacro:arg> a default"
+        raise DescriptionError(f"{path}: xacro failed{result.get('where', '')}: {detail}{hint}")
+    queried = set(result.get("queried", ()))
+    unused = sorted(set(args) - queried)
     if unused:
-        declared = sorted(mappings.queried)
+        declared = sorted(queried)
         raise DescriptionError(
             f"{path}: xacro arg(s) {', '.join(repr(a) for a in unused)} are not used by the file; "
             f"it declares: {', '.join(declared) if declared else 'no args'}"
         )
-    return text
+    return str(result["xml"])

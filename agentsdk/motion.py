@@ -582,7 +582,10 @@ class MotionManager:
         #: continuous joints: shortest-angle start, wrapped errors
         self._continuous = np.array([j.type == "continuous" for j in joints], dtype=bool)
         kp, kd = loop.gain_p, loop.gain_d
-        self._lag_per_speed = np.where(kp > 0.0, kd / np.where(kp > 0.0, kp, 1.0), 0.0)
+        # a stiffness below 1e-12 (e.g. a denormal gain from a config) counts as none, like kp == 0:
+        # kd/kp would overflow
+        stiff = kp > 1e-12
+        self._lag_per_speed = np.divide(kd, kp, out=np.zeros(len(kp)), where=stiff)
         self._speed = 1.0
         # the position-step limiter the setpoints pass through (attach_limiter), so that a
         # planned step it would clip is caught here and reported, never clipped silently

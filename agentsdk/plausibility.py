@@ -42,7 +42,7 @@ from .types import JointInfo
 
 __all__ = ["SensorGate", "SensorReport"]
 
-#: bound of the velocity and effort rows: anything finite passes, inf and NaN do not
+#: the reach of a joint whose reading frame is being changed on purpose: any finite position
 _FINITE = 1e300
 #: the speed used for a joint without a velocity limit
 _NO_LIMIT = 1e150
@@ -114,12 +114,17 @@ class SensorGate:
         self._hi = np.where(np.isfinite(upper), upper + tol, np.inf)
         self._tolerance = tolerance
         # scratch (allocation-free per tick)
-        self._diff = np.zeros((3, n))
-        self._bound = np.full((3, n), _FINITE)
-        self._reach = self._bound[0]
+        self._d = np.zeros(n)
+        self._reach = np.zeros(n)
+        self._reach_fast = np.zeros(n)
+        self._dt = math.nan
+        self._zero = np.zeros(n)
         self._speed = np.zeros(n)
-        self._ok = np.zeros((3, n), dtype=bool)
-        self._all_ok = np.ones((3, n), dtype=bool).tobytes()
+        self._ok = np.zeros(n, dtype=bool)
+        self._all_ok = np.ones(n, dtype=bool).tobytes()
+        #: robot time of the last reading; while ``_uniform`` every joint's sample time is that
+        self._t_read = 0.0
+        self._uniform = False
         self._age = age
         self._changing = np.zeros(n, dtype=bool) if changing is None else changing
         self._changes = [0] if changes is None else changes
@@ -176,26 +181,63 @@ class SensorGate:
         np.copyto(self._velocity, v, where=ok)
         np.copyto(self._effort, e, where=ok)
         self._t_ok[:] = self._sample_times(t)
+        self._t_read = t
+        self._uniform = False
         self._t_bad[:] = np.where(bad, t, np.inf)
         self.suspect[:] = bad
         self._any_suspect = bool(bad.any())
         return int(np.argmax(bad)) if self._any_suspect else -1
 
     def accept(self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float) -> None:
-        """Check a reading taken at robot time ``t`` and write its plausible joints into the state."""
-        pos, vel = self._position, self._velocity
-        diff = self._diff
-        # |q - q_last| in row 0; v and e themselves in rows 1, 2 (finite check against _FINITE)
-        np.subtract(q, pos, out=diff[0])
-        diff[1] = v
-        diff[2] = e
-        np.abs(diff, out=diff)
+        """Check a reading taken at robot time ``t`` and write its plausible joints into the state.
+
+        Fast path (a backend whose readings are current, no suspect joint, no frame change): the
+        reach with ``max_velocity`` alone, cached while the time between readings repeats (every
+        tick in lockstep), one comparison and two dot products for finiteness. Anything else, or
+        a joint beyond that reach, goes through :meth:`_full` (the velocity-aware reach, the
+        samples' own times).
+        """
+        d = self._d
+        np.subtract(q, self._position, out=d)
+        np.abs(d, out=d)  # NaN stays NaN: every comparison below is False
+        age = self._age() if self._age is not None else None
+        if age is not None or self._any_suspect or self._changes[0]:
+            self._full(q, v, e, t, age)
+            return
+        dt = t - self._t_read
+        reach = self._reach_fast
+        if not abs(dt - self._dt) <= 1e-12:  # (the first time: NaN)
+            self._dt = dt
+            np.multiply(self._vmax, self._margin * (dt + self._period), out=reach)
+            np.add(reach, self._floor, out=reach)
+        ok = self._ok
+        np.less_equal(d, reach, out=ok)
+        # NaN and inf times 0 are NaN: the dot products are 0.0 exactly when v and e are finite
+        if ok.tobytes() == self._all_ok and np.dot(v, self._zero) + np.dot(e, self._zero) == 0.0:
+            self._position[...] = q
+            self._velocity[...] = v
+            self._effort[...] = e
+            self._t_read = t
+            self._uniform = True
+            return
+        self._full(q, v, e, t, age)
+
+    def _full(self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float, age: np.ndarray | None) -> None:
+        """The whole rule: per-joint sample times, the velocity-aware reach, suspects, the limit rule."""
+        t_ok, t_new = self._t_ok, self._t_new
+        if self._uniform:  # the fast path kept every joint's sample time in _t_read
+            t_ok.fill(self._t_read)
+            self._uniform = False
+        if age is None:
+            t_new.fill(t)
+        else:
+            np.subtract(t, age, out=t_new)
         # reach = margin * max(vmax, |v_last|) * (time between the samples + one period) + floor
         speed, reach = self._speed, self._reach
-        np.abs(vel, out=speed)
+        np.abs(self._velocity, out=speed)
         np.maximum(speed, self._vmax, out=speed)
-        t_new = self._sample_times(t)
-        np.subtract(t_new, self._t_ok, out=reach)
+        np.subtract(t_new, t_ok, out=reach)
+        np.maximum(reach, 0.0, out=reach)  # sample stamps from another clock may run back a little
         np.add(reach, self._period, out=reach)
         np.multiply(reach, speed, out=reach)
         np.multiply(reach, self._margin, out=reach)
@@ -203,26 +245,28 @@ class SensorGate:
         if self._changes[0]:  # a frame change on purpose (a new zero): any finite position
             np.copyto(reach, _FINITE, where=self._changing)
         ok = self._ok
-        np.less_equal(diff, self._bound, out=ok)  # NaN compares False: implausible
-        if not self._any_suspect and ok.tobytes() == self._all_ok:
-            pos[...] = q
-            vel[...] = v
+        np.less_equal(self._d, reach, out=ok)
+        finite = np.dot(v, self._zero) + np.dot(e, self._zero) == 0.0
+        if finite and not self._any_suspect and ok.tobytes() == self._all_ok:
+            self._position[...] = q
+            self._velocity[...] = v
             self._effort[...] = e
-            self._t_ok[...] = t_new
+            t_ok[...] = t_new
+            self._t_read = t
             return
-        self._slow(q, v, e, t)
+        self._reject(q, v, e, t, ok.copy() if finite else ok & np.isfinite(v) & np.isfinite(e))
+        self._t_read = t
 
-    def _slow(self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float) -> None:
-        """Some joint failed, or some joint is suspect: per-joint bookkeeping (rare)."""
-        ok = self._ok
-        row = ok[0] & ok[1] & ok[2]
+    def _reject(self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float, row: np.ndarray) -> None:
+        """Some joint failed, or some joint is suspect: per-joint bookkeeping (rare; may allocate)."""
         outside = (q < self._lo) | (q > self._hi)
         if outside.any():
             # beyond the limits by more than the tolerance: plausible only if reachable from the last
             # plausible position in the time the sensor was still good (+ one period), not after an outage
             good_until = np.minimum(self._t_bad, self._t_new)
-            one_step = self._speed * self._margin * (good_until - self._t_ok + self._period) + self._floor
-            row &= ~outside | (self._diff[0] <= one_step) | self._changing
+            before = np.maximum(good_until - self._t_ok, 0.0)
+            one_step = self._speed * self._margin * (before + self._period) + self._floor
+            row &= ~outside | (self._d <= one_step) | self._changing
         bad = ~row
         np.copyto(self._position, q, where=row)
         np.copyto(self._velocity, v, where=row)

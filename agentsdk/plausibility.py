@@ -118,7 +118,8 @@ class SensorGate:
         self._reach = np.zeros(n)
         self._reach_fast = np.zeros(n)
         self._dt = math.nan
-        self._zero = np.zeros(n)
+        self._fin_v = np.zeros(n, dtype=bool)
+        self._fin_e = np.zeros(n, dtype=bool)
         self._speed = np.zeros(n)
         self._ok = np.zeros(n, dtype=bool)
         self._all_ok = np.ones(n, dtype=bool).tobytes()
@@ -193,13 +194,13 @@ class SensorGate:
 
         Fast path (a backend whose readings are current, no suspect joint, no frame change): the
         reach with ``max_velocity`` alone, cached while the time between readings repeats (every
-        tick in lockstep), one comparison and two dot products for finiteness. Anything else, or
+        tick in lockstep), one comparison and two finiteness checks. Anything else, or
         a joint beyond that reach, goes through :meth:`_full` (the velocity-aware reach, the
         samples' own times).
         """
         d = self._d
         np.subtract(q, self._position, out=d)
-        np.abs(d, out=d)  # NaN stays NaN: every comparison below is False
+        np.abs(d, out=d)  # NaN stays NaN (and inf - inf is NaN): every comparison below is False
         age = self._age() if self._age is not None else None
         if age is not None or self._any_suspect or self._changes[0]:
             self._full(q, v, e, t, age)
@@ -210,10 +211,11 @@ class SensorGate:
             self._dt = dt
             np.multiply(self._vmax, self._margin * (dt + self._period), out=reach)
             np.add(reach, self._floor, out=reach)
-        ok = self._ok
+        ok, fin_v, fin_e, all_ok = self._ok, self._fin_v, self._fin_e, self._all_ok
         np.less_equal(d, reach, out=ok)
-        # NaN and inf times 0 are NaN: the dot products are 0.0 exactly when v and e are finite
-        if ok.tobytes() == self._all_ok and np.dot(v, self._zero) + np.dot(e, self._zero) == 0.0:
+        np.isfinite(v, out=fin_v)
+        np.isfinite(e, out=fin_e)
+        if ok.tobytes() == all_ok and fin_v.tobytes() == all_ok and fin_e.tobytes() == all_ok:
             self._position[...] = q
             self._velocity[...] = v
             self._effort[...] = e
@@ -244,17 +246,19 @@ class SensorGate:
         np.add(reach, self._floor, out=reach)
         if self._changes[0]:  # a frame change on purpose (a new zero): any finite position
             np.copyto(reach, _FINITE, where=self._changing)
-        ok = self._ok
+        ok, fin_v, fin_e, all_ok = self._ok, self._fin_v, self._fin_e, self._all_ok
         np.less_equal(self._d, reach, out=ok)
-        finite = np.dot(v, self._zero) + np.dot(e, self._zero) == 0.0
-        if finite and not self._any_suspect and ok.tobytes() == self._all_ok:
+        np.isfinite(v, out=fin_v)
+        np.isfinite(e, out=fin_e)
+        finite = fin_v.tobytes() == all_ok and fin_e.tobytes() == all_ok
+        if finite and not self._any_suspect and ok.tobytes() == all_ok:
             self._position[...] = q
             self._velocity[...] = v
             self._effort[...] = e
             t_ok[...] = t_new
             self._t_read = t
             return
-        self._reject(q, v, e, t, ok.copy() if finite else ok & np.isfinite(v) & np.isfinite(e))
+        self._reject(q, v, e, t, ok & fin_v & fin_e)
         self._t_read = t
 
     def _reject(self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float, row: np.ndarray) -> None:

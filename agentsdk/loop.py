@@ -357,19 +357,10 @@ class ControlLoop:
         """Open the backend, read the initial state, hold it, start the control loop task."""
         backend = self.backend
         await backend.open()  # closes the backend again and raises BackendStartError on failure
-        gate = self.sensor_gate
-        if gate is None:
-            self._read()
-        else:
-            q, v, e = backend.read()
-            bad = gate.baseline(q, v, e, self.clock.now())
-            if bad >= 0:
-                await backend.close()
-                src = backend.joint_source(bad)
-                raise BackendStartError(
-                    f"joint {self.names[bad]!r}{f' ({src})' if src else ''} reads a non-finite value at start "
-                    f"(position {float(q[bad])}, velocity {float(v[bad])}, effort {float(e[bad])}): sensor fault"
-                )
+        problem = self._read_baseline()
+        if problem:
+            await backend.close()
+            raise BackendStartError(f"{problem} at start")
         self.hold_current()
         backend.write(self._sp.view)
         self._spawn()
@@ -423,9 +414,11 @@ class ControlLoop:
         if self._fault is None:
             return
         await self.backend.recover()
+        problem = self._read_baseline()  # a simulator reset on purpose: not a jump to judge
+        if problem:
+            raise BackendFault(f"{problem} after recovering")
         self._fault = None
         self.clock.resume()
-        self._read()
         self.hold_current()
         with self._torque_lock:
             self._torque_off = True  # stays limp until enable()
@@ -433,6 +426,23 @@ class ControlLoop:
         self._spawn()
 
     # ------------------------------------------------------------ the tick
+    def _read_baseline(self) -> str:
+        """Read the state as it is (start, recover); a problem in words if a value is not finite."""
+        gate = self.sensor_gate
+        if gate is None:
+            self._read()
+            return ""
+        backend = self.backend
+        q, v, e = backend.read()
+        bad = gate.baseline(q, v, e, self.clock.now())
+        if bad < 0:
+            return ""
+        src = backend.joint_source(bad)
+        return (
+            f"joint {self.names[bad]!r}{f' ({src})' if src else ''} reads a non-finite value (position "
+            f"{float(q[bad])}, velocity {float(v[bad])}, effort {float(e[bad])}): sensor fault"
+        )
+
     def _read(self) -> None:
         q, v, e = self.backend.read()
         gate = self.sensor_gate

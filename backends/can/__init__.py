@@ -85,8 +85,10 @@ _ZERO_TIMEOUT = 2.0
 _SETTLE_CYCLES = 3
 #: a motor that answered this many more frames than were sent to it has a second responder
 _SURPLUS_LIMIT = 3
-#: the reply deficit (lost replies) is remembered down to this floor, so losses cannot mask a
-#: second responder for long; replies still in flight (late) are at most this many cycles behind
+#: the reply deficit (lost replies) is remembered down to -max(this, 2 x max_missed_replies), so that
+#: losses cannot mask a second responder for long, while replies still in flight (late: a starved
+#: motor side answers a backlog in a burst) stay within it (more than max_missed_replies consecutive
+#: cycles without a reply is a lost motor anyway)
 _SURPLUS_FLOOR = 20
 
 
@@ -251,6 +253,7 @@ class CanController(Backend):
         self._replies_seen = [0] * n
         self._expected_seen = [0] * n
         self._surplus = [0] * n
+        self._surplus_floor = -max(_SURPLUS_FLOOR, 2 * opts.max_missed_replies)
         #: a frame for one of our motors that we did not send was seen (raised by the next cycle)
         self._foreign_seen = False
 
@@ -575,9 +578,10 @@ class CanController(Backend):
 
         One device answers each frame at most once, so per motor the replies never exceed the
         frames sent (commands, special frames, emergency DISABLEs), whatever their timing.
-        Lost replies leave a deficit, remembered down to ``-_SURPLUS_FLOOR`` so that losses
-        cannot hide a second responder for long.
+        Lost replies leave a deficit, remembered down to a floor (see :data:`_SURPLUS_FLOOR`)
+        so that losses cannot hide a second responder for long.
         """
+        floor = self._surplus_floor
         stats, surplus = self.stats, self._surplus
         specials, estop = self._specials, self._estop_sent
         r_seen, e_seen = self._replies_seen, self._expected_seen
@@ -588,8 +592,8 @@ class CanController(Backend):
             x = surplus[k] + (replies - r_seen[k]) - (expected - e_seen[k])
             r_seen[k] = replies
             e_seen[k] = expected
-            if x < -_SURPLUS_FLOOR:
-                x = -_SURPLUS_FLOOR
+            if x < floor:
+                x = floor
             surplus[k] = x
             if x >= _SURPLUS_LIMIT:
                 s.surplus_replies = x

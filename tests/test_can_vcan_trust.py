@@ -53,7 +53,7 @@ def leg(tmp_path_factory: pytest.TempPathFactory) -> str:
 
 
 #: tolerated missed replies (UML's one vCPU shares the emulator process and the host)
-MAX_MISSED = 50
+MAX_MISSED = 10
 
 
 @contextlib.asynccontextmanager
@@ -256,15 +256,18 @@ async def test_a_foreign_commander_on_vcan0_latches_a_bus_conflict_within_half_a
 
 
 async def test_a_duplicate_responder_on_vcan0_latches_a_bus_conflict_within_half_a_second(leg: str) -> None:
-    async with leg_on_vcan(leg) as robot:
-        await hold(robot)
-        second = start_emulator(leg)  # a second device answering with the same ids
-        try:
-            await _wait_async(lambda: second.has(EMULATOR_READY) or second.popen.poll() is not None)
-            took = await wait_state(robot, SafetyState.FAULT)
-        finally:
-            second.stop()
-        cause = robot.safety.cause
-        assert isinstance(cause, BusConflict), cause
-        assert "a second device answers with id" in str(cause) and "socketcan:vcan0" in str(cause)
-        assert took < 0.5, took
+    """Two emulator processes answer for the same ids. Both run before the robot connects: starting a
+    Python process starves user-mode Linux's one vCPU for seconds, which is a lost motor, not this test."""
+    second = start_emulator(leg)  # a second device answering with the same ids
+    try:
+        await _wait_async(lambda: second.has(EMULATOR_READY) or second.popen.poll() is not None)
+        with pytest.raises(BusConflict) as info:  # raised again by close(): the loop died of it
+            async with leg_on_vcan(leg) as robot:
+                took = await wait_state(robot, SafetyState.FAULT)
+                cause = robot.safety.cause
+                assert isinstance(cause, BusConflict), cause
+                assert took < 0.5, took
+                raise cause
+    finally:
+        second.stop()
+    assert "a second device answers with id" in str(info.value) and "socketcan:vcan0" in str(info.value)

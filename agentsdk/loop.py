@@ -348,9 +348,15 @@ class ControlLoop:
         st = self._state
         gate = SensorGate(self.joints, st.position, st.velocity, st.effort, margin=margin, floor=floor,
                           tolerance=tolerance, period=self.period, age=self.backend.reading_age,
-                          changing=self.backend.frame_changing, changes=self.backend.frame_changes)
+                          changing=self.backend.frame_changing, changes=self.backend.frame_changes,
+                          driven=self._driven)
         self.sensor_gate = gate
         return gate
+
+    def _driven(self) -> np.ndarray:
+        """Which joints have torque on now (the setpoint's enabled flags, none after an emergency stop)."""
+        enabled = self._sp.enabled
+        return enabled & (not self._torque_off)
 
     # ------------------------------------------------------------ lifecycle
     async def start(self) -> None:

@@ -15,10 +15,11 @@ it is applied here, between ``Backend.read`` and the state buffer:
   period covers sampling jitter; a joint already moving faster than its limit (e.g. falling
   with torque off) keeps a reach that covers its own speed;
 * a position more than ``tolerance`` (the safety layer's ``position_limit_tolerance``) outside
-  the joint's limits must also be reachable *in one step* from the last plausible position
-  (within the time the sensor was still good, plus one period): a joint that is pushed past
-  its limit gets there gradually; a reading that lands there after a long sensor outage does
-  not count as gradual.
+  the joint's limits must also be reachable *in one step* (at most two periods, within the time
+  the sensor was still good) from the last plausible position, for a joint with torque on: a
+  driven joint that is pushed past its limit gets there gradually, and a reading that lands
+  there after a loop stall or a sensor outage does not count as gradual (a joint without torque
+  moves freely; the jump rule still applies to it).
 
 A reading that fails is a *sensor fault*: that joint's state keeps its last plausible
 position, velocity and effort (the implausible value never reaches the state buffer), the
@@ -79,7 +80,8 @@ class SensorGate:
     ``position_limit_tolerance`` (None: no limit rule). ``age`` returns how old each joint's
     reading is (s), or None when every reading is current (:meth:`agentsdk.Backend.reading_age`).
     ``changing``/``changes``: the backend's joints whose reading frame it is changing on purpose
-    and the count of such changes in progress (:meth:`agentsdk.Backend.frame_change`).
+    and the count of such changes in progress (:meth:`agentsdk.Backend.frame_change`). ``driven``
+    returns which joints have torque on (default: all).
     """
 
     def __init__(
@@ -96,6 +98,7 @@ class SensorGate:
         age: Callable[[], np.ndarray | None] | None = None,
         changing: np.ndarray | None = None,
         changes: list[int] | None = None,
+        driven: Callable[[], np.ndarray] | None = None,
     ) -> None:
         n = len(joints)
         self.names = tuple(j.name for j in joints)
@@ -122,6 +125,9 @@ class SensorGate:
         self._fin_e = np.zeros(n, dtype=bool)
         self._speed = np.zeros(n)
         self._ok = np.zeros(n, dtype=bool)
+        self._outside = np.zeros(n, dtype=bool)
+        self._above = np.zeros(n, dtype=bool)
+        self._all_false = np.zeros(n, dtype=bool).tobytes()
         self._all_ok = np.ones(n, dtype=bool).tobytes()
         #: robot time of the last reading; while ``_uniform`` every joint's sample time is that
         self._t_read = 0.0
@@ -129,6 +135,8 @@ class SensorGate:
         self._age = age
         self._changing = np.zeros(n, dtype=bool) if changing is None else changing
         self._changes = [0] if changes is None else changes
+        #: which joints have torque on now (the limit rule's "in one step" holds for a driven joint)
+        self._driven = driven
         #: robot time each joint's last plausible reading was sampled, and the new reading's
         self._t_ok = np.zeros(n)
         self._t_new = np.zeros(n)
@@ -206,6 +214,9 @@ class SensorGate:
             self._full(q, v, e, t, age)
             return
         dt = t - self._t_read
+        if dt > 2.0 * self._period:  # a late reading (a stalled loop): the limit rule applies
+            self._full(q, v, e, t, age)
+            return
         reach = self._reach_fast
         if not abs(dt - self._dt) <= 1e-12:  # (the first time: NaN)
             self._dt = dt
@@ -248,6 +259,19 @@ class SensorGate:
             np.copyto(reach, _FINITE, where=self._changing)
         ok, fin_v, fin_e, all_ok = self._ok, self._fin_v, self._fin_e, self._all_ok
         np.less_equal(self._d, reach, out=ok)
+        outside, above = self._outside, self._above
+        np.less(q, self._lo, out=outside)
+        np.greater(q, self._hi, out=above)
+        np.logical_or(outside, above, out=outside)
+        if outside.tobytes() != self._all_false:
+            # more than the tolerance outside the limits: plausible only if reachable in one step
+            # (a period, within the time the sensor was still good) from the last plausible position;
+            # a joint pushed past its limit gets there gradually, not across a stall or an outage
+            good_until = np.minimum(self._t_bad, t_new)
+            one = np.minimum(np.maximum(good_until - t_ok, 0.0), self._period) + self._period
+            one_step = self._speed * self._margin * one + self._floor
+            free = np.zeros(len(ok), dtype=bool) if self._driven is None else ~self._driven()
+            ok &= ~outside | (self._d <= one_step) | self._changing | free
         np.isfinite(v, out=fin_v)
         np.isfinite(e, out=fin_e)
         finite = fin_v.tobytes() == all_ok and fin_e.tobytes() == all_ok
@@ -258,19 +282,13 @@ class SensorGate:
             t_ok[...] = t_new
             self._t_read = t
             return
-        self._reject(q, v, e, t, ok & fin_v & fin_e)
+        self._reject(q, v, e, t, ok & fin_v & fin_e, outside.copy())
         self._t_read = t
 
-    def _reject(self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float, row: np.ndarray) -> None:
+    def _reject(
+        self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float, row: np.ndarray, outside: np.ndarray
+    ) -> None:
         """Some joint failed, or some joint is suspect: per-joint bookkeeping (rare; may allocate)."""
-        outside = (q < self._lo) | (q > self._hi)
-        if outside.any():
-            # beyond the limits by more than the tolerance: plausible only if reachable from the last
-            # plausible position in the time the sensor was still good (+ one period), not after an outage
-            good_until = np.minimum(self._t_bad, self._t_new)
-            before = np.maximum(good_until - self._t_ok, 0.0)
-            one_step = self._speed * self._margin * (before + self._period) + self._floor
-            row &= ~outside | (self._d <= one_step) | self._changing
         bad = ~row
         np.copyto(self._position, q, where=row)
         np.copyto(self._velocity, v, where=row)

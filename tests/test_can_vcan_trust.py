@@ -78,14 +78,16 @@ def reply(robot_yaml: str, motor_id: int, position: float, velocity: float = 0.0
 
 
 @contextlib.contextmanager
-def spoofer(make: Any, after_command_to: int | None, rate: float = 0.0) -> Iterator[threading.Event]:
+def spoofer(make: Any, after_command_to: int | None, rate: float = 0.0, limit: int = 2) -> Iterator[threading.Event]:
     """A thread on its own vcan0 socket sending ``make()`` frames once the yielded event is set: right after
     each of our commands to ``after_command_to`` (so the spoof lands ahead of the motor's reply), or at
-    ``rate`` Hz."""
+    ``rate`` Hz. After each command at most ``limit`` spoofs in all (a third reply too many from one
+    id is a duplicate responder: a BusConflict, another test)."""
     go, done = threading.Event(), threading.Event()
     bus = can.Bus(interface="socketcan", channel="vcan0")
 
     def run() -> None:
+        sent = 0
         while not done.is_set():
             if after_command_to is None:
                 if done.wait(1.0 / rate):
@@ -94,8 +96,10 @@ def spoofer(make: Any, after_command_to: int | None, rate: float = 0.0) -> Itera
                     bus.send(make())
                 continue
             msg = bus.recv(0.05)
-            if msg is not None and go.is_set() and msg.arbitration_id == after_command_to and not is_special(msg.data):
+            if (msg is not None and go.is_set() and msg.arbitration_id == after_command_to
+                    and not is_special(msg.data) and sent < limit):
                 bus.send(make())
+                sent += 1
 
     thread = threading.Thread(target=run, name="vcan-spoofer")
     thread.start()

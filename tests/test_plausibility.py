@@ -209,3 +209,14 @@ async def test_sensor_fault_stop_category_0_removes_torque() -> None:
         await robot.safety.wait_stopped()
         assert not robot.torque_enabled
         assert isinstance(robot.safety.cause, agentsdk.SensorFault) and robot.safety.cause.joint == "joint2"
+
+
+def test_after_a_loop_stall_a_reading_far_past_the_limits_is_a_fault_and_one_inside_is_not() -> None:
+    """A stalled loop reads again after 0.5 s: the joint may have moved anywhere inside its limits, but a
+    leap more than the tolerance past them is not something a joint does in one step."""
+    g, st = gate()
+    read(g, 0.5, -0.6)  # 0.6 rad in 0.5 s at max_velocity 2: plausible
+    assert not g.pending and st[0, 0] == pytest.approx(-0.6)
+    read(g, 1.0, -0.6, 1.5)  # joint b: 0.4 rad past its upper limit 1.0 (+ 0.1) after another stall
+    (r,) = g.take_new()
+    assert r.index == 1 and "outside the limits" in r.reason and st[0, 1] == 0.0

@@ -34,6 +34,8 @@ SPOOF_POSITION = 10.9
 @contextlib.asynccontextmanager
 async def robot_on(channel: str, **options: Any) -> AsyncIterator[Robot]:
     options.setdefault("max_missed_replies", MAX_MISSED)
+    # (a busy 2-CPU host stalls the loop now and then; the stall watchdog has its own tests)
+    options.setdefault("safety", {"stall_timeout": 2.0})
     async with agentsdk.connect("can", robot="mit_leg", interface="virtual", channel=channel, **options) as bot:
         yield bot
 

@@ -70,12 +70,13 @@ in ``__init__`` (e.g. a configuration that supports fewer modes).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import enum
 import functools
 import logging
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable, Sequence
+from collections.abc import Awaitable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 
@@ -269,6 +270,10 @@ class Backend(ABC):
         #: per joint: the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)
         self.gravity_compensation: np.ndarray = gc
         self._backend_open = False
+        #: joints whose reading frame the backend is changing on purpose (see :meth:`frame_change`),
+        #: and how many changes are in progress (one list item: the gate checks it every tick)
+        self.frame_changing = np.zeros(len(joints), dtype=bool)
+        self.frame_changes = [0]
 
     # ------------------------------------------------------------ model-based information
     @property
@@ -351,6 +356,40 @@ class Backend(ABC):
     def _backend_sensors(self) -> tuple[SensorSpec, ...]:
         """Optional: sensors the backend itself provides beside the declared ones (e.g. motor temperatures)."""
         return ()
+
+    def joint_source(self, index: int) -> str | None:
+        """Where joint ``index`` is measured, for messages (e.g. ``"motor id 2 on socketcan:vcan0"``).
+
+        None (the default, simulators) when the joint name says it all; hardware backends name
+        the device so that a fault points at the motor, connector or bus to check.
+        """
+        return None
+
+    @contextlib.contextmanager
+    def frame_change(self, index: int) -> Iterator[None]:
+        """Wrap a deliberate change of joint ``index``'s reading frame (e.g. a new encoder zero).
+
+        Inside the block the plausibility gate takes that joint's readings as they are (finite
+        values only): the jump to the new frame is the backend's doing, not a sensor fault.
+        """
+        self.frame_changing[index] = True
+        self.frame_changes[0] += 1
+        try:
+            yield
+        finally:
+            self.frame_changes[0] -= 1
+            if not self.frame_changes[0]:
+                self.frame_changing[:] = False
+
+    def reading_age(self) -> FloatArray | None:
+        """How old (s) each joint's latest reading is, or None when every reading is current (the default).
+
+        The plausibility gate (:mod:`agentsdk.plausibility`) measures how far a joint may have
+        moved between two readings by the time between their samples. A backend whose
+        :meth:`read` can return old data (a bus: the newest reply may predate this cycle, or a
+        reply may have been delayed) reports its age here, called right after :meth:`read`.
+        """
+        return None
 
     def base_state(self) -> BaseState:
         """The base's pose and velocity in the world; a fixed base (the default) is the identity at rest."""

@@ -7,6 +7,7 @@ exception                       what the caller can do
 ``DescriptionError``            (a ``ConfigurationError``) fix the URDF/xacro
 ``BackendUnavailableError``     install the backend or pick a known name
 ``BackendStartError``           the backend failed to open (hardware, sim)
+``BusClaimedError``             (a ``BackendStartError``) another robot in this process drives those motors
 ``CommandRejected``             fix the command; the robot state is unchanged
 ``UnknownJointError``           (a ``CommandRejected``, ``KeyError``)
 ``UnknownLinkError``            (a ``CommandRejected``, ``KeyError``) no such link
@@ -18,8 +19,10 @@ exception                       what the caller can do
 ``SafetyError``                 the safety layer stopped or refuses motion
 ``EStopActive``                 (a ``SafetyError``) e-stop latched: reset+enable
 ``SafetyFault``                 (a ``SafetyError``) a fault (divergence, bus)
+``SensorFault``                 (a ``SafetyFault``) a reading the physics cannot explain
 ``BackendFault``                the backend failed while running
 ``SimulationDiverged``          (a ``BackendFault``) physics became unstable
+``BusConflict``                 (a ``BackendFault``) another controller or responder on the bus
 ``RobotClosedError``            the connection is closed; reconnect
 ==============================  =============================================
 """
@@ -32,6 +35,8 @@ __all__ = [
     "BackendFault",
     "BackendStartError",
     "BackendUnavailableError",
+    "BusClaimedError",
+    "BusConflict",
     "CommandRejected",
     "ConfigurationError",
     "DescriptionError",
@@ -41,6 +46,7 @@ __all__ = [
     "RobotClosedError",
     "SafetyError",
     "SafetyFault",
+    "SensorFault",
     "SimulationDiverged",
     "UnknownJointError",
     "UnknownLinkError",
@@ -67,6 +73,10 @@ class BackendUnavailableError(ConfigurationError):
 
 class BackendStartError(AgentSDKError):
     """The backend could not be opened (simulator build failed, motor silent...)."""
+
+
+class BusClaimedError(BackendStartError):
+    """The bus channel and motor ids are already driven by another open robot in this process."""
 
 
 class CommandRejected(AgentSDKError):
@@ -129,12 +139,33 @@ class SafetyFault(SafetyError):
     """The safety layer is in FAULT (e.g. simulator divergence, motor error)."""
 
 
+class SensorFault(SafetyFault):
+    """A measured value the physics cannot explain (a jump, NaN, a leap past the limits).
+
+    ``joint`` names the joint, ``source`` where it is measured (e.g. ``"motor id 2 on
+    socketcan:vcan0"``, None on simulators), ``quantity`` and ``value`` what was read.
+    """
+
+    def __init__(
+        self, message: str, *, joint: str = "", source: str | None = None, quantity: str = "", value: float = 0.0
+    ) -> None:
+        super().__init__(message)
+        self.joint = joint
+        self.source = source
+        self.quantity = quantity
+        self.value = value
+
+
 class BackendFault(AgentSDKError):
     """The backend failed while running."""
 
 
 class SimulationDiverged(BackendFault):
     """The physics simulation became unstable (NaN, huge accelerations)."""
+
+
+class BusConflict(BackendFault):
+    """Another controller commands our motors, or a second device answers with one of their ids."""
 
 
 class RobotClosedError(AgentSDKError):

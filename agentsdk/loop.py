@@ -40,11 +40,13 @@ from .backend import Backend, ModeCode, SetpointView
 from .clock import Clock, LockstepClock, RealtimeClock
 from .errors import (
     BackendFault,
+    BackendStartError,
     InvalidValueError,
     RobotClosedError,
     UnknownJointError,
     UnsupportedModeError,
 )
+from .plausibility import SensorGate
 from .types import CommandMode, FloatArray, JointCommand, JointState
 
 __all__ = [
@@ -276,6 +278,9 @@ class ControlLoop:
         #: event loop again (asyncio timers and I/O run between batches); 0 runs one tick per pass,
         #: as before batching. Either way the ticks compute the same thing (see :meth:`_run_lockstep`).
         self.batch_seconds = BATCH_SECONDS
+        #: the plausibility gate every reading passes before it becomes the state (None: readings
+        #: are taken as they are); see :meth:`install_sensor_gate`
+        self.sensor_gate: SensorGate | None = None
 
     # ------------------------------------------------------------ views
     @property
@@ -334,12 +339,34 @@ class ControlLoop:
         """Call ``fn(exc)`` once if the control loop dies (backend fault, divergence)."""
         return self._fault_listeners.add(fn, 0)
 
+    def install_sensor_gate(self, *, margin: float, floor: float, tolerance: float | None) -> SensorGate:
+        """Pass every reading through a :class:`~agentsdk.plausibility.SensorGate` (the safety layer calls this).
+
+        From then on the state holds each joint's last *plausible* reading: a value the physics
+        cannot explain never reaches the state buffer (see :mod:`agentsdk.plausibility`).
+        """
+        st = self._state
+        gate = SensorGate(self.joints, st.position, st.velocity, st.effort, margin=margin, floor=floor,
+                          tolerance=tolerance, period=self.period, age=self.backend.reading_age,
+                          changing=self.backend.frame_changing, changes=self.backend.frame_changes,
+                          driven=self._driven)
+        self.sensor_gate = gate
+        return gate
+
+    def _driven(self) -> np.ndarray:
+        """Which joints have torque on now (the setpoint's enabled flags, none after an emergency stop)."""
+        enabled = self._sp.enabled
+        return enabled & (not self._torque_off)
+
     # ------------------------------------------------------------ lifecycle
     async def start(self) -> None:
         """Open the backend, read the initial state, hold it, start the control loop task."""
         backend = self.backend
         await backend.open()  # closes the backend again and raises BackendStartError on failure
-        self._read()
+        problem = self._read_baseline()
+        if problem:
+            await backend.close()
+            raise BackendStartError(f"{problem} at start")
         self.hold_current()
         backend.write(self._sp.view)
         self._spawn()
@@ -393,9 +420,11 @@ class ControlLoop:
         if self._fault is None:
             return
         await self.backend.recover()
+        problem = self._read_baseline()  # a simulator reset on purpose: not a jump to judge
+        if problem:
+            raise BackendFault(f"{problem} after recovering")
         self._fault = None
         self.clock.resume()
-        self._read()
         self.hold_current()
         with self._torque_lock:
             self._torque_off = True  # stays limp until enable()
@@ -403,8 +432,29 @@ class ControlLoop:
         self._spawn()
 
     # ------------------------------------------------------------ the tick
+    def _read_baseline(self) -> str:
+        """Read the state as it is (start, recover); a problem in words if a value is not finite."""
+        gate = self.sensor_gate
+        if gate is None:
+            self._read()
+            return ""
+        backend = self.backend
+        q, v, e = backend.read()
+        bad = gate.baseline(q, v, e, self.clock.now())
+        if bad < 0:
+            return ""
+        src = backend.joint_source(bad)
+        return (
+            f"joint {self.names[bad]!r}{f' ({src})' if src else ''} reads a non-finite value (position "
+            f"{float(q[bad])}, velocity {float(v[bad])}, effort {float(e[bad])}): sensor fault"
+        )
+
     def _read(self) -> None:
         q, v, e = self.backend.read()
+        gate = self.sensor_gate
+        if gate is not None:
+            gate.accept(q, v, e, self.clock.now())
+            return
         st = self._state
         st.position[:] = q
         st.velocity[:] = v
@@ -498,10 +548,15 @@ class ControlLoop:
                     await step(period)
                     woke = advance()
                     q, v, e = read()
-                    position[...] = q  # [...] = is the cheapest in-place copy (np.copyto dispatches in Python)
-                    velocity[...] = v
-                    effort[...] = e
-                    self.stamp = t = now()
+                    t = now()
+                    gate = self.sensor_gate
+                    if gate is not None:
+                        gate.accept(q, v, e, t)  # writes the plausible joints into the state rows
+                    else:
+                        position[...] = q  # [...] = is the cheapest in-place copy (np.copyto dispatches in Python)
+                        velocity[...] = v
+                        effort[...] = e
+                    self.stamp = t
                     self.ticks += 1
                     for fn in observe.fns:
                         fn(t, stv, spv)

@@ -1002,12 +1002,15 @@ class MotionManager:
         self._install(ex)
         return ex
 
-    async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0) -> None:
+    async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0, *,
+                            from_reference: bool = False) -> None:
         """Decelerate every joint to rest (e-stop categories 1 and 2); returns when at rest.
 
         Running motions end ABORTED at once (their reference is dropped) and every joint
         stops from its measured state (or, where it tracks its setpoint within
         :data:`TRACKING_BAND`, from that setpoint), within its deceleration limit.
+        ``from_reference`` (a sensor fault: the measurement is not to be trusted): every
+        position-mode joint stops from its desired state, whatever the measurement says.
         ``damp_only`` (backends without position control): velocity mode at zero
         velocity with gain ``damping`` until every joint is still.
         """
@@ -1027,7 +1030,10 @@ class MotionManager:
             handle = loop.add_hook(Phase.COMMAND, _until_still)
         else:
             q, v, a = self.desired(idx)
-            q0, v0, a0, meas = self._stop_start(idx, q, v, a, None)
+            if from_reference:
+                q0, v0, a0, meas = q, v, a, np.zeros(len(idx), dtype=bool)
+            else:
+                q0, v0, a0, meas = self._stop_start(idx, q, v, a, None)
             for ex in [*set(self._owner), *self._pending]:
                 if ex is not None:
                     self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")

@@ -52,8 +52,10 @@ from .errors import (
     LimitViolation,
     RobotClosedError,
     SafetyFault,
+    SensorFault,
 )
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
+from .plausibility import SensorGate
 from .types import MODES, CommandMode, JointInfo
 
 if TYPE_CHECKING:
@@ -117,6 +119,16 @@ class SafetyConfig(BaseModel):
     position_limit_tolerance: Annotated[float, Field(gt=0.0)] | None = 0.1
     #: stop category of that protective stop (IEC 60204-1)
     position_limit_stop: Literal[0, 1, 2] = 2
+    #: plausibility of every reading (agentsdk.plausibility): a value the physics cannot explain is a
+    #: sensor fault, never a position; False takes readings as they are
+    sensor_check: bool = True
+    #: a position may move at most margin x max(max_velocity, |velocity|) x elapsed time (+ floor) per reading
+    sensor_jump_margin: float = Field(default=2.0, ge=1.0, le=1000.0)
+    #: ... plus this much (rad or m: encoder noise, quantization, backlash)
+    sensor_jump_floor: float = Field(default=0.02, ge=0.0, le=10.0)
+    #: stop category of a sensor fault: 2 (default) stops from the reference and holds; 0 removes
+    #: torque at once (for robots that are safe limp)
+    sensor_fault_stop: Literal[0, 1, 2] = 2
 
     @classmethod
     def from_sources(
@@ -383,6 +395,17 @@ class SafetyLayer:
         # trajectories check their steps against this limiter before writing: a planned motion is
         # never clipped silently; an abort that resets a reference to the measured state says so
         motions.attach_limiter(origin, self._step, self._rebase_reference, self.record)
+        #: the plausibility gate of every reading (None: sensor_check off)
+        self.sensor_gate = (
+            loop.install_sensor_gate(
+                margin=config.sensor_jump_margin, floor=config.sensor_jump_floor,
+                tolerance=config.position_limit_tolerance,
+            )
+            if config.sensor_check
+            else None
+        )
+        #: a sensor fault since the last reset: stops start from the reference, not the measurement
+        self._distrust_measurement = False
         if config.position_limit_tolerance is not None:
             self.add_check(
                 MeasuredPositionCheck(loop.joints, config.position_limit_tolerance, config.position_limit_stop)
@@ -715,6 +738,9 @@ class SafetyLayer:
             sp.effort[eff & outward] = 0.0
 
     def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
+        gate = self.sensor_gate
+        if gate is not None and gate.pending:
+            self._sensor_fault(gate)
         all_position = self._all_position_on(sp.mode, sp.enabled)
         if not all_position:
             # the ramp origin of joints outside position mode is their fresh measurement
@@ -754,6 +780,31 @@ class SafetyLayer:
             names = ", ".join(self.loop.names[i] for i in idx.tolist())
             self.record("watchdog", f"no command for {self.config.command_timeout:g} s; holding {names}")
             log.warning("command watchdog: holding %s", names)
+
+    def _sensor_fault(self, gate: SensorGate) -> None:
+        """A reading failed the plausibility rule: latch FAULT (naming joint and device) and stop.
+
+        The state still holds the joint's last plausible reading; the stop starts every joint
+        from its reference (the measurement is not trusted), category ``sensor_fault_stop``.
+        """
+        loop = self.loop
+        first: SensorFault | None = None
+        for r in gate.take_new():
+            name = loop.names[r.index]
+            src = loop.backend.joint_source(r.index)
+            where = f" ({src})" if src else ""
+            detail = f"sensor fault on joint {name!r}{where}: {r.reason}; the last plausible state is kept"
+            self.record("sensor", detail, name)
+            log.error("%s", detail)
+            if first is None:
+                first = SensorFault(detail, joint=name, source=src, quantity=r.quantity, value=r.value)
+        if first is None:
+            return
+        self._distrust_measurement = True
+        if self._state is not SafetyState.FAULT:
+            self._state = SafetyState.FAULT
+            self._cause = first
+        self._begin_stop(self.config.sensor_fault_stop, "sensor fault")
 
     def _hold(self, idx: np.ndarray) -> None:
         loop = self.loop
@@ -898,7 +949,8 @@ class SafetyLayer:
         self._fault_waiters.add(fault)
         bound = self._stop_time_bound()
         ramp = aloop.create_task(
-            self.motions.stop_all_ramp(damp_only=damp_only, damping=self.config.stop_damping),
+            self.motions.stop_all_ramp(damp_only=damp_only, damping=self.config.stop_damping,
+                                       from_reference=self._distrust_measurement),
             name="agentsdk-stop-ramp",
         )
         timer = aloop.create_task(loop.clock.sleep(bound), name="agentsdk-stop-bound")
@@ -994,6 +1046,9 @@ class SafetyLayer:
         self._latch_handled = False
         self.stall_traceback = None
         self._ramping[:] = False
+        self._distrust_measurement = False
+        if self.sensor_gate is not None:
+            self.sensor_gate.clear()  # a joint still reading nonsense is reported again
         self._state = SafetyState.DISABLED
         self._beat = time.monotonic()
         self.record("reset", "latch cleared; call enable() to allow motion")

@@ -37,11 +37,15 @@ from .errors import (
     AgentSDKError,
     InvalidValueError,
     RobotClosedError,
+    SafetyFault,
+    SensorFault,
     UnknownJointError,
     UnsupportedModeError,
 )
+from .loop import Phase
 from .registry import load_backend
 from .robot import Robot, connect
+from .safety import SafetyState
 from .types import MODES, JointCommand
 
 __all__ = ["BackendConformance", "SensorConformance"]
@@ -342,6 +346,74 @@ class BackendConformance:
             await self._ticks(robot, 2 if robot.realtime else 1)
             st = await robot.read()
             assert abs(st.effort[0]) < 0.25 * tau, f"{name} still has effort {st.effort[0]} after a stall"
+
+    # ----------------------------------------------------- sensor faults
+    async def test_implausible_reading_is_a_sensor_fault_and_never_steps_the_setpoint(self) -> None:
+        """A reading the physics cannot explain (far past a limit in one step, NaN) is a sensor fault.
+
+        It latches FAULT with a :class:`SensorFault` naming the joint and the backend's
+        ``joint_source`` (the motor on a bus) within 0.5 s, the state keeps the last plausible
+        value, and the stop starts from the reference: no setpoint steps by more than the joint
+        may move in the time between two ticks. ``reset`` and ``enable`` recover.
+        """
+        for kind in ("jump", "nan"):
+            async with self.open_robot() as robot:
+                await self._check_sensor_fault(robot, kind)
+
+    async def _check_sensor_fault(self, robot: Robot, kind: str) -> None:
+        backend = robot.controller
+        joints = robot.joints
+        j = next((k for k, info in enumerate(joints) if math.isfinite(info.upper)), 0)
+        name = joints[j].name
+        upper = joints[j].upper if math.isfinite(joints[j].upper) else 0.0
+        await robot.clock.sleep(0.1)
+        inject = [False]
+        real_read = backend._read
+
+        def faulty_read() -> Any:
+            q, v, e = real_read()
+            if inject[0]:
+                inject[0] = False
+                q = np.array(q, dtype=float)
+                q[j] = upper + 10.0 if kind == "jump" else math.nan
+            return q, v, e
+
+        log: list[tuple[float, np.ndarray, np.ndarray]] = []
+
+        def observe(t: float, st: Any, sp: Any) -> None:
+            log.append((t, st.position.copy(), sp.position.copy()))
+
+        backend._read = faulty_read  # type: ignore[method-assign]  # the instance's hook, for this test
+        handle = robot.add_tick_hook(Phase.OBSERVE, observe)
+        try:
+            inject[0] = True
+            deadline = robot.clock.now() + 0.5
+            while robot.safety.state is not SafetyState.FAULT:
+                assert robot.clock.now() < deadline, f"{kind}: no sensor fault within 0.5 s ({robot.safety.events})"
+                await robot.clock.sleep(robot.control_period)
+            await robot.safety.wait_stopped()
+        finally:
+            handle.remove()
+            del backend._read
+        cause = robot.safety.cause
+        assert isinstance(cause, SensorFault), f"{kind}: cause {cause!r}"
+        source = backend.joint_source(j)
+        assert cause.joint == name and cause.source == source
+        assert name in str(cause) and (source is None or source in str(cause))
+        assert any(e.kind == "sensor" and e.joint == name for e in robot.safety.events)
+        with pytest.raises(SafetyFault):
+            await robot.read()
+        assert np.isfinite(robot.latest_state().position).all()
+        vmax = np.array([info.max_velocity for info in joints])
+        for (t0, _, sp0), (t1, st1, sp1) in itertools.pairwise(log):
+            assert np.isfinite(st1).all() and st1[j] < upper + 5.0, f"{kind}: the implausible value reached the state"
+            bound = vmax * max(t1 - t0, robot.control_period) * (1 + 1e-6) + 1e-6
+            step = np.abs(sp1 - sp0)
+            bad = np.isfinite(vmax) & (step > bound)
+            assert not bad.any(), f"{kind}: setpoint stepped {step[bad]} (bound {bound[bad]}) at t={t1:.3f}"
+        await robot.reset()
+        await robot.enable()
+        assert robot.safety.state.name == "OK"
 
     # ------------------------------------------------------- bad input
     async def test_bad_input_is_rejected_and_state_unchanged(self) -> None:

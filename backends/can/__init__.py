@@ -60,13 +60,21 @@ import numpy as np
 from pydantic import Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
-from agentsdk.errors import BackendFault, BackendStartError, CommandRejected, ConfigurationError, UnknownJointError
+from agentsdk.errors import (
+    BackendFault,
+    BackendStartError,
+    BusConflict,
+    CommandRejected,
+    ConfigurationError,
+    UnknownJointError,
+)
 from agentsdk.sensors import SensorChannel, SensorSpec
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
+from .claims import Claim, claim
 from .config import CanBusConfig
-from .mit import DISABLE, ENABLE, ZERO, encode_command_into, reply_error_code, reply_state
+from .mit import DISABLE, ENABLE, ZERO, encode_command_into, is_special, reply_error_code, reply_state
 
 __all__ = ["CanController", "CanOptions", "MotorStats"]
 
@@ -78,6 +86,13 @@ _RX_POLL = 0.05
 _ZERO_TIMEOUT = 2.0
 #: bus cycles with a reply a zero frame waits for before the state is taken to be in the new frame
 _SETTLE_CYCLES = 3
+#: a motor that answered this many more frames than were sent to it has a second responder
+_SURPLUS_LIMIT = 3
+#: the reply deficit (lost replies) is remembered down to -max(this, 2 x max_missed_replies), so that
+#: losses cannot mask a second responder for long, while replies still in flight (late: a starved
+#: motor side answers a backlog in a burst) stay within it (more than max_missed_replies consecutive
+#: cycles without a reply is a lost motor anyway)
+_SURPLUS_FLOOR = 20
 
 
 class CanOptions(CanBusConfig):
@@ -129,6 +144,10 @@ class MotorStats:
     last_error: str | None = None
     temperature: float | None = None
     last_reply_time: float = field(default=0.0)
+    #: frames addressed to this motor that this robot did not send (another controller on the bus)
+    foreign_commands: int = 0
+    #: replies beyond the frames sent to it (a second device answering with this id), net of lost ones
+    surplus_replies: int = 0
 
 
 class CanController(Backend):
@@ -202,6 +221,9 @@ class CanController(Backend):
         self._cycling = False  # the control loop has started its bus cycles
         #: when each motor's newest reply reached the bus (time.time())
         self._reply_stamp: list[float] = [0.0] * n
+        #: when the reply whose data ``_rx`` holds reached the bus (time.time()), and its age at read
+        self._rx_stamp: list[float] = [0.0] * n
+        self._age = np.zeros(n)
         #: a special frame to this motor awaits its reply (not a late command reply)
         self._special_wait: list[bool] = [False] * n
         #: the replies' receive timestamps are on this host's wall clock (socketcan, virtual): used as
@@ -219,6 +241,32 @@ class CanController(Backend):
         self._threaded_rx = False
         #: torque on per joint, as the last setpoint written (set_zero needs it off)
         self._torque = np.zeros(n, dtype=bool)
+        # ---- one controller per bus and per motor (claims.py in-process, the wire for the rest)
+        self._claim: Claim | None = None
+        self._master_id = opts.master_id
+        self._by_motor_id = {m.id: k for k, m in enumerate(self._motors)}
+        self._motor_ids = [m.id for m in self._motors]
+        #: our own frames come back on the main handle (bus_kwargs receive_own_messages): count them
+        self._own_echo = bool(opts.bus_kwargs.get("receive_own_messages"))
+        self._echo_pending = [0] * n
+        #: DISABLE frames sent on the emergency handle (any thread, under _estop_lock) and their
+        #: echoes seen on the main handle (the loop): a DISABLE beyond those came from someone else
+        self._estop_sent = [0] * n
+        self._estop_seen = [0] * n
+        #: special frames sent on the main handle (each one is answered, like a command)
+        self._specials = [0] * n
+        #: per motor: replies minus frames sent, since the last check (floored, see _check_surplus)
+        self._replies_seen = [0] * n
+        self._expected_seen = [0] * n
+        self._surplus = [0] * n
+        self._surplus_floor = -max(_SURPLUS_FLOOR, 2 * opts.max_missed_replies)
+        #: a frame for one of our motors that we did not send was seen (raised by the next cycle)
+        self._foreign_seen = False
+
+    def joint_source(self, index: int) -> str | None:
+        """The motor that measures joint ``index``: ``"motor id 2 on socketcan:vcan0"``."""
+        opts: CanOptions = self.options
+        return f"motor id {self._motors[index].id} on {opts.interface}:{opts.channel}"
 
     def _validate_options(self, options: dict[str, Any], given: frozenset[str] = frozenset()) -> Any:
         if "motors" not in options:
@@ -241,6 +289,10 @@ class CanController(Backend):
 
     async def _open(self) -> None:
         opts: CanOptions = self.options
+        # one controller per motor within this process: refused before anything touches the bus
+        self._claim = claim(
+            opts.interface, opts.channel, [m.id for m in self._motors], owner=f"robot {self.description.name!r}"
+        )
         # tau_model: g(q) from the description's model, for the joints with gravity compensation
         self._gc_mask = self.gravity_compensation.astype(float)
         self._gc_model = None
@@ -255,7 +307,14 @@ class CanController(Backend):
             raise BackendStartError(
                 f"cannot open CAN bus interface={opts.interface!r} channel={opts.channel!r}: {exc}"
             ) from exc
-        self._bus.set_filters([{"can_id": opts.master_id, "can_mask": 0x7FF, "extended": False}])
+        # the replies, and frames addressed to our motors: on SocketCAN a socket does not receive its
+        # own frames (CAN_RAW_RECV_OWN_MSGS is off by default) while every other socket and node on the
+        # bus does, so a frame for our motor ids here was sent by another controller (or is our
+        # emergency handle's DISABLE, counted in _estop_sent); python-can's virtual bus behaves alike
+        filters: list[can.typechecking.CanFilter] = [
+            {"can_id": i, "can_mask": 0x7FF, "extended": False} for i in (opts.master_id, *self._motor_ids)
+        ]
+        self._bus.set_filters(filters)
         try:
             self._bus.fileno()
         except NotImplementedError:
@@ -295,6 +354,9 @@ class CanController(Backend):
         self._host_stamps = self._stamps_seen > 0 and self._stamps_bad == 0
         self._clock_offset = time.time() - time.monotonic()
         self._fill_state()
+        if self._foreign_seen:
+            self._disable_all()
+            raise BusConflict(self._foreign_message())
 
     async def _special_and_wait(self, k: int, frame: bytes, wait: float, *, next_cycle: bool = False) -> bool:
         """Send a special frame to motor ``k`` and wait for a reply from it that left after it.
@@ -312,10 +374,14 @@ class CanController(Backend):
                 while True:  # never block the event loop on a full transmit queue: retry
                     sent = time.time()  # before the send: the reply can be stamped before send() returns
                     self._any_reply.clear()
+                    self._specials[k] += 1  # counted before the send: its reply may come first
+                    self._echo_pending[k] += self._own_echo
                     try:
                         bus.send(msg, timeout=0.0)
                         break
                     except can.CanOperationError:
+                        self._specials[k] -= 1
+                        self._echo_pending[k] -= self._own_echo
                         await asyncio.sleep(self.period)
                 while self._reply_stamp[k] < sent:
                     await self._any_reply.wait()
@@ -340,20 +406,29 @@ class CanController(Backend):
         bus = self._estop_bus or self._bus
         if bus is None:
             return
+        # a frame on the emergency handle reaches the main handle like another node's: count it first
+        echo = [1 if bus is self._estop_bus else int(self._own_echo)] * self._n
         with self._estop_lock:
-            for m in self._motors:
+            for k, m in enumerate(self._motors):
+                self._estop_sent[k] += echo[k]
                 try:
                     bus.send(can.Message(arbitration_id=m.id, data=DISABLE, is_extended_id=False), timeout=0.01)
                 except (can.CanError, OSError) as exc:
+                    self._estop_sent[k] -= echo[k]
                     log.error("could not send DISABLE to motor %d: %s", m.id, exc)
 
     async def _close(self) -> None:
-        notifier, self._notifier = self._notifier, None
-        if notifier is not None and not self._threaded_rx:
-            notifier.stop(timeout=0.0)  # removes the loop's fd reader; nothing to join (must run on the loop)
-            notifier = None
-        # disable frames, joining a reader thread, shutting drivers down: blocking, so off the event loop
-        await run_blocking(self._release, notifier, name="agentsdk-can-close")
+        try:
+            notifier, self._notifier = self._notifier, None
+            if notifier is not None and not self._threaded_rx:
+                notifier.stop(timeout=0.0)  # removes the loop's fd reader; nothing to join (must run on the loop)
+                notifier = None
+            # disable frames, joining a reader thread, shutting drivers down: blocking, so off the event loop
+            await run_blocking(self._release, notifier, name="agentsdk-can-close")
+        finally:
+            held, self._claim = self._claim, None
+            if held is not None:
+                held.release()
 
     def _release(self, notifier: can.Notifier | None) -> None:
         self._disable_all()
@@ -379,6 +454,8 @@ class CanController(Backend):
             s.last_error = None
         self._fault_msg = None
         self._unexpected_ids.clear()
+        self._foreign_seen = False
+        self._surplus[:] = [0] * self._n
         await self._enable()
 
     async def set_zero(self, joint: str) -> None:
@@ -401,8 +478,9 @@ class CanController(Backend):
                 "await robot.reset()), zero, then await robot.enable()"
             )
         # (CubeMars motors ignore frames for ~1 s after a zero frame: those cycles are not counted as missed)
-        if not await self._special_and_wait(k, ZERO, _ZERO_TIMEOUT, next_cycle=self._cycling):
-            raise BackendFault(f"motor of joint {joint!r} did not acknowledge the zero frame")
+        with self.frame_change(k):  # the jump to the new zero is not a sensor fault
+            if not await self._special_and_wait(k, ZERO, _ZERO_TIMEOUT, next_cycle=self._cycling):
+                raise BackendFault(f"motor of joint {joint!r} did not acknowledge the zero frame")
 
     # ----------------------------------------------------------- receiving
     def _on_frame(self, msg: can.Message) -> None:
@@ -413,6 +491,9 @@ class CanController(Backend):
         ``read``), no Python objects beyond python-can's own message, no clock read when
         the frame's receive timestamp is on this host's clock.
         """
+        if msg.arbitration_id != self._master_id:
+            self._frame_for_a_motor(msg)
+            return
         if msg.is_error_frame or msg.is_remote_frame or msg.dlc < 6:
             return
         data = msg.data
@@ -458,14 +539,76 @@ class CanController(Backend):
                 st.consecutive_late += 1
             if not got[k]:
                 self._rx[k] = data
+                self._rx_stamp[k] = ts
                 self._err[k] = err
             return
         self._rx[k] = data
+        self._rx_stamp[k] = ts
         self._err[k] = err
         got[k] = True
         self._n_got += 1
         if self._n_got == self._n and self._all_in is not None:
             self._all_in.set()
+
+    def _frame_for_a_motor(self, msg: can.Message) -> None:
+        """A frame addressed to one of our motors reached our receive handle: ours, or a foreign commander's."""
+        k = self._by_motor_id.get(msg.arbitration_id)
+        if k is None or msg.is_error_frame or msg.is_extended_id:
+            return
+        if msg.data == DISABLE and self._estop_seen[k] < self._estop_sent[k]:
+            self._estop_seen[k] += 1  # our emergency handle's
+            return
+        if self._echo_pending[k] > 0:
+            self._echo_pending[k] -= 1  # our own frame (receive_own_messages)
+            return
+        self.stats[k].foreign_commands += 1
+        if not self._foreign_seen:
+            self._foreign_seen = True
+            kind = is_special(msg.data) or "command"
+            log.error("a %s frame for motor id %d that this robot did not send: %s", kind, msg.arbitration_id, msg)
+
+    def _foreign_message(self) -> str:
+        opts: CanOptions = self.options
+        who = ", ".join(
+            f"motor id {s.motor_id} (joint {s.joint!r}, {s.foreign_commands} frames)"
+            for s in self.stats
+            if s.foreign_commands
+        )
+        return (
+            f"another controller commands {who} on {opts.interface}:{opts.channel}: frames this robot did not "
+            "send; two controllers on one motor fight over it (stop the other one; motors disabled)"
+        )
+
+    def _check_surplus(self) -> None:
+        """Once per cycle: a motor answering more frames than were sent to it has a second responder.
+
+        One device answers each frame at most once, so per motor the replies never exceed the
+        frames sent (commands, special frames, emergency DISABLEs), whatever their timing.
+        Lost replies leave a deficit, remembered down to a floor (see :data:`_SURPLUS_FLOOR`)
+        so that losses cannot hide a second responder for long.
+        """
+        floor = self._surplus_floor
+        stats, surplus = self.stats, self._surplus
+        specials, estop = self._specials, self._estop_sent
+        r_seen, e_seen = self._replies_seen, self._expected_seen
+        for k in range(self._n):
+            s = stats[k]
+            replies = s.replies
+            expected = s.commands + specials[k] + estop[k]
+            x = surplus[k] + (replies - r_seen[k]) - (expected - e_seen[k])
+            r_seen[k] = replies
+            e_seen[k] = expected
+            if x < floor:
+                x = floor
+            surplus[k] = x
+            if x >= _SURPLUS_LIMIT:
+                s.surplus_replies = x
+                opts: CanOptions = self.options
+                raise BusConflict(
+                    f"motor id {s.motor_id} (joint {s.joint!r}) on {opts.interface}:{opts.channel} answered {x} more "
+                    f"frames than this robot sent it: a second device answers with id {s.motor_id} (a duplicate CAN "
+                    "id), or another controller commands it (motors disabled)"
+                )
 
     def _reply_time(self, msg: can.Message) -> float:
         """When the reply reached the bus (wall clock): its timestamp if that is plausibly
@@ -519,6 +662,8 @@ class CanController(Backend):
         assert bus is not None and ev is not None
         if self._fault_msg is not None:
             raise BackendFault(self._fault_msg)
+        if self._foreign_seen:
+            raise BusConflict(self._foreign_message())
         if self._drain_estop:
             self._drain_estop_bus()
         ev.clear()
@@ -530,16 +675,24 @@ class CanController(Backend):
         self._window_start = time.time()
         self._window_open = True
         try:
-            # the commands go out back to back, before any reply is handled
+            # the commands go out back to back, before any reply is handled (each counted before
+            # its send: the reply may be handled first)
+            own_echo = self._own_echo
             for k, msg in enumerate(self._msgs):
+                stats[k].commands += 1
+                if own_echo:
+                    self._echo_pending[k] += 1
                 try:
                     bus.send(msg, timeout=0.0)
                 except can.CanOperationError as exc:  # TX buffer full: the bus is saturated
+                    stats[k].commands -= 1
                     raise BackendFault(f"CAN transmit failed for motor id {self._motors[k].id}: {exc}") from exc
-                stats[k].commands += 1
             await self._wait_replies(ev, dt * self.options.reply_deadline)
         finally:
             self._window_open = False
+        if self._foreign_seen:
+            raise BusConflict(self._foreign_message())
+        self._check_surplus()
         if self._n_got == self._n:
             for s in stats:
                 s.consecutive_missed = s.consecutive_late = 0
@@ -626,6 +779,15 @@ class CanController(Backend):
             if ch.due and ch.spec.kind == "temperature":
                 temp = stats[index[ch.spec.joint or ""]].temperature
                 ch.values[0] = math.nan if temp is None else temp  # NaN until the motor first replied
+
+    def reading_age(self) -> np.ndarray:
+        """Seconds since each motor's newest reply (the data ``read`` returns) reached the bus."""
+        now = time.time()
+        age = self._age
+        for k, ts in enumerate(self._rx_stamp):
+            a = now - ts
+            age[k] = a if a > 0.0 else 0.0
+        return age
 
     @property
     def stale(self) -> np.ndarray:

@@ -584,6 +584,16 @@ def _parse_value(text: str) -> Any:
 def _cmd_robots(args: argparse.Namespace) -> int:
     from .description import list_robots, resolve_robot
 
+    if getattr(args, "all", False):
+        from .description.catalog import installed_robots
+
+        entries = installed_robots()
+        width = max((len(e.name) for e in entries), default=4)
+        for e in entries:
+            where = f"broken: {e.problem}" if e.path is None else str(e.path)
+            source = f"{e.source} ({e.provider})" if e.provider else e.source
+            print(f"{e.name:{width}s}  {source:22s} {where}")
+        return 0
     for name in list_robots():
         try:
             _, desc = resolve_robot(name)
@@ -713,7 +723,10 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", "-q", action="store_true", help="no report, no progress bar")
     rp.add_argument("--debug", action="store_true", help="show tracebacks")
 
-    sub.add_parser("robots", help="list the shipped robots")
+    rb = sub.add_parser("robots", help="list the shipped robots (--all: every robot known by name)")
+    rb.add_argument("--all", action="store_true",
+                    help="also list the robots of installed packages (example-robot-data, Menagerie, "
+                         "agentsdk.robots entry points) with their source")
     d = sub.add_parser("describe", help="print a robot's joint tree and limits (URDF, xacro, MJCF, robot.yaml)")
     d.add_argument("robot")
     c = sub.add_parser("check", help="check a robot description and load it on each installed simulator")

@@ -362,7 +362,7 @@ class _RunExtras:
         rec.finish()
         if self.record:
             counts = ", ".join(f"{k} {v}" for k, v in rec.counts.items())
-            lines.append(f"recorded {rec.ticks} ticks to {self.record} ({counts})")
+            lines.append(f"recorded {rec.ticks} ticks to {self.record}" + (f" ({counts})" if counts else ""))
         if self.plot:
             from .plot import plot_run
 
@@ -613,7 +613,8 @@ def _cmd_describe(args: argparse.Namespace) -> int:
     for line in desc.tree_lines():
         print(line)
     print()
-    print(f"{len(joints)} actuated joints (after robot.yaml overrides), control rate {config.update_rate:g} Hz:")
+    overrides = f" (after {config.source.name} overrides)" if config.source is not None else ""
+    print(f"{len(joints)} actuated joints{overrides}, control rate {config.update_rate:g} Hz:")
     for j in joints:
         print(
             f"  {j.name:22s} {j.type:10s} [{j.lower:+.3f}, {j.upper:+.3f}]  vel {j.max_velocity:g}  "
@@ -686,7 +687,8 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a behavior script's `async def main(robot)`")
     r.add_argument("behavior", help="path to a behavior .py (or a name from behaviors/)")
     r.add_argument("--backend", default=None, help="mujoco (default), pybullet, mock, can")
-    r.add_argument("--robot", default=None, help="robot name or path to .urdf/.xacro/robot.yaml")
+    r.add_argument("--robot", default=None,
+                   help="robot name (`agentsdk robots --all`) or path to a .urdf, .xacro, MJCF .xml or robot.yaml")
     r.add_argument("--realtime", action="store_true", help="pace the simulation to the wall clock")
     r.add_argument("--rt-priority", type=int, metavar="N",
                    help="run with the SCHED_FIFO real-time policy at priority N (1..99; Linux, needs CAP_SYS_NICE "

@@ -197,7 +197,7 @@ class Recorder:
     @property
     def counts(self) -> dict[str, int]:
         """Messages written per topic (of ``path``'s file, or of the temporary file)."""
-        return dict(self._sinks[0].counts) if self._sinks else {}
+        return dict(self._sinks[0].counts) if self._sinks else dict(getattr(self, "_closed_counts", {}))
 
     # -------------------------------------------------------------- setup
     def _metadata(self, extra: Mapping[str, str]) -> dict[str, str]:
@@ -459,6 +459,8 @@ class Recorder:
     # ----------------------------------------------------------- finish
     def _close_sinks(self, ok: bool) -> None:
         sinks, self._sinks = self._sinks, []
+        if sinks:  # what was written stays readable after the file is closed
+            self._closed_counts = dict(sinks[0].counts)
         error: BaseException | None = None
         for s in sinks:
             try:

@@ -246,8 +246,12 @@ class CanController(Backend):
             self._bus = self._make_bus()
             self._estop_bus = self._make_bus()
         except (can.CanError, OSError, ValueError, ImportError) as exc:
+            from .hints import bus_open_hint
+
+            hint = bus_open_hint(opts.interface, opts.channel, exc)
             raise BackendStartError(
                 f"cannot open CAN bus interface={opts.interface!r} channel={opts.channel!r}: {exc}"
+                + (f"; {hint}" if hint else "")
             ) from exc
         self._bus.set_filters([{"can_id": opts.master_id, "can_mask": 0x7FF, "extended": False}])
         try:

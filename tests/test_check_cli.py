@@ -56,7 +56,7 @@ def test_check_an_mjcf_file() -> None:
     r = _agentsdk("check", str(FIXTURES / "mjcf_arm" / "scene.xml"))
     assert r.returncode == 0, r.stderr
     assert "robot 'mjcf_arm scene' (MJCF)" in r.stdout
-    assert "start pose (the model's home keyframe (" in r.stdout and "shoulder_pitch=0.3" in r.stdout
+    assert "joints from the model's home keyframe" in r.stdout and "shoulder_pitch=0.3" in r.stdout
     assert "self-collision (the model's own contact settings)" in r.stdout
     assert "mujoco    ✓ loads and runs (3 joints" in r.stdout
 

@@ -316,7 +316,10 @@ class _RunExtras:
         video_fps: float = 30.0,
         video_size: tuple[int, int] = (640, 480),
         record_format: str = "mcap",
+        web_port: int | None = None,
     ) -> None:
+        self.web_port = web_port
+        self.web: Any = None
         self.record, self.plot, self.rate = record, plot, rate
         self.record_format = record_format
         self.video, self.video_fps, self.video_size = video, video_fps, video_size
@@ -336,6 +339,11 @@ class _RunExtras:
                                             metadata=self.metadata, format=self.record_format)
         if self.view and bot.backend == "mujoco":
             self.viewer = _MujocoView(bot)
+        if self.web_port is not None:
+            from .webview import WebView
+
+            self.web = WebView.attach(bot, port=self.web_port)
+            print(f"web view: {self.web.url}", file=sys.stderr, flush=True)
         if self.video:
             from .video import VideoRecorder
 
@@ -352,6 +360,9 @@ class _RunExtras:
             self.progress.stop()
         if self.viewer is not None:
             self.viewer.close()
+        if self.web is not None:
+            self.web.close()
+            self.web = None
         if self.video_recorder is not None:
             video, self.video_recorder = self.video_recorder, None
             path = video.finish(progress=self.progress_on)
@@ -443,6 +454,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         _check_view(backend)
         if backend == "pybullet":
             options.setdefault("gui", True)
+    if args.web:
+        from .webview import WebView
+
+        WebView.prepare()  # imports take seconds: before the robot's loop and its stall watchdog run
     behavior_name = Path(module.__file__ or args.behavior).name
     extras = _RunExtras(
         record=args.record,
@@ -454,6 +469,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         video_fps=args.video_fps,
         video_size=video_size,
         record_format=args.record_format,
+        web_port=args.port if args.web else None,
         label=f"{behavior_name} on {robot} ({backend})",
         metadata={
             "robot": robot_spec_for_metadata(robot),
@@ -461,10 +477,21 @@ def _cmd_run(args: argparse.Namespace) -> int:
             "backend_options": json.dumps(options, sort_keys=True, default=str),
         },
     )
+    main_fn = module.main
+    if args.web_wait:
+        if not args.web:
+            raise ConfigurationError("--web-wait needs --web")
+        behavior_main = module.main
+
+        async def main_fn(bot: Any) -> Any:
+            print(f"waiting for a browser on {extras.web.url} ...", file=sys.stderr, flush=True)
+            await extras.web.wait_for_viewer()
+            return await behavior_main(bot)
+
     try:
         summary = asyncio.run(
             run_behavior(
-                module.main,
+                main_fn,
                 backend=backend,
                 robot=robot,
                 realtime=True if (args.realtime or args.view) else None,
@@ -713,6 +740,12 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--view", action="store_true",
                    help="show the simulation (MuJoCo viewer / PyBullet GUI; needs a display; implies --realtime)")
 
+    r.add_argument("--web", action="store_true",
+                   help="serve a live page on http://127.0.0.1:PORT: the robot in 3D, joint plots, safety state, "
+                        "an e-stop button (needs agentsdk[web])")
+    r.add_argument("--port", type=int, default=8080, help="port of the --web page (default 8080)")
+    r.add_argument("--web-wait", action="store_true",
+                   help="with --web: start the behavior once a browser has opened the page")
     rp = sub.add_parser("replay", help="replay a recording's commands into a fresh robot and report divergence")
     rp.add_argument("recording", help="an MCAP file written by `agentsdk run --record`")
     rp.add_argument("--backend", default=None, help="backend to replay into (default: the recorded one)")

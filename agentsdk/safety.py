@@ -117,6 +117,8 @@ class SafetyConfig(BaseModel):
     position_limit_tolerance: Annotated[float, Field(gt=0.0)] | None = 0.1
     #: stop category of that protective stop (IEC 60204-1)
     position_limit_stop: Literal[0, 1, 2] = 2
+    #: stop category of the e-stop buttons of user interfaces (the web view's E-STOP)
+    ui_stop_category: Literal[0, 1, 2] = 1
 
     @classmethod
     def from_sources(

@@ -26,6 +26,13 @@ if ! ldconfig -p 2>/dev/null | grep -q -E 'libEGL_mesa\.so|libOSMesa\.so' && com
         { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends $GL_PKGS >/dev/null; }
 fi
 
+# System packages: a headless Chromium and its WebDriver for the web view's browser test (selenium drives them).
+if { ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; } && command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get install -y -q --no-install-recommends chromium chromium-driver >/dev/null 2>&1 ||
+        { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends chromium chromium-driver >/dev/null; }
+fi
+
 "$PY" -m ruff check .
 
 # Static types: mypy --strict over agentsdk and the backends (as installed: see the script).

@@ -484,8 +484,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         behavior_main = module.main
 
         async def main_fn(bot: Any) -> Any:
-            print(f"waiting for a browser on {extras.web.url} ...", file=sys.stderr, flush=True)
-            await extras.web.wait_for_viewer()
+            print(f"press Start on {extras.web.url} to run the behavior", file=sys.stderr, flush=True)
+            await extras.web.wait_for_start()
             return await behavior_main(bot)
 
     try:
@@ -745,7 +745,7 @@ def _parser() -> argparse.ArgumentParser:
                         "an e-stop button (needs agentsdk[web])")
     r.add_argument("--port", type=int, default=8080, help="port of the --web page (default 8080)")
     r.add_argument("--web-wait", action="store_true",
-                   help="with --web: start the behavior once a browser has opened the page")
+                   help="with --web: run the behavior when the page's Start button is pressed")
     rp = sub.add_parser("replay", help="replay a recording's commands into a fresh robot and report divergence")
     rp.add_argument("recording", help="an MCAP file written by `agentsdk run --record`")
     rp.add_argument("--backend", default=None, help="backend to replay into (default: the recorded one)")

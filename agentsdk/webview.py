@@ -58,8 +58,6 @@ PLOT_WINDOW = 10.0
 #: one Cartesian jog step (m) and one joint jog step (rad or m)
 JOG_STEP = 0.01
 JOINT_STEP = 0.05
-#: ``wait_for_viewer`` gives a connected page this long (wall s) to draw its 3D view
-VIEWER_TIMEOUT = 60.0
 
 
 @dataclass(frozen=True)
@@ -116,7 +114,8 @@ class WebView:
         self.last: Snapshot | None = None
         #: set once the page is being served (the server, the meshes and the widgets are built in the thread)
         self.ready = threading.Event()
-        self._connected = asyncio.Event()
+        self._started = asyncio.Event()
+        self._start_wanted = threading.Event()
         self.error: BaseException | None = None
         self.port = _free_port(port)
         self.server: Any = None
@@ -149,21 +148,10 @@ class WebView:
         """Serve the live page of ``robot`` on http://127.0.0.1:``port`` (call from the robot's event loop)."""
         return cls(robot, port, stop_category=stop_category)
 
-    def _on_connect(self, client: Any) -> None:
-        """A page opened: it counts as watching once its 3D view reports its camera (the scene is drawn)."""
-
-        def _watching() -> None:
-            if not self._closed.is_set():
-                self._aloop.call_soon_threadsafe(self._connected.set)
-
-        client.camera.on_update(lambda _camera: _watching())
-        timer = threading.Timer(VIEWER_TIMEOUT, _watching)  # a page that never draws still starts the run
-        timer.daemon = True
-        timer.start()
-
-    async def wait_for_viewer(self) -> None:
-        """Return once a browser has opened the page (``agentsdk run --web --web-wait``)."""
-        await self._connected.wait()
+    async def wait_for_start(self) -> None:
+        """Show a **Start** button on the page and return once it is pressed (``agentsdk run --web --web-wait``)."""
+        self._start_wanted.set()
+        await self._started.wait()
 
     @property
     def url(self) -> str:
@@ -186,7 +174,6 @@ class WebView:
         finally:
             rich._console = saved
         self.port = int(self.server.get_port())
-        self.server.on_client_connect(self._on_connect)
         self._build_gui()
         self._build_scene(ViserUrdf)
 
@@ -211,6 +198,14 @@ class WebView:
 
     def _build_gui(self) -> None:
         gui = self.server.gui
+        self._start = gui.add_button("Start", color="green", visible=False,
+                                     hint="run the behavior (agentsdk run --web-wait)")
+
+        def _press(_: Any) -> None:
+            self._start.visible = False
+            self._aloop.call_soon_threadsafe(self._started.set)
+
+        self._start.on_click(_press)
         self._estop = gui.add_button("E-STOP", color="red", icon=None,
                                      hint=f"latch an e-stop, category {self.stop_category}")
         self._estop.on_click(lambda _: self.estop())
@@ -398,6 +393,8 @@ class WebView:
 
     def _publish(self, snap: Snapshot) -> None:
         self.last = snap
+        if self._start_wanted.is_set() and not self._started.is_set() and not self._start.visible:
+            self._start.visible = True
         if self._urdf is not None:
             pos = dict(zip(snap.names, snap.position.tolist(), strict=True))
             self._urdf.update_cfg(np.array([pos.get(n, 0.0) for n in self._urdf_names]))

@@ -61,3 +61,41 @@ async def test_a_taken_port_is_refused() -> None:
         async with agentsdk.connect("mock", robot="arm3", safety=SAFETY) as robot:
             with pytest.raises(ConfigurationError, match=rf"127.0.0.1:{port}.*choose another --port"):
                 WebView.attach(robot, port=port)
+
+
+@pytest.mark.parametrize("robot_name", ["ur5", "panda"])
+async def test_a_cartesian_jog_moves_the_end_effector_one_centimetre(robot_name: str) -> None:
+    """What a W key press (or the +x button) on the page does: +1 cm in x within 1 mm, on MuJoCo."""
+    import numpy as np
+
+    from agentsdk.arm import ready_configuration
+    from agentsdk.description.catalog import find_robot
+    from agentsdk.webview import JOG_STEP, WebView
+
+    if find_robot(robot_name) is None:
+        pytest.skip(f"{robot_name} is not installed")
+    WebView.prepare()
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+        view = WebView.attach(robot, port=0)
+        try:
+            await _until(view.ready.is_set)
+            link = view._jog_link
+            # away from the start pose's singularity (both start stretched out)
+            q = ready_configuration(robot.kinematics, link, robot.latest_state().position, full=True)
+            await robot.move_to(dict(zip(robot.joint_names, q.tolist(), strict=True)))
+            await robot.clock.sleep(0.5)
+            before = robot.kinematics.fk(link).position.copy()
+            view.jog_cartesian(0, JOG_STEP)
+            assert view._jogging is not None
+            await asyncio.wrap_future(view._jogging)
+            await robot.clock.sleep(1.0)  # settle
+            moved = robot.kinematics.fk(link).position - before
+            assert abs(moved[0] - 0.01) < 1e-3 and np.linalg.norm(moved[1:]) < 1e-3, moved
+            # a press while a jog runs is dropped, not queued: release = no further motion
+            view.jog_cartesian(0, JOG_STEP)
+            first = view._jogging
+            view.jog_cartesian(0, JOG_STEP)
+            assert view._jogging is first
+            await asyncio.wrap_future(first)
+        finally:
+            view.close()

@@ -706,6 +706,37 @@ def _cmd_vcan(rest: list[str]) -> int:
     return subprocess.call(["bash", str(script), *rest])
 
 
+def _cmd_teleop(args: argparse.Namespace) -> int:
+    """``agentsdk teleop --leader B1:R1 --follower B2:R2``: the follower follows the leader (agentsdk.teleop)."""
+    from .robot import connect
+    from .teleop import follow_leader, parse_endpoint
+
+    lb, lr = parse_endpoint(args.leader, "leader")
+    fb, fr = parse_endpoint(args.follower, "follower")
+    driver = load_behavior(args.leader_behavior) if args.leader_behavior else None
+
+    async def session() -> Any:
+        async with (connect(lb, robot=lr, realtime=True) as leader,
+                    connect(fb, robot=fr, realtime=True) as follower):
+            print(f"teleop: {leader.name} ({lb}) -> {follower.name} ({fb}), scale {args.scale:g}; "
+                  "Ctrl-C ends (the follower holds)", file=sys.stderr, flush=True)
+            async with asyncio.TaskGroup() as tg:
+                follow = tg.create_task(follow_leader(leader, follower, scale=args.scale, duration=args.duration))
+                if driver is not None:  # a scripted leader (a demo without a leader arm)
+                    await driver.main(leader)
+                    await leader.close()  # the leader stops: the follower holds and the session ends
+                return await follow
+
+    try:
+        report = asyncio.run(session())
+    except KeyboardInterrupt:
+        print("teleop interrupted; the follower held its position", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"teleop ended ({report.ended}) after {report.commands} commands; largest tracking error "
+          f"{report.max_tracking_error:.4f}; joints: {', '.join(f'{a}->{b}' for a, b in report.pairs)}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="agentsdk", description="Run robot behaviors on any backend.")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
@@ -770,6 +801,13 @@ def _parser() -> argparse.ArgumentParser:
                    help="simulator(s) to load on (default: every installed one of mujoco, pybullet)")
     c.add_argument("--strict", action="store_true", help="treat every repair as an error")
     c.add_argument("--timeout", type=float, default=300.0, help="seconds allowed per simulator load")
+    t = sub.add_parser("teleop", help="leader-follower teleoperation: the follower robot follows the leader's joints")
+    t.add_argument("--leader", required=True, metavar="BACKEND:ROBOT", help="e.g. can:my_arm, mock:arm3")
+    t.add_argument("--follower", required=True, metavar="BACKEND:ROBOT", help="e.g. mujoco:arm3")
+    t.add_argument("--scale", type=float, default=1.0, help="follower motion = scale x leader motion (default 1)")
+    t.add_argument("--duration", type=float, default=None, help="end after this many seconds")
+    t.add_argument("--leader-behavior", metavar="BEHAVIOR.py",
+                   help="drive the leader with a behavior script (a demo without a leader arm)")
     g = sub.add_parser("graph", help="print the Mermaid diagram of a behavior's state machines")
     g.add_argument("behavior")
     sub.add_parser("emulate-can", help="run the MIT motor emulator (see `agentsdk emulate-can --help`)",
@@ -801,6 +839,7 @@ def main(argv: list[str] | None = None) -> int:
         "describe": _cmd_describe,
         "check": _cmd_check,
         "graph": _cmd_graph,
+        "teleop": _cmd_teleop,
     }
     try:
         return handlers[args.command](args)

@@ -342,8 +342,9 @@ class _RunExtras:
         if self.web_port is not None:
             from .webview import WebView
 
-            self.web = WebView.attach(bot, port=self.web_port)
-            print(f"web view: {self.web.url}", file=sys.stderr, flush=True)
+            self.web = WebView.attach(
+                bot, port=self.web_port, on_ready=lambda v: print(f"web view: {v.url}", file=sys.stderr, flush=True)
+            )
         if self.video:
             from .video import VideoRecorder
 
@@ -484,6 +485,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         behavior_main = module.main
 
         async def main_fn(bot: Any) -> Any:
+            await extras.web.wait_ready()
             print(f"press Start on {extras.web.url} to run the behavior", file=sys.stderr, flush=True)
             await extras.web.wait_for_start()
             return await behavior_main(bot)

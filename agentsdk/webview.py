@@ -28,11 +28,13 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import logging
 import tempfile
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -102,7 +104,14 @@ def _free_port(port: int) -> int:
 class WebView:
     """The live page of one robot (see the module documentation). Use :meth:`attach`; :meth:`close` ends it."""
 
-    def __init__(self, robot: Robot, port: int = 8080, *, stop_category: int | None = None) -> None:
+    def __init__(
+        self,
+        robot: Robot,
+        port: int = 8080,
+        *,
+        stop_category: int | None = None,
+        on_ready: Callable[[WebView], None] | None = None,
+    ) -> None:
         _require()
         self.robot = robot
         self._aloop = asyncio.get_running_loop()
@@ -115,6 +124,8 @@ class WebView:
         #: set once the page is being served (the server, the meshes and the widgets are built in the thread)
         self.ready = threading.Event()
         self._started = asyncio.Event()
+        self._served = asyncio.Event()
+        self._on_ready = on_ready
         self._start_wanted = threading.Event()
         self.error: BaseException | None = None
         self.port = _free_port(port)
@@ -144,14 +155,31 @@ class WebView:
         import yourdfpy  # noqa: F401
 
     @classmethod
-    def attach(cls, robot: Robot, port: int = 8080, *, stop_category: int | None = None) -> WebView:
-        """Serve the live page of ``robot`` on http://127.0.0.1:``port`` (call from the robot's event loop)."""
-        return cls(robot, port, stop_category=stop_category)
+    def attach(
+        cls,
+        robot: Robot,
+        port: int = 8080,
+        *,
+        stop_category: int | None = None,
+        on_ready: Callable[[WebView], None] | None = None,
+    ) -> WebView:
+        """Serve the live page of ``robot`` on http://127.0.0.1:``port`` (call from the robot's event loop).
+
+        The page is built in a thread; ``on_ready(view)`` is called from it once it is served.
+        """
+        return cls(robot, port, stop_category=stop_category, on_ready=on_ready)
 
     async def wait_for_start(self) -> None:
         """Show a **Start** button on the page and return once it is pressed (``agentsdk run --web --web-wait``)."""
+        await self.wait_ready()
         self._start_wanted.set()
         await self._started.wait()
+
+    async def wait_ready(self) -> None:
+        """Return once the page is served (raise :class:`ConfigurationError` if it could not be)."""
+        await self._served.wait()
+        if self.error is not None:
+            raise ConfigurationError(f"the web view could not be served: {self.error}") from self.error
 
     @property
     def url(self) -> str:
@@ -377,6 +405,10 @@ class WebView:
             return
         finally:
             self.ready.set()
+            with contextlib.suppress(RuntimeError):  # (the robot's loop may be gone already)
+                self._aloop.call_soon_threadsafe(self._served.set)
+        if self._on_ready is not None:
+            self._on_ready(self)
         period, next_plot = 1.0 / RATE, 0.0
         while not self._closed.wait(period):
             snap = self._take()

@@ -127,6 +127,7 @@ class WebView:
         self._served = asyncio.Event()
         self._on_ready = on_ready
         self._start_wanted = threading.Event()
+        self._pressed = threading.Event()
         self.error: BaseException | None = None
         self.port = _free_port(port)
         self.server: Any = None
@@ -221,7 +222,7 @@ class WebView:
         reach = max(reach, 0.2)
         self.server.scene.add_grid("/ground", width=4.0 * reach, height=4.0 * reach, cell_size=0.1)
         cam = self.server.initial_camera
-        cam.position = (1.8 * reach, -1.8 * reach, 1.3 * reach)
+        cam.position = (1.3 * reach, -1.3 * reach, 1.0 * reach)
         cam.look_at = (0.0, 0.0, 0.4 * reach)
 
     def _build_gui(self) -> None:
@@ -230,6 +231,7 @@ class WebView:
                                      hint="run the behavior (agentsdk run --web-wait)")
 
         def _press(_: Any) -> None:
+            self._pressed.set()
             self._start.visible = False
             self._aloop.call_soon_threadsafe(self._started.set)
 
@@ -425,7 +427,7 @@ class WebView:
 
     def _publish(self, snap: Snapshot) -> None:
         self.last = snap
-        if self._start_wanted.is_set() and not self._started.is_set() and not self._start.visible:
+        if self._start_wanted.is_set() and not self._pressed.is_set() and not self._start.visible:
             self._start.visible = True
         if self._urdf is not None:
             pos = dict(zip(snap.names, snap.position.tolist(), strict=True))

@@ -318,7 +318,10 @@ class _RunExtras:
         video_fps: float = 30.0,
         video_size: tuple[int, int] = (640, 480),
         record_format: str = "mcap",
+        web_port: int | None = None,
     ) -> None:
+        self.web_port = web_port
+        self.web: Any = None
         self.record, self.plot, self.rate = record, plot, rate
         self.record_format = record_format
         self.video, self.video_fps, self.video_size = video, video_fps, video_size
@@ -339,6 +342,12 @@ class _RunExtras:
                                             metadata=self.metadata, format=self.record_format, **rate)
         if self.view and bot.backend == "mujoco":
             self.viewer = _MujocoView(bot)
+        if self.web_port is not None:
+            from .webview import WebView
+
+            self.web = WebView.attach(
+                bot, port=self.web_port, on_ready=lambda v: print(f"web view: {v.url}", file=sys.stderr, flush=True)
+            )
         if self.video:
             from .video import VideoRecorder
 
@@ -355,6 +364,9 @@ class _RunExtras:
             self.progress.stop()
         if self.viewer is not None:
             self.viewer.close()
+        if self.web is not None:
+            self.web.close()
+            self.web = None
         if self.video_recorder is not None:
             video, self.video_recorder = self.video_recorder, None
             path = video.finish(progress=self.progress_on)
@@ -365,7 +377,7 @@ class _RunExtras:
         rec.finish()
         if self.record:
             counts = ", ".join(f"{k} {v}" for k, v in rec.counts.items())
-            lines.append(f"recorded {rec.ticks} ticks to {self.record} ({counts})")
+            lines.append(f"recorded {rec.ticks} ticks to {self.record}" + (f" ({counts})" if counts else ""))
         if self.plot:
             from .plot import plot_run
 
@@ -447,6 +459,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         _check_view(backend)
         if backend == "pybullet":
             options.setdefault("gui", True)
+    if args.web:
+        from .webview import WebView
+
+        WebView.prepare()  # imports take seconds: before the robot's loop and its stall watchdog run
     behavior_name = Path(module.__file__ or args.behavior).name
     extras = _RunExtras(
         record=args.record,
@@ -458,6 +474,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         video_fps=args.video_fps,
         video_size=video_size,
         record_format=args.record_format,
+        web_port=args.port if args.web else None,
         label=f"{behavior_name} on {robot} ({backend})",
         metadata={
             "robot": robot_spec_for_metadata(robot),
@@ -465,10 +482,22 @@ def _cmd_run(args: argparse.Namespace) -> int:
             "backend_options": json.dumps(options, sort_keys=True, default=str),
         },
     )
+    main_fn = module.main
+    if args.web_wait:
+        if not args.web:
+            raise ConfigurationError("--web-wait needs --web")
+        behavior_main = module.main
+
+        async def main_fn(bot: Any) -> Any:
+            await extras.web.wait_ready()
+            print(f"press Start on {extras.web.url} to run the behavior", file=sys.stderr, flush=True)
+            await extras.web.wait_for_start()
+            return await behavior_main(bot)
+
     try:
         summary = asyncio.run(
             run_behavior(
-                module.main,
+                main_fn,
                 backend=backend,
                 robot=robot,
                 realtime=True if (args.realtime or args.view) else None,
@@ -588,6 +617,16 @@ def _parse_value(text: str) -> Any:
 def _cmd_robots(args: argparse.Namespace) -> int:
     from .description import list_robots, resolve_robot
 
+    if getattr(args, "all", False):
+        from .description.catalog import installed_robots
+
+        entries = installed_robots()
+        width = max((len(e.name) for e in entries), default=4)
+        for e in entries:
+            where = f"broken: {e.problem}" if e.path is None else str(e.path)
+            source = f"{e.source} ({e.provider})" if e.provider else e.source
+            print(f"{e.name:{width}s}  {source:22s} {where}")
+        return 0
     for name in list_robots():
         try:
             _, desc = resolve_robot(name)
@@ -607,7 +646,8 @@ def _cmd_describe(args: argparse.Namespace) -> int:
     for line in desc.tree_lines():
         print(line)
     print()
-    print(f"{len(joints)} actuated joints (after robot.yaml overrides), control rate {config.update_rate:g} Hz:")
+    overrides = f" (after {config.source.name} overrides)" if config.source is not None else ""
+    print(f"{len(joints)} actuated joints{overrides}, control rate {config.update_rate:g} Hz:")
     for j in joints:
         print(
             f"  {j.name:22s} {j.type:10s} [{j.lower:+.3f}, {j.upper:+.3f}]  vel {j.max_velocity:g}  "
@@ -690,6 +730,37 @@ _TRUST_HELP = (
 )
 
 
+def _cmd_teleop(args: argparse.Namespace) -> int:
+    """``agentsdk teleop --leader B1:R1 --follower B2:R2``: the follower follows the leader (agentsdk.teleop)."""
+    from .robot import connect
+    from .teleop import follow_leader, parse_endpoint
+
+    lb, lr = parse_endpoint(args.leader, "leader")
+    fb, fr = parse_endpoint(args.follower, "follower")
+    driver = load_behavior(args.leader_behavior) if args.leader_behavior else None
+
+    async def session() -> Any:
+        async with (connect(lb, robot=lr, realtime=True) as leader,
+                    connect(fb, robot=fr, realtime=True) as follower):
+            print(f"teleop: {leader.name} ({lb}) -> {follower.name} ({fb}), scale {args.scale:g}; "
+                  "Ctrl-C ends (the follower holds)", file=sys.stderr, flush=True)
+            async with asyncio.TaskGroup() as tg:
+                follow = tg.create_task(follow_leader(leader, follower, scale=args.scale, duration=args.duration))
+                if driver is not None:  # a scripted leader (a demo without a leader arm)
+                    await driver.main(leader)
+                    await leader.close()  # the leader stops: the follower holds and the session ends
+                return await follow
+
+    try:
+        report = asyncio.run(session())
+    except KeyboardInterrupt:
+        print("teleop interrupted; the follower held its position", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"teleop ended ({report.ended}) after {report.commands} commands; largest tracking error "
+          f"{report.max_tracking_error:.4f}; joints: {', '.join(f'{a}->{b}' for a, b in report.pairs)}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="agentsdk", description="Run robot behaviors on any backend.")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
@@ -698,7 +769,8 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("run", help="run a behavior script's `async def main(robot)`")
     r.add_argument("behavior", help="path to a behavior .py (or a name from behaviors/)")
     r.add_argument("--backend", default=None, help="mujoco (default), pybullet, mock, can")
-    r.add_argument("--robot", default=None, help="robot name or path to .urdf/.xacro/robot.yaml")
+    r.add_argument("--robot", default=None,
+                   help="robot name (`agentsdk robots --all`) or path to a .urdf, .xacro, MJCF .xml or robot.yaml")
     r.add_argument("--realtime", action="store_true", help="pace the simulation to the wall clock")
     r.add_argument("--rt-priority", type=int, metavar="N",
                    help="run with the SCHED_FIFO real-time policy at priority N (1..99; Linux, needs CAP_SYS_NICE "
@@ -724,6 +796,12 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--view", action="store_true",
                    help="show the simulation (MuJoCo viewer / PyBullet GUI; needs a display; implies --realtime)")
 
+    r.add_argument("--web", action="store_true",
+                   help="serve a live page on http://127.0.0.1:PORT: the robot in 3D, joint plots, safety state, "
+                        "an e-stop button (needs agentsdk[web])")
+    r.add_argument("--port", type=int, default=8080, help="port of the --web page (default 8080)")
+    r.add_argument("--web-wait", action="store_true",
+                   help="with --web: run the behavior when the page's Start button is pressed")
     rp = sub.add_parser("replay", help="replay a recording's commands into a fresh robot and report divergence")
     rp.add_argument("recording", help="an MCAP file written by `agentsdk run --record`")
     rp.add_argument("--backend", default=None, help="backend to replay into (default: the recorded one)")
@@ -736,7 +814,10 @@ def _parser() -> argparse.ArgumentParser:
     rp.add_argument("--quiet", "-q", action="store_true", help="no report, no progress bar")
     rp.add_argument("--debug", action="store_true", help="show tracebacks")
 
-    sub.add_parser("robots", help="list the shipped robots")
+    rb = sub.add_parser("robots", help="list the shipped robots (--all: every robot known by name)")
+    rb.add_argument("--all", action="store_true",
+                    help="also list the robots of installed packages (example-robot-data, Menagerie, "
+                         "agentsdk.robots entry points) with their source")
     d = sub.add_parser("describe", help="print a robot's joint tree and limits (URDF, xacro, MJCF, robot.yaml)")
     d.add_argument("robot")
     d.add_argument("--trusted", action="store_true", help=_TRUST_HELP)
@@ -747,6 +828,13 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--strict", action="store_true", help="treat every repair as an error")
     c.add_argument("--trusted", action="store_true", help=_TRUST_HELP)
     c.add_argument("--timeout", type=float, default=300.0, help="seconds allowed per simulator load")
+    t = sub.add_parser("teleop", help="leader-follower teleoperation: the follower robot follows the leader's joints")
+    t.add_argument("--leader", required=True, metavar="BACKEND:ROBOT", help="e.g. can:my_arm, mock:arm3")
+    t.add_argument("--follower", required=True, metavar="BACKEND:ROBOT", help="e.g. mujoco:arm3")
+    t.add_argument("--scale", type=float, default=1.0, help="follower motion = scale x leader motion (default 1)")
+    t.add_argument("--duration", type=float, default=None, help="end after this many seconds")
+    t.add_argument("--leader-behavior", metavar="BEHAVIOR.py",
+                   help="drive the leader with a behavior script (a demo without a leader arm)")
     g = sub.add_parser("graph", help="print the Mermaid diagram of a behavior's state machines")
     g.add_argument("behavior")
     g.add_argument("--run", metavar="RECORDING", default=None,
@@ -782,6 +870,7 @@ def main(argv: list[str] | None = None) -> int:
         "describe": _cmd_describe,
         "check": _cmd_check,
         "graph": _cmd_graph,
+        "teleop": _cmd_teleop,
     }
     try:
         return handlers[args.command](args)

@@ -129,6 +129,8 @@ class SafetyConfig(BaseModel):
     #: stop category of a sensor fault: 2 (default) stops from the reference and holds; 0 removes
     #: torque at once (for robots that are safe limp)
     sensor_fault_stop: Literal[0, 1, 2] = 2
+    #: stop category of the e-stop buttons of user interfaces (the web view's E-STOP)
+    ui_stop_category: Literal[0, 1, 2] = 1
 
     @classmethod
     def from_sources(
@@ -514,7 +516,21 @@ class SafetyLayer:
             self.check_fault()
         if st is SafetyState.DISABLED:
             raise EStopActive("robot is disabled after reset(); call `await robot.enable()` to allow motion")
-        raise EStopActive("e-stop is latched; call `await robot.reset()` then `await robot.enable()`")
+        cause = self._latch_cause()
+        raise EStopActive(f"e-stop is latched{f' ({cause})' if cause else ''}; "
+                          "call `await robot.reset()` then `await robot.enable()`")
+
+    def _latch_cause(self) -> str:
+        """The detail of the event that latched the e-stop (the first stopping event since the last reset)."""
+        with self._events_lock:
+            events = list(self._events)
+        cause = ""
+        for ev in events:
+            if ev.kind in ("reset", "enable"):
+                cause = ""
+            elif not cause and ev.kind not in ("clamp", "watchdog", "resume"):
+                cause = ev.detail if ev.kind in ("estop", "stall") else f"{ev.kind}: {ev.detail}"
+        return cause
 
     def add_check(self, check: SafetyCheck) -> HookHandle:
         """Run ``check(t, state)`` every tick while motion is allowed; a returned violation latches an e-stop."""
@@ -1117,7 +1133,8 @@ class SafetyLayer:
             where = _innermost_user_frame(frame)
             detail = (
                 f"event loop stalled for more than {timeout:g} s (last heartbeat {stopped - last:.3f} s ago); "
-                f"e-stop category 0 latched; loop was at {where}"
+                f"e-stop category 0 latched; loop was at {where}: a blocking call (time.sleep, blocking I/O, "
+                "a long computation) in a coroutine; use `await robot.clock.sleep()`, or `asyncio.to_thread()`"
             )
             self.record("stall", detail)
             log.error("%s\n%s", detail, stack)

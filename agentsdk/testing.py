@@ -69,10 +69,12 @@ def _mid_target(robot: Robot, j: int, offset: float = 0.3) -> float:
     return min(max(center + offset, lo + margin), hi - margin)
 
 
-@pytest.mark.asyncio
 class BackendConformance:
     """Subclass with ``backend = "<name>"``; every ``test_*`` method is one clause of the contract."""
 
+    # (a class attribute, not a class decorator: the API reference is built without pytest, which
+    # Sphinx then mocks, and a mocked decorator would replace the class)
+    pytestmark: ClassVar[Any] = pytest.mark.asyncio
     backend: ClassVar[str] = ""
     robot: ClassVar[str] = "arm3"
     connect_options: ClassVar[dict[str, Any]] = {}

@@ -237,7 +237,10 @@ class _PybulletRenderer:
     """Renders joint configurations with PyBullet's TinyRenderer (CPU, no display)."""
 
     def __init__(self, description: Any, names: tuple[str, ...], width: int, height: int) -> None:
-        import pybullet as p
+        from agentsdk.backends.pybullet.quiet import filtered_native_output
+
+        with filtered_native_output():  # no "pybullet build time: ..." on the user's terminal
+            import pybullet as p
 
         from .kinematics import mjcf_source
 

@@ -1,11 +1,15 @@
-"""Patrol: a state machine that moves arm3 between waypoints until told to stop.
+"""Patrol: a state machine that moves an arm between waypoints until told to stop.
 
-    agentsdk run behaviors/patrol.py                      # MuJoCo, lockstep
+    agentsdk run behaviors/patrol.py                      # arm3 on MuJoCo, lockstep
     agentsdk run behaviors/patrol.py --backend mock
+    agentsdk run behaviors/patrol.py --robot ur5          # any arm: panda, path/to/robot.yaml...
     agentsdk graph behaviors/patrol.py                    # Mermaid diagram
 
-States start motions (``robot.move_to``); leaving a state stops its motion
-(decelerate and hold) before the next one starts. Shows:
+The park pose and the waypoints are derived from the robot (:mod:`agentsdk.arm`): a
+well-conditioned configuration near its start, turned left and right about its first arm
+joint with the end effector a little lower, and straight ahead. States start motions
+(``robot.move_to``); leaving a state stops its motion (decelerate and hold) before the next
+one starts. Shows:
 
 * per-state timeouts: ``moving`` must arrive within MOVE_TIMEOUT (else -> fault);
   ``dwell`` *uses* its timeout to end (the body just waits);
@@ -21,17 +25,18 @@ from __future__ import annotations
 
 import asyncio
 
+import numpy as np
+
 from agentsdk import Robot
+from agentsdk.arm import layout_steps
+from agentsdk.kinematics import run_async
 from agentsdk.statemachine import State, StateContext, StateMachine
 
 ROBOT = "arm3"
 
-WAYPOINTS: list[dict[str, float]] = [
-    {"joint1": 0.9, "joint2": 0.6, "joint3": 0.5},
-    {"joint1": 0.0, "joint2": 0.9, "joint3": 0.0},
-    {"joint1": -0.9, "joint2": 0.6, "joint3": -0.5},
-]
-PARK = {"joint1": 0.0, "joint2": 0.2, "joint3": 0.0}
+#: rad the first arm joint turns to each side, m the end effector goes down at the side waypoints
+SPREAD = 0.9
+DROP = 0.05
 MOVE_TIMEOUT = 4.0  # s of robot time a move may take
 DWELL = 0.4  # s spent at each waypoint
 STOP_AFTER = 5.0  # s of robot time until the external "stop"
@@ -58,8 +63,10 @@ class Patrol(StateMachine):
     parked = parking.to(done)
     recover = fault.to(start, guard="can_retry") | fault.to(failed)
 
-    def __init__(self, robot: Robot) -> None:
+    def __init__(self, robot: Robot, park: dict[str, float], waypoints: list[dict[str, float]]) -> None:
         super().__init__(robot)  # robot.clock is the machine clock: timeouts are in robot time
+        self.park = park
+        self.waypoints = waypoints
         self.next_waypoint = 0
         self.laps = 0
         self.faults = 0
@@ -70,13 +77,13 @@ class Patrol(StateMachine):
             raise MotionFailed(f"{ctx.name}: {result.code.name} {result.message}")
 
     async def on_start(self, ctx: StateContext) -> str:
-        await self._move(ctx, PARK)
+        await self._move(ctx, self.park)
         return "ready"
 
     async def on_moving(self, ctx: StateContext) -> str:
-        await self._move(ctx, WAYPOINTS[self.next_waypoint])
+        await self._move(ctx, self.waypoints[self.next_waypoint])
         print(f"  t={ctx.clock.now():6.3f} s  at waypoint {self.next_waypoint}")
-        self.next_waypoint = (self.next_waypoint + 1) % len(WAYPOINTS)
+        self.next_waypoint = (self.next_waypoint + 1) % len(self.waypoints)
         if self.next_waypoint == 0:
             self.laps += 1
         return "arrived"
@@ -86,7 +93,7 @@ class Patrol(StateMachine):
 
     async def on_parking(self, ctx: StateContext) -> str:
         print(f"  t={ctx.clock.now():6.3f} s  parking ({ctx.event})")
-        await self._move(ctx, PARK)
+        await self._move(ctx, self.park)
         return "parked"
 
     async def on_fault(self, ctx: StateContext) -> str:
@@ -99,14 +106,17 @@ class Patrol(StateMachine):
 
 
 async def main(robot: Robot) -> None:
-    machine = Patrol(robot)
+    state = await robot.read()
+    arm = await run_async(layout_steps(robot.kinematics, np.array(state.position), angle=SPREAD, drop=DROP))
+    machine = Patrol(robot, arm.home, [arm.left_low, arm.home, arm.right_low])
 
     async def stop_later() -> None:
         await robot.clock.sleep(STOP_AFTER)
         print(f"  t={robot.clock.now():6.3f} s  -> stop")
         machine.send("stop")
 
-    print(f"patrol on {robot.name} ({robot.backend}); stop after {STOP_AFTER:g} s")
+    print(f"patrol on {robot.name} ({robot.backend}) with {arm.link!r} ({len(arm.joints)} joints); "
+          f"stop after {STOP_AFTER:g} s")
     stopper = asyncio.create_task(stop_later())
     try:
         final = await machine.run()

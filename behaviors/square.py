@@ -2,10 +2,10 @@
 
     agentsdk run behaviors/square.py                       # arm3 on MuJoCo
     agentsdk run behaviors/square.py --backend pybullet
-    agentsdk run behaviors/square.py --robot path/to/panda/robot.yaml
+    agentsdk run behaviors/square.py --robot ur5            # or panda, or path/to/robot.yaml
 
-Works on any arm: the end effector is the link named like a tool frame (``tool0``,
-``*_tcp``, ``ee_link``, ...) or else the link moved by the most joints. The behavior
+Works on any arm (see :mod:`agentsdk.arm`): the end effector is the link named like a tool
+frame (``tool0``, ``*_tcp``, ``ee_link``, ...) or else the link moved by the most joints. The behavior
 moves (in joint space) to a well-conditioned configuration, then draws a square of side
 ``SIDE`` in the plane the end effector moves best in (the two strongest directions of its
 position Jacobian), corner to corner along straight lines, keeping the orientation fixed
@@ -14,7 +14,7 @@ and the corners are snapped to the nearest reachable points (arm3's end effector
 a sphere: its square is drawn on a plane cutting that sphere, and its sides, straight
 lines, stay within ``path_tolerance`` of it).
 
-It logs and returns a :class:`SquareReport`: the largest distance of the end effector from
+It prints and returns a :class:`SquareReport`: the largest distance of the end effector from
 the side it was drawing, sampled every control period, and how far the square's end is
 from its start. A leg that fails raises :class:`RuntimeError` naming it.
 """
@@ -22,13 +22,15 @@ from its start. A leg that fails raises :class:`RuntimeError` naming it.
 from __future__ import annotations
 
 import asyncio
-import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from agentsdk import Pose, Robot, Tolerances, UnreachablePoseError
-from agentsdk.kinematics import Kinematics
+from agentsdk.arm import end_effector, ready_configuration_steps
+from agentsdk.cartesian import plan_linear
+from agentsdk.errors import LimitViolation
+from agentsdk.kinematics import Kinematics, run_async
 
 ROBOT = "arm3"
 #: side of the square (m)
@@ -40,9 +42,8 @@ VELOCITY_SCALE = 0.5
 ACCELERATION_SCALE = 0.25
 #: a position-only corner may be moved this far to make it reachable (m)
 SNAP = 0.005
-_TOOL_NAMES = ("tool0", "tcp", "ee_link", "end_effector", "eef", "flange", "tool")
-
-log = logging.getLogger("behaviors.square")
+#: configurations tried (each checked by planning the whole square on the host) before giving up
+ATTEMPTS = 8
 
 
 @dataclass(frozen=True)
@@ -57,52 +58,8 @@ class SquareReport:
     closing_error: float
 
 
-def end_effector(kin: Kinematics) -> str:
-    """The tool frame: a link named like one, else the link moved by the most joints (the deepest)."""
-    for link in reversed(kin.link_names):
-        low = link.lower()
-        if any(low == name or low.endswith("_" + name) for name in _TOOL_NAMES):
-            return link
-    return max(kin.link_names, key=lambda link: len(kin.chain(link)))
-
-
-def ready_configuration(kin: Kinematics, link: str, full: bool, start: np.ndarray, samples: int = 300) -> np.ndarray:
-    """A configuration near ``start`` where the end effector moves well in a plane.
-
-    Maximises the product of the two largest singular values of the position Jacobian (of all
-    six for a full-pose arm) over configurations within 0.6 rad of ``start`` (so the move there
-    stays short and away from self-collisions), inside the limits, with the end effector not
-    below the root.
-    """
-    rng = np.random.default_rng(0)
-    lo = np.where(np.isfinite(kin.lower), kin.lower, -np.pi)
-    hi = np.where(np.isfinite(kin.upper), kin.upper, np.pi)
-    margin = 0.05 * (hi - lo)
-    best, best_q = -1.0, start
-    for k in range(samples):
-        q = start if k == 0 else np.clip(start + rng.uniform(-0.6, 0.6, len(start)), lo + margin, hi - margin)
-        if kin.fk(link, q).position[2] < 0.0:
-            continue
-        jac = kin.jacobian(link, q)
-        sv = np.linalg.svd(jac if full else jac[:3], compute_uv=False)
-        score = float(np.prod(sv[:6] if full else sv[:2]))
-        if score > best:
-            best, best_q = score, q
-    return best_q
-
-
-async def main(robot: Robot) -> SquareReport:
-    kin = robot.kinematics
-    link = end_effector(kin)
-    chain = kin.chain(link)
-    full = len(chain) >= 6
-    state = await robot.read()
-    q_ready = ready_configuration(kin, link, full, np.array(state.position))
-    tight = Tolerances(goal=0.004, goal_time=2.0)
-    result = await robot.move_to({j: float(q_ready[kin.joint_names.index(j)]) for j in chain}, tolerances=tight)
-    if not result.ok:
-        raise RuntimeError(f"square: could not reach the start configuration: {result.message}")
-
+def square_corners(kin: Kinematics, link: str, full: bool, q_ready: np.ndarray) -> list[Pose]:
+    """The four corners around the end effector at ``q_ready``, in the plane it moves best in."""
     center = kin.fk(link, q_ready)
     u_mat, _, _ = np.linalg.svd(kin.jacobian(link, q_ready)[:3])
     u, v = u_mat[:, 0], u_mat[:, 1]
@@ -120,8 +77,52 @@ async def main(robot: Robot) -> SquareReport:
                     raise
                 sol = exc.result
             corners.append(Pose(kin.fk(link, sol).position, center.orientation))
-    log.info("drawing a %.3g m square with %r (%s) around %s", SIDE, link,
-             "full pose" if full else "position only", np.round(center.position, 4).tolist())
+    return corners
+
+
+async def drawable(robot: Robot, link: str, full: bool, q_ready: np.ndarray, corners: list[Pose]) -> bool:
+    """Whether every side plans as a straight line from ``q_ready`` (host-side kinematics only)."""
+    kin = robot.kinematics
+    try:
+        q = np.array(q_ready, dtype=float)
+        sol = await kin.ik_async(link, corners[0] if full else corners[0].position, seed=q, restarts=0)
+        for j, value in sol.items():
+            q[kin.joint_names.index(j)] = value
+        for k in range(1, 5):
+            traj = await run_async(plan_linear(kin, link, corners[k % 4], q, robot.joints, position_only=not full,
+                                        path_tolerance=PATH_TOLERANCE))
+            if traj is not None:
+                for j, value in zip(traj.joint_names, traj.points[-1].positions, strict=True):
+                    q[kin.joint_names.index(j)] = value
+    except (UnreachablePoseError, LimitViolation):
+        return False
+    return True
+
+
+async def main(robot: Robot) -> SquareReport:
+    kin = robot.kinematics
+    link = end_effector(kin)
+    chain = kin.chain(link)
+    full = len(chain) >= 6
+    state = await robot.read()
+    # the best-conditioned configuration near the start whose square can be drawn (a few tries)
+    for attempt in range(ATTEMPTS):
+        q_ready = await run_async(ready_configuration_steps(kin, link, np.array(state.position), full=full,
+                                                            seed=attempt, reach=0.6 + 0.2 * attempt))
+        corners = square_corners(kin, link, full, q_ready)
+        if await drawable(robot, link, full, q_ready, corners):
+            break
+    else:
+        raise RuntimeError(f"square: found no place near the start pose of {robot.name} where {link!r} can draw "
+                           f"a {SIDE * 100:.3g} cm square in {ATTEMPTS} tries")
+    center = kin.fk(link, q_ready)
+    tight = Tolerances(goal=0.004, goal_time=2.0)
+    result = await robot.move_to({j: float(q_ready[kin.joint_names.index(j)]) for j in chain}, tolerances=tight)
+    if not result.ok:
+        raise RuntimeError(f"square: could not reach the start configuration: {result.message}")
+
+    print(f"square on {robot.name} ({robot.backend}): a {SIDE * 100:.3g} cm square with {link!r} "
+          f"({'full pose' if full else 'position only'}) around {np.round(center.position, 3).tolist()} m")
 
     result = await robot.move_to_pose(link, corners[0], tolerances=tight, position_only=not full)
     if not result.ok:
@@ -157,6 +158,6 @@ async def main(robot: Robot) -> SquareReport:
         await asyncio.gather(watcher, return_exceptions=True)
     closing = float(np.linalg.norm(kin.fk(link).position - corners[0].position))
     report = SquareReport(link, tuple(tuple(c.position.tolist()) for c in corners), deviation, closing)
-    log.info("square done: max deviation from the sides %.3g mm, closing error %.3g mm",
-             deviation * 1e3, closing * 1e3)
+    print(f"square done: max deviation from the sides {deviation * 1e3:.3g} mm, "
+          f"closing error {closing * 1e3:.3g} mm")
     return report

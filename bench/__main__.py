@@ -4,10 +4,12 @@
     agentsdk bench --quick             # shorter runs, same structure
     agentsdk bench --only overhead     # one benchmark (repeatable, or comma-separated)
     agentsdk bench --json out.json     # also write the full results (raw data, tables) as JSON
+    agentsdk bench --verbose           # every benchmark's table as it finishes
     agentsdk bench --list              # the benchmark names
 
-Tables go to stdout as each benchmark finishes, then a summary of every
-comparison and the JSON summary; progress goes to stderr.
+A summary of every comparison goes to stdout (``--verbose``: also each benchmark's full
+table as it finishes); progress goes to stderr; JSON only when asked (``--json PATH``,
+``--json -`` for stdout).
 
 Benchmarks written in other modules (``bench/feedback_timing.py``,
 ``bench/safety_latency.py``, ``bench/can_cycle.py``) are called if present: the
@@ -566,48 +568,13 @@ def _round(x: Any, digits: int = 4) -> Any:
     return x
 
 
-def _summary_json(info: dict[str, Any], full: dict[str, Any], sections: list[Section]) -> str:
-    """The run as JSON: one line per comparison (full data go to --json)."""
-
-    def dumps(obj: Any) -> str:
-        return json.dumps(_round(to_jsonable(obj)), ensure_ascii=False)
-
-    lines = ["{", f' "machine": {dumps(info)},', f' "mode": {dumps(full["mode"])},']
-    lines.append(f' "total_seconds": {dumps(full["total_seconds"])},')
-    lines.append(' "sections": [')
-    for i, s in enumerate(sections):
-        head = {"name": s.name, "status": s.status}
-        lines.append("  {" + dumps(head)[1:-1] + ', "comparisons": [')
-        for k, c in enumerate(s.comparisons):
-            d = {
-                "figure": c.figure,
-                "unit": c.unit,
-                "baseline": c.baseline,
-                "baseline_label": c.baseline_label,
-                "sdk": c.sdk,
-                "diff": c.diff,
-                "ratio": c.ratio,
-            }
-            if c.target_met is not None:
-                d["target"] = c.target_text()
-                d["target_met"] = c.target_met
-            lines.append("   " + dumps(d) + ("," if k < len(s.comparisons) - 1 else ""))
-        tail = "]"
-        if not s.comparisons and s.data:
-            tail += f', "data": {dumps(s.data)}'
-        elif s.status != "ok" and s.notes:
-            tail += f', "note": {dumps(s.notes[0])}'
-        lines.append("  " + tail + "}" + ("," if i < len(sections) - 1 else ""))
-    lines += [" ]", "}"]
-    text = "\n".join(lines)
-    json.loads(text)  # always valid JSON
-    return text
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="agentsdk bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="shorter runs (same structure)")
-    ap.add_argument("--json", metavar="PATH", help="write the full results as JSON to PATH")
+    ap.add_argument("--json", metavar="PATH",
+                    help="write the full results as JSON to PATH (`-`: to stdout, instead of the tables)")
+    ap.add_argument("--verbose", "-v", action="store_true",
+                    help="print every benchmark's full table as it finishes (default: the summary only)")
     ap.add_argument("--only", action="append", metavar="NAME", help="run only these benchmarks (repeatable, a,b)")
     ap.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     ap.add_argument("--inner", action="store_true", help=argparse.SUPPRESS)  # inside the vcan VM
@@ -620,7 +587,7 @@ def main(argv: list[str] | None = None) -> int:
 
     info = machine_info()
     info["loadavg_1m_start"] = _loadavg()
-    if not args.inner:
+    if not args.inner and args.json != "-":
         print(machine_line(info) + f"; load avg {info['loadavg_1m_start']} at start", flush=True)
         print(f"mode: {'quick' if args.quick else 'full'}; benchmarks: {', '.join(names)}", flush=True)
         load, cores = info["loadavg_1m_start"], info["usable_cores"] or 1
@@ -647,7 +614,7 @@ def main(argv: list[str] | None = None) -> int:
         for s in secs:
             if not s.seconds:
                 s.seconds = dt / len(secs)
-            if not args.inner:  # (inside the vcan VM the outer run prints them)
+            if args.verbose and not args.inner:  # (inside the vcan VM the outer run prints them)
                 print(s.render(), flush=True)
                 print(flush=True)
         sections += secs
@@ -661,6 +628,9 @@ def main(argv: list[str] | None = None) -> int:
         "total_seconds": round(total, 1),
         "sections": [s.to_json() for s in sections],
     }
+    if args.json == "-":
+        print(json.dumps(to_jsonable(full), indent=2, ensure_ascii=False))
+        return 0
     if args.json:
         write_json(args.json, full)
     if args.inner:
@@ -671,8 +641,6 @@ def main(argv: list[str] | None = None) -> int:
     print(_summary(sections))
     print()
     print(machine_line(info) + f"; load avg {info['loadavg_1m_start']} at start, {info['loadavg_1m_end']} at end")
-    print()
-    print(_summary_json(info, full, sections))
     if args.json:
         print(f"\nfull results (raw data, tables, profiles) written to {args.json}", file=sys.stderr)
     return 0

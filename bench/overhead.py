@@ -203,9 +203,11 @@ class RawPybullet:
     """The PyBullet backend's model loading and per-substep torque PD, without the SDK."""
 
     def __init__(self, rb: _Robot, implicit: bool = True) -> None:
-        import pybullet as p
-
         from agentsdk.backends.pybullet import SPEED_CAP, PybulletOptions
+        from agentsdk.backends.pybullet.quiet import filtered_native_output
+
+        with filtered_native_output():  # no "pybullet build time: ..." on the user's terminal
+            import pybullet as p
         from agentsdk.description.collision import for_robot
         from agentsdk.description.simurdf import simulator_urdf
 

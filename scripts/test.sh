@@ -36,6 +36,13 @@ if { ! command -v idlc >/dev/null || ! command -v fastddsgen >/dev/null || ! com
         { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends $ROS2_PEER_PKGS >/dev/null; }
 fi
 
+# System packages: a headless Chromium and its WebDriver for the web view's browser test (selenium drives them).
+if { ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; } && command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get install -y -q --no-install-recommends chromium chromium-driver >/dev/null 2>&1 ||
+        { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends chromium chromium-driver >/dev/null; }
+fi
+
 "$PY" -m ruff check .
 
 # Static types: mypy --strict over agentsdk and the backends (as installed: see the script).

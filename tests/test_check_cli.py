@@ -30,7 +30,7 @@ def test_check_a_shipped_robot() -> None:
     assert "robot 'arm3' (URDF)" in out and "joint1 [revolute]" in out
     assert "repairs: none" in out
     assert "masses: 5.1 kg" in out
-    assert "start pose (0 (3)):" in out and "joint1=0" in out
+    assert "start pose (3 joints at 0):" in out and "joint1=0" in out
     assert "servo gains on mujoco (robot.yaml" in out and "joint2 p=800 d=10" in out
     assert "self-collision (auto):" in out and "left out, adjacent" in out
     assert "mujoco    ✓ loads and runs (3 joints" in out
@@ -56,7 +56,7 @@ def test_check_an_mjcf_file() -> None:
     r = _agentsdk("check", str(FIXTURES / "mjcf_arm" / "scene.xml"))
     assert r.returncode == 0, r.stderr
     assert "robot 'mjcf_arm scene' (MJCF)" in r.stdout
-    assert "start pose (the model's home keyframe (" in r.stdout and "shoulder_pitch=0.3" in r.stdout
+    assert "joints from the model's home keyframe" in r.stdout and "shoulder_pitch=0.3" in r.stdout
     assert "self-collision (the model's own contact settings)" in r.stdout
     assert "mujoco    ✓ loads and runs (3 joints" in r.stdout
 

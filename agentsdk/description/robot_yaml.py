@@ -176,6 +176,29 @@ def list_robots(robots_dir: Path | None = None) -> list[str]:
     return sorted(d.name for d in directory.iterdir() if (d / "robot.yaml").is_file())
 
 
+def _installed_robot(name: str, directory: Path) -> Path:
+    """The description of robot ``name`` from an installed package (see :mod:`.catalog`), or raise."""
+    from .catalog import installed_robots
+
+    entries = installed_robots(directory)
+    for entry in entries:
+        if entry.name == name:
+            if entry.path is None:
+                raise ConfigurationError(f"robot '{name}' (entry point of {entry.provider or '?'}) is broken: "
+                                         f"{entry.problem}")
+            return entry.path
+    shipped = [e.name for e in entries if e.source == "shipped"]
+    others = sorted((e.name for e in entries if e.source != "shipped"), key=str.lower)
+    hint = did_you_mean(name, [e.name for e in entries])
+    hint = f"{hint} " if "did you mean" in hint else "; "
+    installed = f"; installed: {', '.join(others)}" if others else ""
+    raise ConfigurationError(
+        f"unknown robot '{name}'{hint}shipped robots: {', '.join(shipped) if shipped else '(none)'} "
+        f"(in {directory}){installed} (`agentsdk robots --all` shows where each comes from); "
+        "or pass a path to a .urdf, .xacro, MJCF .xml or robot.yaml"
+    )
+
+
 _DESCRIPTION_SUFFIXES = (".urdf", ".xacro", ".xml", ".mjcf")
 _CONFIG_SUFFIXES = (".yaml", ".yml")
 
@@ -212,11 +235,7 @@ def resolve_robot(
             path = candidate
             roots.append(directory)
         elif not path.exists():
-            known = list_robots(directory)
-            raise ConfigurationError(
-                f"unknown robot '{text}'; available robots: {', '.join(known) if known else '(none)'} "
-                f"(in {directory}), or pass a path to a .urdf, .xacro, MJCF .xml or robot.yaml"
-            )
+            path = _installed_robot(text, directory)
     try:
         if path.is_dir():
             if not (path / "robot.yaml").is_file():

@@ -48,13 +48,15 @@ class StartPose:
     clipped: Mapping[str, float] = field(default_factory=dict)
 
     def summary(self) -> str:
-        """Where the pose came from, with joint counts (``robot.yaml initial_positions (2), 0 (4)``)."""
-        labels = {"robot.yaml": "robot.yaml initial_positions", "model": "the model's home keyframe", "zero": "0"}
+        """Where the pose came from, with joint counts (``2 joints from robot.yaml initial_positions, 4 at 0``)."""
+        labels = {"robot.yaml": "from robot.yaml initial_positions", "model": "from the model's home keyframe",
+                  "zero": "at 0"}
         counts: dict[str, int] = {}
         for src in self.sources.values():
-            label = labels.get(src) or f"SRDF group_state {src.removeprefix('srdf ')!r}"
+            label = labels.get(src) or f"from SRDF group_state {src.removeprefix('srdf ')!r}"
             counts[label] = counts.get(label, 0) + 1
-        return ", ".join(f"{label} ({n})" for label, n in counts.items()) or "no joints"
+        parts = [f"{n} {'joint' if n == 1 else 'joints'} {label}" for label, n in counts.items()]
+        return ", ".join(parts) or "no joints"
 
     def warning(self, robot: str) -> str | None:
         """The one warning listing the clipped joints, or None."""

@@ -304,8 +304,12 @@ class CanController(Backend):
             self._bus = self._make_bus()
             self._estop_bus = self._make_bus()
         except (can.CanError, OSError, ValueError, ImportError) as exc:
+            from .hints import bus_open_hint
+
+            hint = bus_open_hint(opts.interface, opts.channel, exc)
             raise BackendStartError(
                 f"cannot open CAN bus interface={opts.interface!r} channel={opts.channel!r}: {exc}"
+                + (f"; {hint}" if hint else "")
             ) from exc
         # the replies, and frames addressed to our motors: on SocketCAN a socket does not receive its
         # own frames (CAN_RAW_RECV_OWN_MSGS is off by default) while every other socket and node on the

@@ -890,7 +890,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         bus = can.Bus(interface=interface, channel=channel)
     except (can.CanError, OSError, ValueError, ImportError) as exc:
-        print(f"emulate-can: cannot open {interface}:{channel}: {exc}", file=sys.stderr)  # noqa: T201
+        from .hints import bus_open_hint
+
+        hint = bus_open_hint(interface, channel, exc)
+        print(f"emulate-can: cannot open {interface}:{channel}: {exc}" + (f"; {hint}" if hint else ""),  # noqa: T201
+              file=sys.stderr)
         return 1
     stop = threading.Event()
 

@@ -459,12 +459,16 @@ def test_plan_with_mappings_and_subset_of_joints() -> None:
 def test_plan_scales_and_single_joint_time_from_limits() -> None:
     j = [J("j1")]  # v=2, a=5, jerk=100
     traj = plan([[-2.0], [2.0]], j)
-    # rest to rest over 4 rad: cruise at v_max; t = d/v + v/a + a/j
-    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 5 / 100, rel=1e-9)
+    # rest to rest over 4 rad: cruise at v_max; t = d/v + v/a + a/j (planned inside the limits by
+    # PLAN_LIMIT_MARGIN and the breakpoint-merge margin, ~2e-5 relative here: issue 20.5)
+    rel = 5e-5
+    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 5 / 100, rel=rel)
+    assert traj.duration > 4 / 2 + 2 / 5 + 5 / 100
     slow = plan([[-2.0], [2.0]], j, velocity_scale=0.5, acceleration_scale=0.5)
-    assert slow.duration == pytest.approx(4 / 1 + 1 / 2.5 + 2.5 / 100, rel=1e-9)
-    assert np.max(np.abs(slow.velocities)) == pytest.approx(1.0)
-    assert np.max(np.abs(slow.accelerations)) == pytest.approx(2.5)
+    assert slow.duration == pytest.approx(4 / 1 + 1 / 2.5 + 2.5 / 100, rel=rel)
+    assert np.max(np.abs(slow.velocities)) == pytest.approx(1.0, rel=rel)
+    assert np.max(np.abs(slow.accelerations)) == pytest.approx(2.5, rel=rel)
+    assert np.max(np.abs(slow.velocities)) < 1.0 and np.max(np.abs(slow.accelerations)) < 2.5
     with pytest.raises(InvalidValueError, match="velocity_scale"):
         plan([[0.0], [1.0]], j, velocity_scale=0.0)
 

@@ -62,6 +62,7 @@ from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .types import MODES, CommandMode, JointInfo
 
 if TYPE_CHECKING:
+    from .following import FollowingErrorCheck
     from .motion import MotionManager
 
 __all__ = [
@@ -125,6 +126,19 @@ class SafetyConfig(BaseModel):
     position_limit_tolerance: Annotated[float, Field(gt=0.0)] | None = 0.1
     #: stop category of that protective stop (IEC 60204-1)
     position_limit_stop: Literal[0, 1, 2] = 2
+    #: following-error window (rad or m) around a position-servoed joint's command: "auto" (from the
+    #: gains and effort limits, see agentsdk.following), one number, {joint: window} (others "auto"),
+    #: or None (off)
+    following_error_window: (
+        Literal["auto"] | Annotated[float, Field(gt=0.0)] | dict[str, Annotated[float, Field(gt=0.0)]] | None
+    ) = "auto"
+    #: bounds of the "auto" window (rad or m)
+    following_error_min: float = Field(default=0.1, gt=0.0)
+    following_error_max: float = Field(default=0.5, gt=0.0)
+    #: robot seconds a joint must stay outside its window before the stop latches
+    following_error_time: float = Field(default=0.1, ge=0.0, le=10.0)
+    #: stop category of the following-error stop (IEC 60204-1)
+    following_error_stop: Literal[0, 1, 2] = 2
 
     @classmethod
     def from_sources(
@@ -395,6 +409,16 @@ class SafetyLayer:
             self.add_check(
                 MeasuredPositionCheck(loop.joints, config.position_limit_tolerance, config.position_limit_stop)
             )
+        #: the following-error check (None: ``following_error_window: null``), see :mod:`agentsdk.following`
+        self.following: FollowingErrorCheck | None = None
+        if config.following_error_window is not None:
+            from .following import FollowingErrorCheck, following_windows
+
+            windows = following_windows(loop.joints, loop.gain_p, config.following_error_window,
+                                        config.following_error_min, config.following_error_max)
+            self.following = FollowingErrorCheck(loop, windows, config.following_error_time,
+                                                 config.following_error_stop)
+            self.add_check(self.following)
 
     # ---------------------------------------------------------- lifecycle
     def start(self) -> None:

@@ -271,8 +271,8 @@ def plan_point_to_point(
         if mins[j] > duration:
             raise LimitViolation(
                 f"duration {duration:.6g} s is too short: joint {names[j]!r} needs at least {mins[j]:.6g} s "
-                f"to move from {q0[j]:.6g} to {q1[j]:.6g} (max_velocity {lim.vmax[j]:.6g}, max_acceleration "
-                f"{lim.amax[j]:.6g}, max_jerk {lim.jmax[j]:.6g})"
+                f"to move from {q0[j]:.6g} to {q1[j]:.6g} (max_velocity {infos[j].max_velocity * velocity_scale:.6g}, "
+                f"max_acceleration {infos[j].max_acceleration * acceleration_scale:.6g}, max_jerk {lim.jmax[j]:.6g})"
             )
         raise LimitViolation(
             f"duration {duration:.6g} s is not feasible from this start state under the limits; "
@@ -332,7 +332,7 @@ def plan_stop(
     not checked against limits: a stop must always be possible.
     """
     infos = _select_joints(joints, None)
-    lim = joint_limits(infos, 1.0, decel_scale, 1.0)
+    lim = joint_limits(infos, 1.0, decel_scale, 1.0, margin=False)
     names = lim.names
     q0 = vector(q, names, "positions")
     v0 = vector(v, names, "velocities")

@@ -67,7 +67,12 @@ class JointLimits:
 
 
 def joint_limits(
-    infos: Sequence[JointInfo], velocity_scale: float, acceleration_scale: float, jerk_scale: float
+    infos: Sequence[JointInfo],
+    velocity_scale: float,
+    acceleration_scale: float,
+    jerk_scale: float,
+    *,
+    margin: bool = True,
 ) -> JointLimits:
     """The limits of ``infos`` scaled for planning; bad scales or missing limits raise a specific error.
 
@@ -78,6 +83,7 @@ def joint_limits(
     ``max_jerk * MIN_GAP`` there, the velocity by ``max_acceleration * MIN_GAP``), twice that, at most
     1 % of the limit. The jerk limit is not shrunk (a smaller jerk would make a moving start overshoot
     its velocity more). A minimum-time move is slower by about the margin (1e-5, 1e-3 with no jerk limit).
+    ``margin=False`` plans at the limits themselves (a stop: as fast as the limits allow, never checked).
     """
     for what, s in (
         ("velocity_scale", velocity_scale),
@@ -97,15 +103,16 @@ def joint_limits(
                     f"joint {j.name!r}: {what} is {lim}; time parameterization needs a positive"
                     f"{'' if allow_inf else ', finite'} limit (set joint_limits in robot.yaml)"
                 )
-    inside = 1.0 - PLAN_LIMIT_MARGIN
+    inside = 1.0 - PLAN_LIMIT_MARGIN if margin else 1.0
     amax = np.array([j.max_acceleration for j in infos]) * (acceleration_scale * inside)
     vmax = np.array([j.max_velocity for j in infos]) * (velocity_scale * inside)
     jmax = np.array([j.max_jerk for j in infos]) * jerk_scale
     # no jerk limit: ramp the acceleration over _INF_JERK_RAMP instead of stepping it, so that the
     # planned trajectories stay C2 (what the quintic interpolation reproduces exactly)
     jmax = np.where(np.isfinite(jmax), jmax, amax / _INF_JERK_RAMP)
-    vmax = vmax - np.minimum(2.0 * amax * MIN_GAP, _MAX_MERGE_MARGIN * vmax)
-    amax = amax - np.minimum(2.0 * jmax * MIN_GAP, _MAX_MERGE_MARGIN * amax)
+    if margin:
+        vmax = vmax - np.minimum(2.0 * amax * MIN_GAP, _MAX_MERGE_MARGIN * vmax)
+        amax = amax - np.minimum(2.0 * jmax * MIN_GAP, _MAX_MERGE_MARGIN * amax)
     return JointLimits(
         names=tuple(j.name for j in infos),
         lower=np.array([j.lower for j in infos]),

@@ -544,7 +544,8 @@ def test_point_to_point_with_duration() -> None:
 
 
 def test_point_to_point_infeasible_duration() -> None:
-    with pytest.raises(LimitViolation, match=r"duration 2 s is too short: joint 'j1' needs at least 2.450\d* s .*max_velocity 2, "):
+    too_short = r"duration 2 s is too short: joint 'j1' needs at least 2.450\d* s .*max_velocity 2, "
+    with pytest.raises(LimitViolation, match=too_short):
         plan_point_to_point(([-2.0, 0.0], None, None), [2.0, 0.5], JOINTS2, 2.0)
     with pytest.raises(InvalidValueError, match="duration"):
         plan_point_to_point(([-2.0, 0.0], None, None), [2.0, 0.5], JOINTS2, -1.0)

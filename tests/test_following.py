@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import agentsdk
-from agentsdk import ConfigurationError, JointCommand, SafetyState
+from agentsdk import ConfigurationError, JointCommand, ResultCode, SafetyState, Trajectory, TrajectoryPoint
 from agentsdk.loop import StateView
 
 FIXTURES = Path(__file__).parent / "fixtures" / "following"
@@ -110,24 +110,18 @@ async def test_window_and_persistence_on_mock() -> None:
         assert "joint 'joint2' is 0.15 from its position command (window 0.1) for 0.1 s" in v.detail
 
 
-async def test_the_check_through_the_safety_layer_on_mock(monkeypatch: pytest.MonkeyPatch) -> None:
-    """On the mock too the safety layer latches the stop: a joint that stops following (injected by making
-    the measured position lag its command) is stopped and named."""
-    async with agentsdk.connect("mock", robot="arm3", safety={"following_error_stop": 1}) as robot:
-        check = robot.safety.following
-        assert check is not None
-        real = check.__call__
-
-        def lagging(t: float, state: StateView) -> agentsdk.safety.SafetyViolation | None:
-            q = state.position.copy()
-            q[2] += 1.0  # joint3 stuck 1 rad away from its command
-            return real(t, StateView(q, state.velocity, state.effort))
-
-        robot.safety._checks[robot.safety._checks.index(check)] = lagging
-        await robot.clock.sleep(0.3)
+async def test_a_stuck_joint_latches_on_mock() -> None:
+    """On the mock too (a joint frozen in place, as a blocked or disconnected one): the stop latches,
+    naming the joint, in the configured category; the goal-tolerance result never gets that far."""
+    async with agentsdk.connect("mock", robot="arm3", frozen_joints=["joint2"],
+                                safety={"following_error_stop": 1}) as robot:
+        motion = robot.follow(Trajectory(["joint1", "joint2"], [TrajectoryPoint(0.5, [0.3, 0.3])]))
+        t0 = robot.clock.now()
+        result = await motion
+        assert result.code is ResultCode.ABORTED
         assert robot.safety.state is SafetyState.ESTOP
         (ev,) = _following_events(robot)
-        assert ev.joint == "joint3"
+        assert ev.joint == "joint2" and ev.time - t0 < 0.5
         assert any("category 1" in e.detail for e in robot.safety.events if e.kind == "estop")
 
 

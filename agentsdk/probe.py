@@ -39,7 +39,8 @@ __all__ = ["BEHAVIORS", "ProbePool", "probe", "probe_in_subprocess"]
 #:
 #: * ``"hold_move"``: hold the start pose for ``HOLD`` s (``drift``: the largest joint excursion), then
 #:   ``move_to`` +``MOVE`` rad on every joint (clipped inside the limits; ``move_code``, ``move_error``:
-#:   the result and its largest goal error), then hold ``SETTLE`` s (``final``: the positions);
+#:   the result and its largest goal error), then hold ``SETTLE`` s (``final``: the positions;
+#:   ``following_errors``: the following errors latched during the hold);
 #: * ``"stand"``: a floating-base robot stands ``STAND`` s on its joint servos (``heights``: the base
 #:   height at the start and every 0.5 s).
 #: * ``"follow"``: ``agentsdk check``'s short trial: hold ``FOLLOW_HOLD`` s, ``move_to`` ±``FOLLOW_MOVE`` rad on
@@ -78,6 +79,7 @@ async def _hold_move(bot: Any, out: dict[str, Any]) -> None:
         peak = np.maximum(peak, np.abs((await bot.read()).position - q0))
     out["drift"] = float(peak.max(initial=0.0))
     out["drift_joint"] = joints[int(np.argmax(peak))].name if len(joints) else None
+    out["following_errors"] = [e.detail for e in bot.safety.events if e.kind == "following_error"]
     goal = np.clip(q0 + MOVE, lower, upper)
     result = await bot.move_to({j.name: float(g) for j, g in zip(joints, goal, strict=True)})
     out["move_code"] = result.code.name

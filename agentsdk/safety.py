@@ -133,7 +133,7 @@ class SafetyConfig(BaseModel):
         Literal["auto"] | Annotated[float, Field(gt=0.0)] | dict[str, Annotated[float, Field(gt=0.0)]] | None
     ) = "auto"
     #: bounds of the "auto" window (rad or m)
-    following_error_min: float = Field(default=0.1, gt=0.0)
+    following_error_min: float = Field(default=0.25, gt=0.0)
     following_error_max: float = Field(default=0.5, gt=0.0)
     #: robot seconds a joint must stay outside its window before the stop latches
     following_error_time: float = Field(default=0.1, ge=0.0, le=10.0)

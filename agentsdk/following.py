@@ -92,7 +92,8 @@ def following_windows(
 
 class FollowingErrorCheck:
     """Built-in :data:`~agentsdk.safety.SafetyCheck`: a position-servoed joint outside its following-error window
-    for ``persist`` seconds of robot time (see the module documentation). Allocation-free per tick.
+    for ``persist`` seconds of robot time (see the module documentation). Allocation-free per tick while every
+    watched joint is inside its window.
     """
 
     def __init__(self, loop: ControlLoop, windows: np.ndarray, persist: float, category: int) -> None:
@@ -106,6 +107,10 @@ class FollowingErrorCheck:
         self._continuous = np.array([j.type == "continuous" for j in loop.joints], dtype=bool)
         self._any_continuous = bool(self._continuous.any())
         self._err = np.zeros(n)
+        self._zeros = np.zeros(n)
+        self._maskf = np.zeros(n)
+        self._pos_row = np.full(n, _POS, dtype=np.int8)
+        self._wrapped = np.zeros(n)
         self._mask = np.zeros(n, dtype=bool)
         self._tmp = np.zeros(n, dtype=bool)
         #: robot time each joint was first seen outside its window (NaN: inside, or not watched)
@@ -128,16 +133,21 @@ class FollowingErrorCheck:
         np.subtract(state.position, sp.position, out=err)
         if self._any_continuous:
             # a continuous joint's error is an angle: the shortest way round
-            wrapped = np.remainder(err + math.pi, 2.0 * math.pi) - math.pi
+            wrapped = self._wrapped
+            np.add(err, math.pi, out=wrapped)
+            np.remainder(wrapped, 2.0 * math.pi, out=wrapped)
+            np.subtract(wrapped, math.pi, out=wrapped)
             np.copyto(err, wrapped, where=self._continuous)
         np.abs(err, out=err)
         # watched: position mode, torque on, a position gain
-        np.equal(sp.mode, _POS, out=mask)
+        # (operands of one dtype with preallocated outputs: a Python scalar or a cast allocates per tick)
+        np.equal(sp.mode, self._pos_row, out=mask)
         np.logical_and(mask, sp.enabled, out=mask)
-        np.greater(sp.kp, 0.0, out=self._tmp)
+        np.greater(sp.kp, self._zeros, out=self._tmp)
         np.logical_and(mask, self._tmp, out=mask)
-        np.copyto(err, 0.0, where=~mask)
-        np.maximum(self.peak, err, out=self.peak)
+        np.copyto(self._maskf, mask)  # (a bool -> float copy allocates nothing; a mixed multiply does)
+        np.multiply(err, self._maskf, out=err)  # unwatched joints: no error
+        np.fmax(self.peak, err, out=self.peak)  # (NaN: not an error figure)
         outside = self._tmp
         np.greater(err, self.windows, out=outside)
         gap = t - self._last_t > 1.5 * self._period  # the check did not run meanwhile (stopped, disabled)

@@ -48,7 +48,7 @@ __all__ = ["BEHAVIORS", "ProbePool", "probe", "probe_in_subprocess"]
 #:   error per joint and its window; ``following_errors``: the following-error events).
 BEHAVIORS = ("hold_move", "stand", "follow")
 HOLD, MOVE, SETTLE, STAND = 2.0, 0.25, 0.5, 5.0
-FOLLOW_HOLD, FOLLOW_MOVE, FOLLOW_SETTLE = 0.5, 0.2, 0.3
+FOLLOW_HOLD, FOLLOW_MOVE, FOLLOW_SETTLE = 0.5, 0.3, 0.3
 
 
 def _jsonable(value: Any) -> Any:

@@ -73,6 +73,23 @@ def _broken_plugins() -> list[str]:
     return [reason for name, reason in broken_backends().items() if name not in BUILTIN_BACKENDS]
 
 
+def _following_problem(r: dict[str, object]) -> str | None:
+    """The following error a probe's ``follow`` trial latched (the joint, its error and window), or None."""
+    errors = r.get("following_errors")
+    if isinstance(errors, list) and errors:
+        return str(errors[0]).removeprefix("following error: ")
+    return None
+
+
+def _following_peak(r: dict[str, object]) -> str:
+    """The largest following error of the trial and its joint, e.g. ``0.0021 rad or m, joint2``; "" if not measured."""
+    peak, names = r.get("following_peak"), r.get("joints")
+    if not isinstance(peak, list) or not peak or not isinstance(names, list):
+        return ""
+    k = max(range(len(peak)), key=lambda i: float(peak[i]))
+    return f"{float(peak[k]):.2g} rad or m, {names[k]}"
+
+
 def check_robot(
     robot: str | Path,
     *,
@@ -172,7 +189,8 @@ def check_robot(
         out.append("  none installed")
     out.extend(not_installed)
     report.problems.extend(_broken_plugins())
-    jobs = [{"robot": str(robot), "backend": b, "duration": 0.05, "options": {}} for b in chosen]
+    jobs = [{"robot": str(robot), "backend": b, "duration": 0.05, "options": {}, "behavior": "follow"}
+            for b in chosen]
     options = {k: v for k, v in (("strict", strict), ("trusted", trusted)) if v is not None}
     for job in jobs:
         job["options"] = dict(options)
@@ -180,9 +198,19 @@ def check_robot(
         results = pool.run(jobs)
     for backend, r in zip(chosen, results, strict=True):
         if r.get("loaded"):
-            note = "loads and runs" if r.get("ok") else f"loads, then {r.get('run_error')}"
             n, seconds = len(r["joints"]), r.get("seconds", math.nan)
-            out.append(f"  {backend:9s} ✓ {note} ({n} joint{'s' if n != 1 else ''}, {seconds:.2f} s)")
+            size = f"({n} joint{'s' if n != 1 else ''}, {seconds:.2f} s)"
+            lag = _following_problem(r)
+            if lag is not None:
+                # a joint that does not follow its command is never a pass, whatever else ran
+                out.append(f"  {backend:9s} ✗ loads, but does not follow: {lag} {size}")
+                report.problems.append(f"{backend}: does not follow its commands: {lag}")
+                continue
+            note = "loads, holds and moves" if r.get("ok") else f"loads, then {r.get('run_error')}"
+            peak = _following_peak(r)
+            if peak:
+                note += f" (following error ≤ {peak})"
+            out.append(f"  {backend:9s} ✓ {note} {size}")
         else:
             out.append(f"  {backend:9s} ✗ {r.get('error_type')}")
             report.problems.append(f"{backend}: {' '.join(str(r.get('error')).split())}")

@@ -39,11 +39,16 @@ __all__ = ["BEHAVIORS", "ProbePool", "probe", "probe_in_subprocess"]
 #:
 #: * ``"hold_move"``: hold the start pose for ``HOLD`` s (``drift``: the largest joint excursion), then
 #:   ``move_to`` +``MOVE`` rad on every joint (clipped inside the limits; ``move_code``, ``move_error``:
-#:   the result and its largest goal error), then hold ``SETTLE`` s (``final``: the positions);
+#:   the result and its largest goal error), then hold ``SETTLE`` s (``final``: the positions;
+#:   ``following_errors``: the following errors latched during the hold);
 #: * ``"stand"``: a floating-base robot stands ``STAND`` s on its joint servos (``heights``: the base
 #:   height at the start and every 0.5 s).
-BEHAVIORS = ("hold_move", "stand")
+#: * ``"follow"``: ``agentsdk check``'s short trial: hold ``FOLLOW_HOLD`` s, ``move_to`` ±``FOLLOW_MOVE`` rad on
+#:   every joint, settle ``FOLLOW_SETTLE`` s (``following_peak``/``following_window``: the largest following
+#:   error per joint and its window; ``following_errors``: the following-error events).
+BEHAVIORS = ("hold_move", "stand", "follow")
 HOLD, MOVE, SETTLE, STAND = 2.0, 0.25, 0.5, 5.0
+FOLLOW_HOLD, FOLLOW_MOVE, FOLLOW_SETTLE = 0.5, 0.3, 0.3
 
 
 def _jsonable(value: Any) -> Any:
@@ -74,6 +79,7 @@ async def _hold_move(bot: Any, out: dict[str, Any]) -> None:
         peak = np.maximum(peak, np.abs((await bot.read()).position - q0))
     out["drift"] = float(peak.max(initial=0.0))
     out["drift_joint"] = joints[int(np.argmax(peak))].name if len(joints) else None
+    out["following_errors"] = [e.detail for e in bot.safety.events if e.kind == "following_error"]
     goal = np.clip(q0 + MOVE, lower, upper)
     result = await bot.move_to({j.name: float(g) for j, g in zip(joints, goal, strict=True)})
     out["move_code"] = result.code.name
@@ -83,6 +89,30 @@ async def _hold_move(bot: Any, out: dict[str, Any]) -> None:
     await bot.clock.sleep(SETTLE)
     out["final"] = (await bot.read()).position.tolist()
     out["goal"] = goal.tolist()
+
+
+async def _follow(bot: Any, out: dict[str, Any]) -> None:
+    """``agentsdk check``'s trial: hold FOLLOW_HOLD s, then a short move_to, recording the following error."""
+    import numpy as np
+
+    following = bot.safety.following
+    if following is not None:
+        following.reset_peak()
+    joints = bot.joints
+    lower = np.array([j.lower for j in joints])
+    upper = np.array([j.upper for j in joints])
+    try:
+        await bot.clock.sleep(FOLLOW_HOLD)
+        q0 = (await bot.read()).position
+        goal = np.clip(q0 + np.where(q0 + FOLLOW_MOVE <= upper, FOLLOW_MOVE, -FOLLOW_MOVE), lower, upper)
+        result = await bot.move_to({j.name: float(g) for j, g in zip(joints, goal, strict=True)})
+        out["move_code"] = result.code.name
+        await bot.clock.sleep(FOLLOW_SETTLE)
+    finally:
+        if following is not None:
+            out["following_peak"] = following.peak.tolist()
+            out["following_window"] = following.windows.tolist()
+        out["following_errors"] = [e.detail for e in bot.safety.events if e.kind == "following_error"]
 
 
 async def _stand(bot: Any, out: dict[str, Any]) -> None:
@@ -129,6 +159,8 @@ async def _probe_async(
                 await _hold_move(bot, out)
             elif behavior == "stand":
                 await _stand(bot, out)
+            elif behavior == "follow":
+                await _follow(bot, out)
             elif behavior is not None:
                 raise ValueError(f"unknown probe behavior {behavior!r}; known: {', '.join(BEHAVIORS)}")
         except AgentSDKError as exc:

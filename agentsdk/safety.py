@@ -23,7 +23,12 @@ then removes torque; 2 decelerates and holds with torque on.
 A loop-stall watchdog runs in its own OS thread: if the event loop stops
 beating for ``stall_timeout`` seconds of wall time, the thread calls the
 backend's synchronous ``_emergency_stop(0)`` hook itself (for CAN: disable
-frames), latches the e-stop and records the loop thread's stack.
+frames), latches the e-stop and records the loop thread's stack. It runs where
+wall time moves the robot: in real time (hardware, realtime simulation). In
+lockstep simulated time a stalled loop cannot advance the robot's clock, so the
+simulated robot cannot move while it stalls and there is nothing to protect:
+the watchdog is off there unless ``stall_in_lockstep`` is set (to catch a
+behavior's blocking calls in simulation before they reach hardware).
 """
 
 from __future__ import annotations
@@ -59,6 +64,7 @@ from .plausibility import SensorGate
 from .types import MODES, CommandMode, JointInfo
 
 if TYPE_CHECKING:
+    from .following import FollowingErrorCheck
     from .motion import MotionManager
 
 __all__ = [
@@ -104,6 +110,9 @@ class SafetyConfig(BaseModel):
     hold: Literal["position", "damping"] = "position"
     #: event-loop stall watchdog (wall-clock seconds, at least 10 ms); None disables the thread
     stall_timeout: Annotated[float, Field(ge=MIN_STALL_TIMEOUT)] | None = 0.25
+    #: run the stall watchdog in lockstep too (off by default: a stalled loop cannot advance simulated
+    #: time, so the simulated robot cannot move; turn it on to catch blocking calls in simulation)
+    stall_in_lockstep: bool = False
     #: damping gain used by category 1 where position control is absent (N·m·s/rad)
     stop_damping: float = Field(default=5.0, ge=0.0, le=MAX_GAIN)
     #: scale of the joints' max_acceleration used when decelerating to a stop
@@ -131,6 +140,19 @@ class SafetyConfig(BaseModel):
     sensor_fault_stop: Literal[0, 1, 2] = 2
     #: stop category of the e-stop buttons of user interfaces (the web view's E-STOP)
     ui_stop_category: Literal[0, 1, 2] = 1
+    #: following-error window (rad or m) around a position-servoed joint's command: "auto" (from the
+    #: gains and effort limits, see agentsdk.following), one number, {joint: window} (others "auto"),
+    #: or None (off)
+    following_error_window: (
+        Literal["auto"] | Annotated[float, Field(gt=0.0)] | dict[str, Annotated[float, Field(gt=0.0)]] | None
+    ) = "auto"
+    #: bounds of the "auto" window (rad or m)
+    following_error_min: float = Field(default=0.25, gt=0.0)
+    following_error_max: float = Field(default=0.5, gt=0.0)
+    #: robot seconds a joint must stay outside its window before the stop latches
+    following_error_time: float = Field(default=0.1, ge=0.0, le=10.0)
+    #: stop category of the following-error stop (IEC 60204-1)
+    following_error_stop: Literal[0, 1, 2] = 2
 
     @classmethod
     def from_sources(
@@ -412,6 +434,16 @@ class SafetyLayer:
             self.add_check(
                 MeasuredPositionCheck(loop.joints, config.position_limit_tolerance, config.position_limit_stop)
             )
+        #: the following-error check (None: ``following_error_window: null``), see :mod:`agentsdk.following`
+        self.following: FollowingErrorCheck | None = None
+        if config.following_error_window is not None:
+            from .following import FollowingErrorCheck, following_windows
+
+            windows = following_windows(loop.joints, loop.gain_p, config.following_error_window,
+                                        config.following_error_min, config.following_error_max)
+            self.following = FollowingErrorCheck(loop, windows, config.following_error_time,
+                                                 config.following_error_stop)
+            self.add_check(self.following)
 
     # ---------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -420,7 +452,7 @@ class SafetyLayer:
         self._loop_thread_id = threading.get_ident()
         np.copyto(self._written, self.loop.setpoint.position)
         self._goal = self._written.copy()
-        if self.config.stall_timeout is not None:
+        if self.stall_watchdog_active:
             self._beat = time.monotonic()
             self._schedule_beat()
             self._thread = threading.Thread(
@@ -456,6 +488,16 @@ class SafetyLayer:
             self._beat_handle = None
 
     # --------------------------------------------------------------- state
+    @property
+    def stall_watchdog_active(self) -> bool:
+        """True if the stall watchdog watches this robot (see the module documentation).
+
+        That is: a ``stall_timeout`` is set and the robot runs in real time, or in lockstep with
+        ``stall_in_lockstep``.
+        """
+        cfg = self.config
+        return cfg.stall_timeout is not None and (self.loop.realtime or cfg.stall_in_lockstep)
+
     @property
     def state(self) -> SafetyState:
         """OK, HOLD, ESTOP, DISABLED or FAULT (an e-stop latched from another thread shows at once)."""

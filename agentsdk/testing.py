@@ -339,7 +339,8 @@ class BackendConformance:
         if "effort" not in self.capabilities().modes:
             pytest.skip("needs effort mode to observe the actuator torque")
         timeout = 0.1
-        async with self.open_robot(safety={"stall_timeout": timeout}) as robot:
+        # stall_in_lockstep: a lockstep backend's watchdog is off by default (simulated time stops with the loop)
+        async with self.open_robot(safety={"stall_timeout": timeout, "stall_in_lockstep": True}) as robot:
             name, tau = await self._push(robot)
             _block(6 * timeout)  # a behavior that blocks the event loop
             assert robot.safety.state.name == "ESTOP"

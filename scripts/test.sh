@@ -43,23 +43,43 @@ if { ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; }
         { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends chromium chromium-driver >/dev/null; }
 fi
 
-"$PY" -m ruff check .
+# Every suite runs even when an earlier one fails; the failures are listed at the end and the
+# script exits non-zero if there was any (one failing lint must not hide a failing test run).
+FAILED=()
+suite() {  # suite NAME CMD...: run one suite, remember it if it fails
+    local name=$1
+    shift
+    echo "--- $name"
+    if "$@"; then
+        echo "--- $name: passed"
+    else
+        local rc=$?
+        echo "--- $name: FAILED (exit status $rc)"
+        FAILED+=("$name (exit status $rc)")
+    fi
+}
+
+set +e
+suite "ruff" "$PY" -m ruff check .
 
 # Static types: mypy --strict over agentsdk and the backends (as installed: see the script).
-"$PY" scripts/typecheck.py
+suite "mypy" "$PY" scripts/typecheck.py
 
 # The API reference (docs/, Sphinx autodoc): docstring or cross-reference problems fail the build.
-"$PY" -m sphinx -W --keep-going -q -b html docs build/docs
+suite "sphinx" "$PY" -m sphinx -W --keep-going -q -b html docs build/docs
 
 # Main suite (vcan-marked tests are skipped here: this kernel has no CAN).
-set +e
-"$PY" -m pytest -m "not vcan" "$@"
-rc=$?
-set -e
-[ $rc -eq 0 ] || exit $rc
+suite "pytest (main suite)" "$PY" -m pytest -m "not vcan" "$@"
 
 if [ "${SKIP_VCAN:-0}" != 1 ]; then
-    echo "--- vcan suite (real SocketCAN inside user-mode Linux)"
     PYBIN=$("$PY" -c 'import sys; print(sys.executable)')
-    bash scripts/run-in-vcan.sh "$PYBIN" -m pytest -m vcan -p no:cacheprovider "$@"
+    suite "pytest (vcan suite, real SocketCAN inside user-mode Linux)" \
+        bash scripts/run-in-vcan.sh "$PYBIN" -m pytest -m vcan -p no:cacheprovider "$@"
 fi
+
+if [ ${#FAILED[@]} -ne 0 ]; then
+    echo "=== FAILED: ${#FAILED[@]} suite(s)"
+    printf '  %s\n' "${FAILED[@]}"
+    exit 1
+fi
+echo "=== all suites passed"

@@ -33,8 +33,8 @@ def test_check_a_shipped_robot() -> None:
     assert "start pose (3 joints at 0):" in out and "joint1=0" in out
     assert "servo gains on mujoco (robot.yaml" in out and "joint2 p=800 d=10" in out
     assert "self-collision (auto):" in out and "left out, adjacent" in out
-    assert "mujoco    ✓ loads and runs (3 joints" in out
-    assert "pybullet  ✓ loads and runs (3 joints" in out
+    assert "mujoco    ✓ loads, holds and moves (following error ≤ " in out
+    assert "pybullet  ✓ loads, holds and moves (following error ≤ " in out
     assert out.rstrip().endswith("ok")
 
 
@@ -58,7 +58,7 @@ def test_check_an_mjcf_file() -> None:
     assert "robot 'mjcf_arm scene' (MJCF)" in r.stdout
     assert "joints from the model's home keyframe" in r.stdout and "shoulder_pitch=0.3" in r.stdout
     assert "self-collision (the model's own contact settings)" in r.stdout
-    assert "mujoco    ✓ loads and runs (3 joints" in r.stdout
+    assert "mujoco    ✓ loads, holds and moves" in r.stdout
 
 
 def test_check_a_broken_file_fails_with_one_line_per_problem(tmp_path: Path) -> None:
@@ -78,3 +78,21 @@ def test_describe_accepts_urdf_and_mjcf(robot: str) -> None:
     r = _agentsdk("describe", robot)
     assert r.returncode == 0, r.stderr
     assert "Successfully parsed" in r.stdout and "actuated joints" in r.stdout
+
+
+def test_check_reports_a_joint_that_does_not_follow() -> None:
+    """Issue 20.8: a robot whose joint does not follow its command (here a hold with gains far too low for
+    its load) is never reported ✓: the check names the joint and the error against its window, and fails."""
+    r = _agentsdk("check", str(FIXTURES / "following" / "weak.yaml"))
+    assert r.returncode == 1
+    for backend in ("mujoco", "pybullet"):
+        line = next(ln for ln in r.stdout.splitlines() if ln.strip().startswith(backend + " "))
+        assert "✗ loads, but does not follow: joint 'shoulder' is " in line, r.stdout
+        assert "(window 0.5)" in line
+        assert f"error: {backend}: does not follow its commands: joint 'shoulder'" in r.stderr
+    # the same arm with model gains: MuJoCo follows; PyBullet, which has no rotor inertia (MJCF armature),
+    # does not move the wrist as commanded (Menagerie-like: before, "pybullet ✓ loads and runs")
+    armature = _agentsdk("check", str(FIXTURES / "following" / "healthy.yaml"))
+    assert armature.returncode == 1
+    assert "mujoco    ✓ loads, holds and moves (following error ≤ " in armature.stdout, armature.stdout
+    assert "pybullet  ✗ loads, but does not follow: joint 'wrist' is " in armature.stdout, armature.stdout

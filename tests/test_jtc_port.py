@@ -331,7 +331,9 @@ async def test_goal_tolerances_fail(backend: str) -> None:
 
 async def test_goal_tolerance_abort_does_not_pull_a_stuck_joint_to_the_goal() -> None:
     """JTC ``test_goal_tolerances_fail`` with a joint that never moves: the hold is its measured position."""
-    async with agentsdk.connect("mock", robot="arm3", frozen_joints=["joint2"], safety=SAFETY) as robot:
+    # (the following-error check is off: a stuck joint latches it, this test is about the goal tolerance)
+    safety = {**SAFETY, "following_error_window": None}
+    async with agentsdk.connect("mock", robot="arm3", frozen_joints=["joint2"], safety=safety) as robot:
         q0 = (await robot.read()).position.copy()
         result = await robot.follow(Trajectory(["joint1", "joint2"], [TrajectoryPoint(0.5, [0.3, 0.3])]),
                                     Tolerances(goal=0.02, goal_time=0.1))

@@ -459,12 +459,16 @@ def test_plan_with_mappings_and_subset_of_joints() -> None:
 def test_plan_scales_and_single_joint_time_from_limits() -> None:
     j = [J("j1")]  # v=2, a=5, jerk=100
     traj = plan([[-2.0], [2.0]], j)
-    # rest to rest over 4 rad: cruise at v_max; t = d/v + v/a + a/j
-    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 5 / 100, rel=1e-9)
+    # rest to rest over 4 rad: cruise at v_max; t = d/v + v/a + a/j (planned inside the limits by
+    # PLAN_LIMIT_MARGIN and the breakpoint-merge margin 2 * max_jerk * MIN_GAP, < 1e-4 relative here: issue 20.5)
+    rel = 2e-4
+    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 5 / 100, rel=rel)
+    assert traj.duration > 4 / 2 + 2 / 5 + 5 / 100
     slow = plan([[-2.0], [2.0]], j, velocity_scale=0.5, acceleration_scale=0.5)
-    assert slow.duration == pytest.approx(4 / 1 + 1 / 2.5 + 2.5 / 100, rel=1e-9)
-    assert np.max(np.abs(slow.velocities)) == pytest.approx(1.0)
-    assert np.max(np.abs(slow.accelerations)) == pytest.approx(2.5)
+    assert slow.duration == pytest.approx(4 / 1 + 1 / 2.5 + 2.5 / 100, rel=rel)
+    assert np.max(np.abs(slow.velocities)) == pytest.approx(1.0, rel=rel)
+    assert np.max(np.abs(slow.accelerations)) == pytest.approx(2.5, rel=rel)
+    assert np.max(np.abs(slow.velocities)) < 1.0 and np.max(np.abs(slow.accelerations)) < 2.5
     with pytest.raises(InvalidValueError, match="velocity_scale"):
         plan([[0.0], [1.0]], j, velocity_scale=0.0)
 
@@ -487,7 +491,8 @@ def test_plan_stays_within_position_limits_near_a_limit() -> None:
 def test_plan_without_jerk_limit_ramps_acceleration() -> None:
     j = [J("j1", j=math.inf)]
     traj = plan([[-2.0], [2.0]], j)
-    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 0.002, rel=1e-9)
+    # (planned inside the limits: by ~1e-3 without a jerk limit, see joint_limits)
+    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 0.002, rel=2e-3)
     assert_within_limits(traj, [J("j1", j=5 / 0.002)])
 
 
@@ -521,7 +526,8 @@ def test_plan_property_limits_and_waypoints(seed: int, n: int) -> None:
 
 def test_point_to_point_min_time_synchronized() -> None:
     traj = plan_point_to_point(([-2.0, 0.0], None, None), [2.0, 0.5], JOINTS2)
-    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 5 / 100, rel=1e-9)  # j1 limits the time
+    # j1 limits the time (planned inside the limits by PLAN_LIMIT_MARGIN + the merge margin)
+    assert traj.duration == pytest.approx(4 / 2 + 2 / 5 + 5 / 100, rel=5e-5)
     np.testing.assert_array_equal(traj.positions[-1], [2.0, 0.5])
     np.testing.assert_array_equal(traj.velocities[-1], [0.0, 0.0])
     assert_within_limits(traj, JOINTS2)
@@ -538,7 +544,8 @@ def test_point_to_point_with_duration() -> None:
 
 
 def test_point_to_point_infeasible_duration() -> None:
-    with pytest.raises(LimitViolation, match=r"duration 2 s is too short: joint 'j1' needs at least 2.45 s"):
+    too_short = r"duration 2 s is too short: joint 'j1' needs at least 2.450\d* s .*max_velocity 2, "
+    with pytest.raises(LimitViolation, match=too_short):
         plan_point_to_point(([-2.0, 0.0], None, None), [2.0, 0.5], JOINTS2, 2.0)
     with pytest.raises(InvalidValueError, match="duration"):
         plan_point_to_point(([-2.0, 0.0], None, None), [2.0, 0.5], JOINTS2, -1.0)
@@ -549,12 +556,12 @@ def test_point_to_point_infeasible_duration() -> None:
 def test_point_to_point_overshoot_is_checked_against_limits() -> None:
     # from 1.0 at 2 rad/s to 1.2: the joint brakes at full deceleration, reverses at 1.4495 (inside a
     # constant-acceleration phase, which ruckig 0.19's own position_extrema misses: it reports 1.373)
-    with pytest.raises(LimitViolation, match=r"joint 'j1' would leave its limits \[-3, 1.4\].*1.4494"):
+    with pytest.raises(LimitViolation, match=r"joint 'j1' would leave its limits \[-3, 1.4\].*1.449[45]"):
         plan_point_to_point(([1.0], [2.0], None), [1.2], [J("j1", upper=1.4)])
     traj = plan_point_to_point(([1.0], [2.0], None), [1.2], [J("j1", upper=1.5)])
     assert_within_limits(traj, [J("j1", upper=1.5)])
     _, out = sample_grid(TrajectorySampler(traj, 0.0), 20001)
-    assert np.max(out[:, 0, 0]) == pytest.approx(1.4494791666, abs=1e-6)
+    assert np.max(out[:, 0, 0]) == pytest.approx(1.4494791666, abs=1e-4)  # (braking a little inside the limit)
 
 
 def test_point_to_point_from_moving_start() -> None:

@@ -29,7 +29,11 @@ class MotionPeaks:
 
 
 _GRID = 16  # cells per segment where derivative roots are bracketed
-_BISECT = 52  # bisection steps: a cell shrinks to machine precision
+_SPLIT = 16  # cells a bracket is split into per refinement step
+#: refinement steps: a bracket shrinks to T / 16**8 ~ T * 2e-10, so the extremum's value is exact to ~1e-19
+#: of the polynomial's range (an error in the root moves the value only quadratically at an extremum)
+_REFINE = 7
+_FRACTIONS = np.linspace(0.0, 1.0, _SPLIT + 1)
 
 
 def _polyval(c: FloatArray, tau: FloatArray) -> FloatArray:
@@ -92,15 +96,20 @@ def poly_range(c: FloatArray, dc: FloatArray, T: FloatArray) -> tuple[FloatArray
         hi = grid[s_idx, c_idx + 1].copy()
         g_lo = g[s_idx, c_idx, j_idx]
         coeffs = dc[s_idx, :, j_idx]  # (K, d+1)
-        for _ in range(_BISECT):
-            mid = 0.5 * (lo + hi)
-            gm = coeffs[:, -1].copy()
+        ks = np.arange(len(s_idx))
+        for _ in range(_REFINE):
+            # split every bracket into _SPLIT cells at once and keep the first cell where the sign changes
+            # (a bisection that gains 4 bits per step: 7 numpy passes instead of 28)
+            pts = lo[:, None] + (hi - lo)[:, None] * _FRACTIONS[None, :]  # (K, _SPLIT + 1)
+            gm = np.broadcast_to(coeffs[:, -1][:, None], pts.shape).copy()
             for k in range(coeffs.shape[1] - 2, -1, -1):
-                gm = gm * mid + coeffs[:, k]
-            same = (gm * g_lo) > 0.0
-            lo = np.where(same, mid, lo)
-            hi = np.where(same, hi, mid)
-            g_lo = np.where(same, gm, g_lo)
+                gm *= pts
+                gm += coeffs[:, k][:, None]
+            changed = (gm[:, 1:] * g_lo[:, None]) <= 0.0
+            changed[:, -1] = True  # the bracket's far end changes sign (rounding aside)
+            m = np.argmax(changed, axis=1)
+            lo, hi = pts[ks, m], pts[ks, m + 1]
+            g_lo = gm[ks, m]
         root = 0.5 * (lo + hi)
         cf = c[s_idx, :, j_idx]
         fr = cf[:, -1].copy()

@@ -8,12 +8,13 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from ..errors import InvalidValueError, LimitViolation, UnknownJointError
+from ..errors import CommandRejected, InvalidValueError, LimitViolation, UnknownJointError
 from ..types import FloatArray, JointInfo
 from ._ruckig import (
     MAX_PROFILE_DURATION,
     MIN_GAP,
     PLAN_POS_TOL,
+    JointLimits,
     RuckigSolver,
     append_profile,
     check_positions,
@@ -255,15 +256,23 @@ def plan_point_to_point(
         )
     rk = RuckigSolver(lim)
     zero = np.zeros(len(names))
-    tr = rk.solve(q0, v0, a0, q1, zero, duration)
+    try:
+        tr = rk.solve(q0, v0, a0, q1, zero, duration)
+    except CommandRejected:
+        if duration is not None:
+            raise
+        # ruckig's time synchronization fails on some degenerate start states (e.g. a target equal to a
+        # start that is at rest up to rounding, the state at the very end of the previous move): stop
+        # first, then move from rest (always solvable; slower only by the stop, which is ~0 there)
+        return _stop_then_move(lim, q0, v0, a0, q1)
     if duration is not None and tr.duration > duration * (1.0 + 1e-9) + 1e-9:
         mins = list(tr.independent_min_durations)
         j = int(np.argmax(mins))
         if mins[j] > duration:
             raise LimitViolation(
                 f"duration {duration:.6g} s is too short: joint {names[j]!r} needs at least {mins[j]:.6g} s "
-                f"to move from {q0[j]:.6g} to {q1[j]:.6g} (max_velocity {lim.vmax[j]:.6g}, max_acceleration "
-                f"{lim.amax[j]:.6g}, max_jerk {lim.jmax[j]:.6g})"
+                f"to move from {q0[j]:.6g} to {q1[j]:.6g} (max_velocity {infos[j].max_velocity * velocity_scale:.6g}, "
+                f"max_acceleration {infos[j].max_acceleration * acceleration_scale:.6g}, max_jerk {lim.jmax[j]:.6g})"
             )
         raise LimitViolation(
             f"duration {duration:.6g} s is not feasible from this start state under the limits; "
@@ -280,6 +289,30 @@ def plan_point_to_point(
     if tr.duration >= MIN_GAP:
         append_profile(rows, tr, 0.0, q1, zero)
     return to_trajectory(names, rows)
+
+
+def _stop_then_move(lim: JointLimits, q0: FloatArray, v0: FloatArray, a0: FloatArray, q1: FloatArray) -> Trajectory:
+    """The fallback of :func:`plan_point_to_point`: each joint brakes to rest, then all move to ``q1`` from rest."""
+    zero = np.zeros(len(q0))
+    stop = RuckigSolver(lim, velocity_interface=True, synchronize=False).solve(q0, v0, a0, None, zero)
+    rows: list[tuple[float, FloatArray, FloatArray, FloatArray]] = [(0.0, q0, v0, a0)]
+    q_rest = q0
+    if stop.duration >= MIN_GAP:
+        append_profile(rows, stop, 0.0, None, zero)
+        q_rest = rows[-1][1]
+    rk = RuckigSolver(lim)
+    for tr in (stop, rk.solve(q_rest, zero, zero, q1, zero)):
+        j = rk.within_position_limits(tr)
+        if j >= 0:
+            lo, hi = position_extrema(tr)
+            raise LimitViolation(
+                f"joint {lim.names[j]!r} would leave its limits [{lim.lower[j]:.6g}, {lim.upper[j]:.6g}] on the "
+                f"way to the goal (reaching [{lo[j]:.6g}, {hi[j]:.6g}]) from start velocity {v0[j]:.6g}"
+            )
+    move = rk.traj
+    if move.duration >= MIN_GAP:
+        append_profile(rows, move, rows[-1][0], q1, zero)
+    return to_trajectory(lim.names, rows)
 
 
 def plan_stop(
@@ -299,7 +332,7 @@ def plan_stop(
     not checked against limits: a stop must always be possible.
     """
     infos = _select_joints(joints, None)
-    lim = joint_limits(infos, 1.0, decel_scale, 1.0)
+    lim = joint_limits(infos, 1.0, decel_scale, 1.0, margin=False)
     names = lim.names
     q0 = vector(q, names, "positions")
     v0 = vector(v, names, "velocities")

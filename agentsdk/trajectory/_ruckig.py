@@ -44,6 +44,13 @@ MAX_PROFILE_DURATION = 7.6e3
 PLAN_POS_TOL = 1e-7  # rad or m, ruckig reaches its targets within ~1e-8
 
 MIN_GAP = 1e-6  # s, breakpoints closer than this are merged
+
+#: relative margin inside max_velocity and max_acceleration that the planners give ruckig, so the float
+#: rounding of the breakpoints and of the ~1e-8 end correction never makes a plan fail its own check
+#: (``move_to`` once planned 8.00002 rad/s^2 against a limit of 8). See :func:`joint_limits`.
+PLAN_LIMIT_MARGIN = 1e-5
+#: the merge margin of :func:`joint_limits` is at most this fraction of a limit
+_MAX_MERGE_MARGIN = 0.01
 _INF_JERK_RAMP = 0.002  # s, acceleration ramp time used for joints with max_jerk = inf
 
 
@@ -60,9 +67,24 @@ class JointLimits:
 
 
 def joint_limits(
-    infos: Sequence[JointInfo], velocity_scale: float, acceleration_scale: float, jerk_scale: float
+    infos: Sequence[JointInfo],
+    velocity_scale: float,
+    acceleration_scale: float,
+    jerk_scale: float,
+    *,
+    margin: bool = True,
 ) -> JointLimits:
-    """The limits of ``infos`` scaled for planning; bad scales or missing limits raise a specific error."""
+    """The limits of ``infos`` scaled for planning; bad scales or missing limits raise a specific error.
+
+    The velocity and acceleration limits given to ruckig sit inside the joints' limits, so that a plan
+    never fails the check of its executed motion (:func:`check_motion_limits`): by
+    :data:`PLAN_LIMIT_MARGIN` (relative, float rounding), and by what merging two profile breakpoints
+    closer than :data:`MIN_GAP` can add between the kept ones (the acceleration changes by up to
+    ``max_jerk * MIN_GAP`` there, the velocity by ``max_acceleration * MIN_GAP``), twice that, at most
+    1 % of the limit. The jerk limit is not shrunk (a smaller jerk would make a moving start overshoot
+    its velocity more). A minimum-time move is slower by about the margin (1e-5, 1e-3 with no jerk limit).
+    ``margin=False`` plans at the limits themselves (a stop: as fast as the limits allow, never checked).
+    """
     for what, s in (
         ("velocity_scale", velocity_scale),
         ("acceleration_scale", acceleration_scale),
@@ -81,16 +103,21 @@ def joint_limits(
                     f"joint {j.name!r}: {what} is {lim}; time parameterization needs a positive"
                     f"{'' if allow_inf else ', finite'} limit (set joint_limits in robot.yaml)"
                 )
-    amax = np.array([j.max_acceleration for j in infos]) * acceleration_scale
+    inside = 1.0 - PLAN_LIMIT_MARGIN if margin else 1.0
+    amax = np.array([j.max_acceleration for j in infos]) * (acceleration_scale * inside)
+    vmax = np.array([j.max_velocity for j in infos]) * (velocity_scale * inside)
     jmax = np.array([j.max_jerk for j in infos]) * jerk_scale
     # no jerk limit: ramp the acceleration over _INF_JERK_RAMP instead of stepping it, so that the
     # planned trajectories stay C2 (what the quintic interpolation reproduces exactly)
     jmax = np.where(np.isfinite(jmax), jmax, amax / _INF_JERK_RAMP)
+    if margin:
+        vmax = vmax - np.minimum(2.0 * amax * MIN_GAP, _MAX_MERGE_MARGIN * vmax)
+        amax = amax - np.minimum(2.0 * jmax * MIN_GAP, _MAX_MERGE_MARGIN * amax)
     return JointLimits(
         names=tuple(j.name for j in infos),
         lower=np.array([j.lower for j in infos]),
         upper=np.array([j.upper for j in infos]),
-        vmax=np.array([j.max_velocity for j in infos]) * velocity_scale,
+        vmax=vmax,
         amax=amax,
         jmax=jmax,
     )

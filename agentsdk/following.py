@@ -1,0 +1,178 @@
+"""Following error: a joint that does not follow its position command latches a stop.
+
+A servo drive latches a *following error* when the measured position stays outside a
+window around the command: the joint is blocked, the servo is saturated, unstable
+(a simulator's integrator meeting a model it cannot servo, gains too low or too high)
+or not connected to what it drives. :class:`FollowingErrorCheck` is that check, run by the
+safety layer on every backend (a :data:`~agentsdk.safety.SafetyCheck`, registered by
+default).
+
+What is watched: joints the servo holds to a position, that is in position mode, with
+torque on and a position gain ``kp > 0``. The command is the position setpoint the servo
+tracks this tick (a trajectory's desired position, a ramped position command, a hold);
+a velocity or effort command has no position to follow, and a torque-off or damping-only
+joint is not servoed, so those joints are skipped (and their persistence timers reset).
+
+The window per joint (robot.yaml ``safety: following_error_window``):
+
+* ``"auto"`` (default): twice the error at which the servo's P term alone demands the
+  joint's effort limit (``2 * max_effort / kp``: beyond it the drive is saturated and
+  cannot pull the joint back), bounded to ``[following_error_min, following_error_max]``
+  (a joint without effort limit or gain gets the maximum; a hold with gains so low that
+  the joint sags further than the maximum is caught too);
+* a number: that window for every joint; a mapping ``{joint: window}``: per joint (the
+  others ``"auto"``); ``None`` disables the check.
+
+The defaults (0.25..0.5 rad or m, 0.1 s) are loose enough for every corpus robot's healthy
+tracking with its default gains (a hand's finger on PyBullet lags up to 0.19 rad during a
+fast move and still reaches its goal) and catch a joint that sags, swings or is stuck.
+
+The error must stay outside the window for ``following_error_time`` seconds of robot time
+(a transient, e.g. a collision bump, is not a fault); then the check returns a violation
+naming the joint, its error and window, and the safety layer latches a stop of category
+``following_error_stop``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from .backend import ModeCode
+from .errors import ConfigurationError
+from .loop import ControlLoop, StateView
+from .safety import SafetyViolation
+from .types import FloatArray, JointInfo
+
+__all__ = ["FollowingErrorCheck", "following_windows"]
+
+_POS = int(ModeCode.POSITION)
+
+
+def following_windows(
+    joints: Sequence[JointInfo],
+    gains_p: Sequence[float] | FloatArray,
+    window: float | Mapping[str, float] | str,
+    minimum: float,
+    maximum: float,
+) -> FloatArray:
+    """Per-joint following-error windows (rad or m) in ``joints`` order (see the module documentation).
+
+    Raises :class:`ConfigurationError` for a mapping naming an unknown joint, or bounds in the wrong order.
+    """
+    if minimum > maximum:
+        raise ConfigurationError(
+            f"safety.following_error_min ({minimum:g}) is larger than safety.following_error_max ({maximum:g})"
+        )
+    emax = np.array([j.max_effort for j in joints], dtype=np.float64)
+    kp = np.array(gains_p, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sat = np.where((kp > 0.0) & np.isfinite(emax) & (emax > 0.0), 2.0 * emax / kp, math.inf)
+    auto: FloatArray = np.clip(np.nan_to_num(sat, nan=math.inf), minimum, maximum)
+    if isinstance(window, str):
+        return auto
+    if isinstance(window, Mapping):
+        names = [j.name for j in joints]
+        unknown = sorted(set(window) - set(names))
+        if unknown:
+            raise ConfigurationError(
+                f"safety.following_error_window names unknown joint(s) {unknown}; this robot's joints are: "
+                f"{', '.join(names)}"
+            )
+        out = auto.copy()
+        for k, name in enumerate(names):
+            if name in window:
+                out[k] = float(window[name])
+        return out
+    out = np.full(len(joints), float(window))
+    return out
+
+
+class FollowingErrorCheck:
+    """Built-in :data:`~agentsdk.safety.SafetyCheck`: a position-servoed joint outside its following-error window
+    for ``persist`` seconds of robot time (see the module documentation). Allocation-free per tick while every
+    watched joint is inside its window.
+    """
+
+    def __init__(self, loop: ControlLoop, windows: np.ndarray, persist: float, category: int) -> None:
+        n = len(loop.joints)
+        self._loop = loop
+        self._names = tuple(j.name for j in loop.joints)
+        self.windows = np.array(windows, dtype=np.float64)
+        self.windows.flags.writeable = False
+        self._persist = float(persist)
+        self._category = category
+        self._continuous = np.array([j.type == "continuous" for j in loop.joints], dtype=bool)
+        self._any_continuous = bool(self._continuous.any())
+        self._err = np.zeros(n)
+        self._zeros = np.zeros(n)
+        self._maskf = np.zeros(n)
+        self._pos_row = np.full(n, _POS, dtype=np.int8)
+        self._wrapped = np.zeros(n)
+        self._mask = np.zeros(n, dtype=bool)
+        self._tmp = np.zeros(n, dtype=bool)
+        #: robot time each joint was first seen outside its window (NaN: inside, or not watched)
+        self._since = np.full(n, np.nan)
+        self._tracking = False
+        self._last_t = -math.inf
+        self._period = loop.period
+        self._none = np.zeros(n, dtype=bool).tobytes()
+        #: largest error seen per watched joint since construction or :meth:`reset_peak` (diagnostics)
+        self.peak = np.zeros(n)
+
+    def reset_peak(self) -> None:
+        """Start a new :attr:`peak` measurement."""
+        self.peak[:] = 0.0
+
+    def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
+        """Return a violation naming the joint whose error stayed outside its window longest, else None."""
+        sp = self._loop.setpoint
+        err, mask = self._err, self._mask
+        np.subtract(state.position, sp.position, out=err)
+        if self._any_continuous:
+            # a continuous joint's error is an angle: the shortest way round
+            wrapped = self._wrapped
+            np.add(err, math.pi, out=wrapped)
+            np.remainder(wrapped, 2.0 * math.pi, out=wrapped)
+            np.subtract(wrapped, math.pi, out=wrapped)
+            np.copyto(err, wrapped, where=self._continuous)
+        np.abs(err, out=err)
+        # watched: position mode, torque on, a position gain
+        # (operands of one dtype with preallocated outputs: a Python scalar or a cast allocates per tick)
+        np.equal(sp.mode, self._pos_row, out=mask)
+        np.logical_and(mask, sp.enabled, out=mask)
+        np.greater(sp.kp, self._zeros, out=self._tmp)
+        np.logical_and(mask, self._tmp, out=mask)
+        np.copyto(self._maskf, mask)  # (a bool -> float copy allocates nothing; a mixed multiply does)
+        np.multiply(err, self._maskf, out=err)  # unwatched joints: no error
+        np.fmax(self.peak, err, out=self.peak)  # (NaN: not an error figure)
+        outside = self._tmp
+        np.greater(err, self.windows, out=outside)
+        gap = t - self._last_t > 1.5 * self._period  # the check did not run meanwhile (stopped, disabled)
+        self._last_t = t
+        if outside.tobytes() == self._none:
+            if self._tracking:
+                self._since[:] = np.nan
+                self._tracking = False
+            return None
+        since = self._since
+        if gap:
+            since[:] = np.nan
+        since[~outside] = np.nan
+        since[outside & np.isnan(since)] = t
+        self._tracking = True
+        age = t - since
+        # (an age of 0 with persist 0: a single tick outside is enough)
+        due = np.flatnonzero(outside & (age >= self._persist - 1e-9))
+        if not len(due):
+            return None
+        j = int(due[np.argmax(err[due])])
+        return SafetyViolation(
+            "following_error",
+            f"following error: joint {self._names[j]!r} is {err[j]:.4g} from its position command "
+            f"(window {self.windows[j]:.4g}) for {age[j]:.3g} s",
+            self._names[j],
+            self._category,
+        )

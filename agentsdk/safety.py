@@ -131,7 +131,7 @@ class SafetyConfig(BaseModel):
     #: plausibility of every reading (agentsdk.plausibility): a value the physics cannot explain is a
     #: sensor fault, never a position; False takes readings as they are
     sensor_check: bool = True
-    #: a position may move at most margin x max(max_velocity, |velocity|) x elapsed time (+ floor) per reading
+    #: a position may move at most margin x max(max_velocity, abs(velocity)) x elapsed time (+ floor) per reading
     sensor_jump_margin: float = Field(default=2.0, ge=1.0, le=1000.0)
     #: ... plus this much (rad or m: encoder noise, quantization, backlash)
     sensor_jump_floor: float = Field(default=0.02, ge=0.0, le=10.0)

@@ -14,12 +14,15 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from ..backend import SetpointView
 from ..errors import ConfigurationError
 from ..loop import Phase, StateView
 from ..statemachine import StateMachine
 from ._channels import FORMAT, SAFETY_EVENTS, TRANSITIONS, stamp_ns
 from ._reader import RunData, read_recording
+from ._sensors import sensor_tracks, tracks_json
 from ._writer import FLUSH_INTERVAL, Block, Job, Output, Selector, WriterThread
 
 if TYPE_CHECKING:
@@ -29,7 +32,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("agentsdk.recording")
 
-__all__ = ["BLOCK_TICKS", "FLUSH_INTERVAL", "RECORDER_ORDER", "RECORD_FORMATS", "STATE_RATE", "TF_RATE", "Recorder"]
+__all__ = [
+    "BLOCK_TICKS", "FLUSH_INTERVAL", "RECORDER_ORDER", "RECORD_FORMATS", "SENSOR_RATE", "STATE_RATE", "TF_RATE",
+    "Recorder",
+]
 
 #: OBSERVE-phase order of the recorder: before every other observer (it sees the setpoint as written)
 RECORDER_ORDER = -1000
@@ -45,6 +51,8 @@ _LOCKSTEP_WAIT = 2.0
 STATE_RATE = 50.0
 #: default rate of /tf (Hz of robot time): smooth in Foxglove, cheap for a 30-link robot
 TF_RATE = 25.0
+#: default rate of the ``/sensors/<name>`` topics (Hz of robot time; a slower sensor: each of its samples)
+SENSOR_RATE = 50.0
 #: ``--record-format`` choices
 RECORD_FORMATS = ("mcap", "ros2")
 
@@ -78,7 +86,10 @@ class Recorder:
         block_ticks: int = BLOCK_TICKS,
         format: str = "mcap",
         tf_rate: float | None = TF_RATE,
+        sensor_rate: float | None = SENSOR_RATE,
     ) -> None:
+        if sensor_rate is not None and not (math.isfinite(sensor_rate) and sensor_rate > 0):
+            raise ConfigurationError(f"sensor record rate must be a positive number of Hz, got {sensor_rate!r}")
         if rate is not None and not (math.isfinite(rate) and rate > 0):
             raise ConfigurationError(f"record rate must be a positive number of Hz, got {rate!r}")
         if tf_rate is not None and not (math.isfinite(tf_rate) and tf_rate >= 0):
@@ -98,11 +109,24 @@ class Recorder:
         self.format = format
         self.path = Path(path) if path is not None else None
         n = len(self.names)
-        self._cap = max(16, min(int(block_ticks), _BLOCK_BYTES // Block.row_bytes(n)))
+        #: the recorded sensors (every one but cameras); none: the recording is exactly as without sensors
+        self.sensor_tracks = sensor_tracks(robot)
+        if sensor_rate is not None and sensor_rate * self.period >= 1.0 - 1e-9:
+            sensor_rate = None
+        self.sensor_rate = sensor_rate if self.sensor_tracks else None
+        sensors = robot.sensors if self.sensor_tracks else None
+        # the published arrays (updated in place by the sensor hub) and the stamp getter
+        self._sensor_views = tuple(sensors.values(t.name) for t in self.sensor_tracks) if sensors else ()
+        self._sensor_names = tuple(t.name for t in self.sensor_tracks)
+        self._sensor_stamp = sensors.stamp if sensors else None
+        width = sum(t.size for t in self.sensor_tracks)
+        ns = len(self.sensor_tracks)
+        row = Block.row_bytes(n, width, ns)
+        self._cap = max(16, min(int(block_ticks), _BLOCK_BYTES // row))
         self._free: queue.SimpleQueue[Block] = queue.SimpleQueue()
-        for _ in range(max(3, _POOL_BYTES // (self._cap * Block.row_bytes(n))) - 1):
-            self._free.put(Block(self._cap, n))
-        self._block: Block | None = Block(self._cap, n)
+        for _ in range(max(3, _POOL_BYTES // (self._cap * row)) - 1):
+            self._free.put(Block(self._cap, n, width, ns))
+        self._block: Block | None = Block(self._cap, n, width, ns)
         self._k = 0
         self._prev_t = float(robot.clock.now())
         self.ticks = 0
@@ -121,14 +145,16 @@ class Recorder:
         try:
             if self.path is not None:
                 kind = "agentsdk" if format == "mcap" else "ros2"
-                outputs.append(Output(self.path, kind=kind, names=self.names, metadata=self.metadata))
+                outputs.append(Output(self.path, kind=kind, names=self.names, metadata=self.metadata,
+                                      sensors=self.sensor_tracks))
                 if format == "mcap":
                     self._data_path = self.path
             if keep and self._data_path is None:
                 fd, tmp = tempfile.mkstemp(prefix="agentsdk-rec-", suffix=".mcap")
                 os.close(fd)
                 self._temp = self._data_path = Path(tmp)
-                outputs.append(Output(self._temp, kind="agentsdk", names=self.names, metadata=self.metadata))
+                outputs.append(Output(self._temp, kind="agentsdk", names=self.names, metadata=self.metadata,
+                                      sensors=self.sensor_tracks))
         except BaseException:
             for o in outputs:
                 o.close(ok=False)
@@ -141,7 +167,8 @@ class Recorder:
         # the thread writes the description and builds the kinematics (a MuJoCo model compile, ~0.2 s)
         self._writer = WriterThread(
             outputs,
-            Selector(self._prev_t, self.rate, self.tf_rate),
+            Selector(self._prev_t, self.rate, self.tf_rate, sensor_rate=self.sensor_rate, sensor_width=width,
+                     sensor_count=ns),
             self._free,
             kinematics=kin,
             description=(stamp_ns(self._prev_t), urdf) if urdf else None,
@@ -165,9 +192,11 @@ class Recorder:
         metadata: Mapping[str, str] | None = None,
         format: str = "mcap",
         tf_rate: float | None = TF_RATE,
+        sensor_rate: float | None = SENSOR_RATE,
     ) -> Recorder:
         """Start recording ``robot`` (call right after connect, before any tick)."""
-        return cls(robot, path, rate=rate, keep=keep, metadata=metadata, format=format, tf_rate=tf_rate)
+        return cls(robot, path, rate=rate, keep=keep, metadata=metadata, format=format, tf_rate=tf_rate,
+                   sensor_rate=sensor_rate)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -200,6 +229,9 @@ class Recorder:
             "agentsdk_version": __version__,
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         }
+        if self.sensor_tracks:
+            md["sensors"] = tracks_json(self.sensor_tracks)
+            md["sensor_rate"] = "" if self.sensor_rate is None else repr(float(self.sensor_rate))
         md.update({k: str(v) for k, v in extra.items()})
         return md
 
@@ -230,6 +262,11 @@ class Recorder:
         b.en[k] = sp.enabled
         b.mode[k] = sp.mode
         b.target[k] = sp.target
+        if self._sensor_views:
+            np.concatenate(self._sensor_views, out=b.sv[k])
+            ss, stamp = b.ss[k], self._sensor_stamp
+            for i, name in enumerate(self._sensor_names):
+                ss[i] = stamp(name)  # type: ignore[misc]
         k += 1
         self._k = k
         if k == self._cap or (not (k & 15) and time.perf_counter() - self._rotated_at > FLUSH_INTERVAL):

@@ -168,3 +168,90 @@ async def test_a_robot_without_sensors_records_no_sensor_channels(tmp_path: Path
     assert "sensors" not in data.metadata
     assert not any(topic.startswith("/sensors/") for topic in rec.counts)
     assert math.isfinite(data.duration)
+
+
+def test_the_tick_hook_with_sensors_allocates_nothing_between_hand_offs(monkeypatch: pytest.MonkeyPatch) -> None:
+    import asyncio
+    import tracemalloc
+
+    from agentsdk.recording import _recorder as recorder_module
+
+    monkeypatch.setattr(recorder_module, "FLUSH_INTERVAL", 1e9)  # no wall-clock hand-off in the window
+
+    async def run() -> tuple[int, list[str]]:
+        async with agentsdk.connect("mujoco", ARM, safety={"stall_timeout": None}) as robot:
+            rec = Recorder.attach(robot, keep=True, tf_rate=None)
+            assert len(rec.sensor_tracks) == 5
+            await robot.clock.sleep(0.1)
+            tracemalloc.start()
+            try:
+                before = tracemalloc.take_snapshot()
+                for _ in range(200):  # 200 ticks: inside one block
+                    await robot.clock.sleep(robot.control_period)
+                after = tracemalloc.take_snapshot()
+            finally:
+                tracemalloc.stop()
+            where = [str(s) for s in after.compare_to(before, "lineno")
+                     if "_recorder.py" in str(s.traceback) and s.size_diff > 0]
+            k = rec._k
+        rec.finish()
+        return k, where
+
+    k, where = asyncio.run(run())
+    assert k > 200  # no hand-off happened in the measured window
+    assert where == []
+
+
+async def test_lidar_scans_recorded_as_laser_scans(tmp_path: Path) -> None:
+    import yaml
+    from rosbags.rosbag2 import Reader
+
+    data = yaml.safe_load(ARM.read_text())
+    data["description"] = str(FIXTURES / "sensor_arm" / "sensor_arm.urdf")
+    data["sensors"] = [{
+        "name": "scan", "type": "lidar", "link": "carriage", "xyz": [0.1, 0.0, 0.0],
+        "rpy": [0.0, 1.5707963267948966, 0.0], "rate": 20.0,
+        "ray": {"samples": 21, "min_angle": -0.6, "max_angle": 0.6, "range_max": 0.3},
+    }]
+    robot_yaml = tmp_path / "robot.yaml"
+    robot_yaml.write_text(yaml.safe_dump(data))
+    path = tmp_path / "scan.mcap"
+    seen: dict[int, np.ndarray] = {}
+    async with agentsdk.connect("mujoco", robot_yaml, safety=SAFETY) as robot:
+        rec = Recorder.attach(robot, path)
+        robot.add_tick_hook(Phase.OBSERVE, lambda t, st, sp: seen.__setitem__(
+            round(robot.sensors.stamp("scan") * 1e9), robot.sensors.values("scan").copy()), order=500)
+        await robot.move_to({"lift": 0.36}, 1.0)  # the scan's edge rays leave its 0.3 m range
+    rec.finish()
+    run = read_recording(path)
+    scan = run.sensors["scan"]
+    assert scan.msg_type == "sensor_msgs/msg/LaserScan" and scan.values.shape[1] == 21
+    # a 20 Hz sensor under the 50 Hz sensor rate: every sample, once
+    assert abs(len(scan.time) - run.duration * 20) <= 2
+    for t, v in zip(scan.time.tolist(), scan.values, strict=True):
+        np.testing.assert_array_equal(v, seen[t].astype(np.float32))
+    assert np.isinf(scan.values).any() and np.isfinite(scan.values).any()
+    store = _rosbags_store(path)
+    with Reader(path) as bag:
+        msgs = [store.deserialize_cdr(raw, c.msgtype) for c, _t, raw in bag.messages() if c.topic == "/sensors/scan"]
+    assert len(msgs) == len(scan.time)
+    m = msgs[0]
+    assert (m.angle_min, m.angle_max, m.range_max) == pytest.approx((-0.6, 0.6, 0.3))
+    assert m.angle_increment == pytest.approx(0.06) and m.scan_time == pytest.approx(0.05)
+    np.testing.assert_array_equal(m.ranges, scan.values[0].astype(np.float32))
+
+
+def test_cli_plot_and_record_of_the_guarded_move(tmp_path: Path) -> None:
+    from agentsdk.cli import main
+
+    behavior = Path(__file__).resolve().parents[1] / "behaviors" / "guarded_move.py"
+    png, rec = tmp_path / "guarded.png", tmp_path / "guarded.mcap"
+    assert main(["run", str(behavior), "--record", str(rec), "--plot", str(png), "-q"]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    data = read_recording(rec)
+    assert "wrist_ft" in data.sensors and len(data.sensors["wrist_ft"].time) > 10
+    # the plot is as tall as the joint, error and sensor panels need (one panel per sensor)
+    from matplotlib.image import imread
+
+    height = imread(png).shape[0]
+    assert height >= 100 * 1.9 * (len(data.names) + 1 + len(data.sensors))

@@ -58,7 +58,7 @@ RECORD_FORMATS = ("mcap", "ros2")
 
 
 class Recorder:
-    """Records one robot's joint states, applied setpoints, link transforms, safety events and transitions.
+    """Records one robot's joint states, applied setpoints, link transforms, sensors, safety events, transitions.
 
     Create with :meth:`attach` (it registers a tick hook), call :meth:`finish`
     once the run is over (writes the MCAP summary).  Data reaches the file while
@@ -72,7 +72,8 @@ class Recorder:
     ``/joint_commands`` as ``sensor_msgs/msg/JointState``, no safety events or
     transitions).  ``rate`` (Hz of robot time) decimates ``/joint_states``;
     ``None`` records every tick.  ``tf_rate`` decimates ``/tf``; ``None`` or 0
-    records no transforms.
+    records no transforms.  ``sensor_rate`` bounds the ``/sensors/<name>``
+    topics (every sensor but cameras; ``None``: every tick).
     """
 
     def __init__(

@@ -19,6 +19,7 @@ pytestmark = pytest.mark.timeout(300)
 
 FIXTURES = Path(__file__).parent / "fixtures"
 ARM = FIXTURES / "sensor_arm" / "nocam.yaml"
+ARM_CAM = FIXTURES / "sensor_arm" / "robot.yaml"
 SAFETY = {"stall_timeout": 5.0}
 KINDS = {"wrist_ft": "force_torque", "tool_contact": "contact", "carriage_imu": "imu",
          "lift_position": "joint_position", "height": "rangefinder"}
@@ -255,3 +256,55 @@ def test_cli_plot_and_record_of_the_guarded_move(tmp_path: Path) -> None:
 
     height = imread(png).shape[0]
     assert height >= 100 * 1.9 * (len(data.names) + 1 + len(data.sensors))
+
+
+@pytest.mark.parametrize("image_format", ["png", "jpeg"])
+async def test_camera_frames_recorded_compressed_at_the_camera_rate(tmp_path: Path, image_format: str) -> None:
+    from rosbags.rosbag2 import Reader
+
+    path = tmp_path / f"cam-{image_format}.mcap"
+    frames: dict[int, np.ndarray] = {}
+    async with agentsdk.connect("mujoco", ARM_CAM, safety={"stall_timeout": None}) as robot:
+        rec = Recorder.attach(robot, path, camera_rate=10.0, image_format=image_format)
+
+        def watch(t: float, st: object, sp: object) -> None:
+            stamp = round(robot.sensors.stamp("overhead") * 1e9)
+            if stamp not in frames:
+                frames[stamp] = robot.sensors.read("overhead").data  # type: ignore[union-attr]
+
+        robot.add_tick_hook(Phase.OBSERVE, watch, order=500)
+        await robot.move_to({"lift": 0.2, "yaw": 0.5}, 1.5)
+    rec.finish()
+    assert rec.dropped_frames == 0
+    data = read_recording(path)
+    assert "overhead" not in data.sensors  # images are not sensor series
+    cam = data.images["overhead"]
+    assert cam.format == image_format and cam.frame_id == "world"
+    assert abs(len(cam.time) - data.duration * 10) <= 2  # 10 Hz of a 50 Hz camera
+    assert np.all(np.diff(cam.time) > 0)
+    for i, t in enumerate(cam.time.tolist()):
+        img = cam.frame(i)
+        assert img.shape == (240, 320, 3)
+        if image_format == "png":  # lossless
+            np.testing.assert_array_equal(img, frames[t])
+        else:
+            assert np.abs(img.astype(float) - frames[t]).mean() < 4.0
+    # compression made them small
+    assert max(len(b) for b in cam.data) < 240 * 320 * 3 / 2
+    store = _rosbags_store(path)
+    with Reader(path) as bag:
+        msgs = [store.deserialize_cdr(raw, c.msgtype) for c, _t, raw in bag.messages()
+                if c.topic == "/sensors/overhead"]
+    assert [m.format for m in msgs] == [image_format] * len(cam.time)
+    assert bytes(msgs[0].data) == cam.data[0]
+    assert msgs[0].header.stamp.sec * 10**9 + msgs[0].header.stamp.nanosec == cam.time[0]
+
+
+async def test_camera_rate_zero_records_no_images(tmp_path: Path) -> None:
+    path = tmp_path / "nocam.mcap"
+    async with agentsdk.connect("mujoco", ARM_CAM, safety={"stall_timeout": None}) as robot:
+        rec = Recorder.attach(robot, path, camera_rate=0)
+        await robot.clock.sleep(0.3)
+    rec.finish()
+    data = read_recording(path)
+    assert data.images == {} and "/sensors/overhead" not in rec.counts and "wrist_ft" in data.sensors

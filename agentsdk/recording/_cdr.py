@@ -116,6 +116,7 @@ MSGDEFS.update({
         "float32 time_increment\nfloat32 scan_time\nfloat32 range_min\nfloat32 range_max\n"
         "float32[] ranges\nfloat32[] intensities\n" + _HEADER + _TIME
     ),
+    "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n" + _HEADER + _TIME,
     CONTACT_TYPE: (
         "# contact on a link: total normal force (N, >= 0) and the number of contact points\n"
         "std_msgs/Header header\nfloat64 force\nuint32 contacts\n" + _HEADER + _TIME

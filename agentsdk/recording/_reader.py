@@ -30,6 +30,7 @@ from ._channels import (
     SAFETY_EVENTS,
     TRANSITIONS,
 )
+from ._images import ImageSeries
 from ._sensors import SensorSeries, SensorTrack, tracks_from_metadata
 
 log = logging.getLogger("agentsdk.recording")
@@ -51,6 +52,12 @@ class RunData:
 
        The recorded sensors by name (``/sensors/<name>`` topics): header stamps and values in the
        layout of ``robot.sensors.values(name)``; empty for a robot without sensors.
+
+    .. attribute:: images
+       :type: dict[str, ImageSeries]
+
+       The recorded camera frames by camera name: header stamps and the compressed bytes
+       (``ImageSeries.frame(i)`` decodes one).
     """
 
     names: tuple[str, ...]
@@ -74,6 +81,7 @@ class RunData:
     # documented in the class docstring (Sphinx reads field comments only from the package __init__)
     truncated: bool = False
     sensors: dict[str, SensorSeries] = field(default_factory=dict)
+    images: dict[str, ImageSeries] = field(default_factory=dict)
 
     @property
     def duration(self) -> float:
@@ -294,6 +302,13 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
     except (ValueError, KeyError, TypeError) as exc:
         raise ConfigurationError(f"cannot read recording {p}: bad sensors metadata ({exc})") from exc
     sensors = {t.topic: _SensorColumns(t, counts.get(t.topic, 0)) for t in tracks}
+    try:
+        cams = json.loads(md["cameras"]) if md.get("cameras") else []
+        images = {f"/sensors/{c['name']}": ImageSeries(str(c["name"]), str(c["frame_id"]), md.get("image_format", ""),
+                                                       np.zeros(0, np.int64), []) for c in cams}
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigurationError(f"cannot read recording {p}: bad cameras metadata ({exc})") from exc
+    image_stamps: dict[str, list[int]] = {topic: [] for topic in images}
     dec = _JsonDecoder(names) if fmt == JSON_FORMAT else _CdrDecoder(names)
     try:
         for msgs in f.batches():
@@ -313,6 +328,13 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
                     transitions.extend(dec.transition(m) for m in group)
                 elif topic in sensors:
                     sensors[topic].add(group)
+                elif topic in images:
+                    for m in group:
+                        r = CdrReader(m.data)
+                        image_stamps[topic].append(r.header())
+                        r.string()
+                        n = r.u32()
+                        images[topic].data.append(bytes(r.data[r.pos : r.pos + n]))
     except (ValueError, KeyError, TypeError, IndexError) as exc:
         raise ConfigurationError(f"cannot read recording {p}: {type(exc).__name__}: {exc}") from exc
     if f.truncated:
@@ -329,6 +351,9 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
     out.cmd_kp, out.cmd_kd, out.cmd_target = cm["kp"], cm["kd"], cm["target"]
     out.cmd_enabled, out.cmd_mode = cm["enabled"], cm["mode"]
     out.sensors = {c.track.name: c.series() for c in sensors.values()}
+    for topic, series in images.items():
+        series.time = np.array(image_stamps[topic], np.int64)
+    out.images = {s.name: s for s in images.values()}
     return out
 
 

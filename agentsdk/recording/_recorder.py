@@ -21,6 +21,7 @@ from ..errors import ConfigurationError
 from ..loop import Phase, StateView
 from ..statemachine import StateMachine
 from ._channels import FORMAT, SAFETY_EVENTS, TRANSITIONS, stamp_ns
+from ._images import IMAGE_FORMATS, ImageTap, camera_names
 from ._reader import RunData, read_recording
 from ._sensors import sensor_tracks, tracks_json
 from ._writer import FLUSH_INTERVAL, Block, Job, Output, Selector, WriterThread
@@ -33,8 +34,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("agentsdk.recording")
 
 __all__ = [
-    "BLOCK_TICKS", "FLUSH_INTERVAL", "RECORDER_ORDER", "RECORD_FORMATS", "SENSOR_RATE", "STATE_RATE", "TF_RATE",
-    "Recorder",
+    "BLOCK_TICKS", "CAMERA_RATE", "FLUSH_INTERVAL", "RECORDER_ORDER", "RECORD_FORMATS", "SENSOR_RATE", "STATE_RATE",
+    "TF_RATE", "Recorder",
 ]
 
 #: OBSERVE-phase order of the recorder: before every other observer (it sees the setpoint as written)
@@ -53,6 +54,8 @@ STATE_RATE = 50.0
 TF_RATE = 25.0
 #: default rate of the ``/sensors/<name>`` topics (Hz of robot time; a slower sensor: each of its samples)
 SENSOR_RATE = 50.0
+#: default rate of the camera topics (Hz of robot time): frames are compressed on the writer thread
+CAMERA_RATE = 5.0
 #: ``--record-format`` choices
 RECORD_FORMATS = ("mcap", "ros2")
 
@@ -88,7 +91,15 @@ class Recorder:
         format: str = "mcap",
         tf_rate: float | None = TF_RATE,
         sensor_rate: float | None = SENSOR_RATE,
+        camera_rate: float | None = CAMERA_RATE,
+        image_format: str = "png",
     ) -> None:
+        if camera_rate is not None and not (math.isfinite(camera_rate) and camera_rate >= 0):
+            raise ConfigurationError(
+                f"camera record rate must be a positive number of Hz (0 for none), got {camera_rate!r}"
+            )
+        if image_format not in IMAGE_FORMATS:
+            raise ConfigurationError(f"unknown image format {image_format!r}; choose one of {', '.join(IMAGE_FORMATS)}")
         if sensor_rate is not None and not (math.isfinite(sensor_rate) and sensor_rate > 0):
             raise ConfigurationError(f"sensor record rate must be a positive number of Hz, got {sensor_rate!r}")
         if rate is not None and not (math.isfinite(rate) and rate > 0):
@@ -121,6 +132,13 @@ class Recorder:
         self._sensor_names = tuple(t.name for t in self.sensor_tracks)
         self._sensor_stamp = sensors.stamp if sensors else None
         width = sum(t.size for t in self.sensor_tracks)
+        #: camera frames (None: no cameras, or camera_rate 0/None)
+        self._images: ImageTap | None = None
+        if camera_rate and camera_names(robot):
+            wait = None if robot.realtime else _LOCKSTEP_WAIT
+            self._images = ImageTap(robot, float(camera_rate), image_format, float(robot.clock.now()), wait)
+        self.camera_rate = camera_rate if self._images is not None else None
+        self.image_format = image_format
         ns = len(self.sensor_tracks)
         row = Block.row_bytes(n, width, ns)
         self._cap = max(16, min(int(block_ticks), _BLOCK_BYTES // row))
@@ -147,7 +165,7 @@ class Recorder:
             if self.path is not None:
                 kind = "agentsdk" if format == "mcap" else "ros2"
                 outputs.append(Output(self.path, kind=kind, names=self.names, metadata=self.metadata,
-                                      sensors=self.sensor_tracks))
+                                      sensors=self.sensor_tracks, images=self._image_topics))
                 if format == "mcap":
                     self._data_path = self.path
             if keep and self._data_path is None:
@@ -155,7 +173,7 @@ class Recorder:
                 os.close(fd)
                 self._temp = self._data_path = Path(tmp)
                 outputs.append(Output(self._temp, kind="agentsdk", names=self.names, metadata=self.metadata,
-                                      sensors=self.sensor_tracks))
+                                      sensors=self.sensor_tracks, images=self._image_topics))
         except BaseException:
             for o in outputs:
                 o.close(ok=False)
@@ -174,6 +192,7 @@ class Recorder:
             kinematics=kin,
             description=(stamp_ns(self._prev_t), urdf) if urdf else None,
             names=self.names,
+            images=self._images,
         )
         # first observer: sees the setpoint exactly as written, before a watchdog changes it
         self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, self._on_tick, order=RECORDER_ORDER)
@@ -194,10 +213,21 @@ class Recorder:
         format: str = "mcap",
         tf_rate: float | None = TF_RATE,
         sensor_rate: float | None = SENSOR_RATE,
+        camera_rate: float | None = CAMERA_RATE,
+        image_format: str = "png",
     ) -> Recorder:
         """Start recording ``robot`` (call right after connect, before any tick)."""
         return cls(robot, path, rate=rate, keep=keep, metadata=metadata, format=format, tf_rate=tf_rate,
-                   sensor_rate=sensor_rate)
+                   sensor_rate=sensor_rate, camera_rate=camera_rate, image_format=image_format)
+
+    @property
+    def _image_topics(self) -> tuple[str, ...]:
+        return self._images.topics if self._images is not None else ()
+
+    @property
+    def dropped_frames(self) -> int:
+        """Camera frames not recorded because the writer was behind (real time)."""
+        return self._images.dropped if self._images is not None else 0
 
     @property
     def counts(self) -> dict[str, int]:
@@ -233,6 +263,11 @@ class Recorder:
         if self.sensor_tracks:
             md["sensors"] = tracks_json(self.sensor_tracks)
             md["sensor_rate"] = "" if self.sensor_rate is None else repr(float(self.sensor_rate))
+        if self._images is not None:
+            md["cameras"] = json.dumps([{"name": n, "frame_id": f}
+                                        for n, f in zip(self._images.names, self._images.frame_ids, strict=True)])
+            md["camera_rate"] = repr(float(self._images.rate))
+            md["image_format"] = self._images.format
         md.update({k: str(v) for k, v in extra.items()})
         return md
 
@@ -270,7 +305,9 @@ class Recorder:
                 ss[i] = stamp(name)  # type: ignore[misc]
         k += 1
         self._k = k
-        if k == self._cap or (not (k & 15) and time.perf_counter() - self._rotated_at > FLUSH_INTERVAL):
+        if self._images is not None and self._images.tick(t):
+            self._handoff()
+        elif k == self._cap or (not (k & 15) and time.perf_counter() - self._rotated_at > FLUSH_INTERVAL):
             self._handoff()
 
     def _take_free(self) -> Block | None:
@@ -300,7 +337,8 @@ class Recorder:
         b, m = self._block, self._k
         if b is None and not side and not final:
             return
-        self._writer.submit(Job(b, m if b is not None else 0, side, final, self._gap))
+        images = self._images.take() if self._images is not None else []
+        self._writer.submit(Job(b, m if b is not None else 0, side, final, self._gap, images))
         self._gap = False
         self._k = 0
         self._block = None if final else self._take_free()

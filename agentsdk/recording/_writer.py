@@ -52,6 +52,7 @@ from ._channels import (
     TF,
     TRANSITIONS,
 )
+from ._images import IMAGE_TYPE, Frame, ImageTap
 from ._mcap import McapFile, Part
 from ._sensors import SensorTrack
 
@@ -123,6 +124,8 @@ class Job:
     side: list[tuple[int, str, tuple[str | float, ...]]]
     final: bool = False
     gap: bool = False
+    #: camera frames copied into the image pool since the last job
+    images: list[Frame] = field(default_factory=list)
 
 
 @dataclass
@@ -338,6 +341,7 @@ class Output:
     def __init__(
         self, path: Path, *, kind: str, names: Sequence[str], metadata: Mapping[str, str],
         sensors: Sequence[SensorTrack] = (),
+        images: Sequence[str] = (),
     ) -> None:
         from .. import __version__
 
@@ -362,6 +366,8 @@ class Output:
             )
             for track in self.sensors:
                 self.types[track.topic] = track.msg_type
+            for topic in images:
+                self.types[topic] = IMAGE_TYPE
             sids = {t: f.schema(t, "ros2msg", MSGDEFS[t].encode()) for t in sorted(set(self.types.values()))}
             self.channels: dict[str, int] = {}
             for topic, msg_type in self.types.items():
@@ -520,8 +526,10 @@ class WriterThread:
         kinematics: Callable[[], Kinematics] | None,
         description: tuple[int, str] | None,
         names: tuple[str, ...],
+        images: ImageTap | None = None,
     ) -> None:
         self.outputs = outputs
+        self.images = images
         self.selector = selector
         self.free = free
         self.jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
@@ -572,6 +580,8 @@ class WriterThread:
                 self.error = exc
                 log.error("writing the recording failed: %s", exc)
             finally:
+                if job.images and self.images is not None:
+                    self.images.release(job.images)  # encoded frames were already returned: emptied below
                 if job.block is not None:
                     self.free.put(job.block)
                 with self._idle:
@@ -603,8 +613,11 @@ class WriterThread:
             if self.tree is not None and len(rows.tf_ns):
                 trans, rot = self.tree.transforms(rows.tf_q)
                 tf = (self.tree, trans, rot)
+        frames, job.images = job.images, []
+        encoded = self.images.encode(frames) if frames and self.images is not None else {}
         for o in self.outputs:
             parts = o.encode(rows, tf) if rows is not None else []
+            parts += [(o.channels[topic], ns, msgs) for topic, (ns, msgs) in encoded.items() if topic in o.channels]
             o.file.chunk(parts + o.side(job.side))
             o.flush()
 

@@ -35,9 +35,15 @@ Sensor message types: ``sensor_msgs/msg/Imu``, ``geometry_msgs/msg/WrenchStamped
 ``geometry_msgs/msg/QuaternionStamped`` (orientation), ``sensor_msgs/msg/Range``,
 ``sensor_msgs/msg/LaserScan``, ``agentsdk_msgs/msg/Contact`` and
 ``agentsdk_msgs/msg/JointSensor`` (joint sensors, temperature).  A sensor slower
-than ``sensor_rate`` has each sample written once.  Cameras are not recorded.
-:func:`read_recording` returns them as ``RunData.sensors[name]``
-(:class:`SensorSeries`).  A robot without sensors records exactly as before.
+than ``sensor_rate`` has each sample written once.  :func:`read_recording`
+returns them as ``RunData.sensors[name]`` (:class:`SensorSeries`).  A robot
+without sensors records exactly as before.
+
+Cameras (once started) go to ``/sensors/<camera>`` as
+``sensor_msgs/msg/CompressedImage`` (PNG, or JPEG) at ``camera_rate`` Hz
+(default :data:`CAMERA_RATE`; 0 for none): the tick copies a new frame into a
+preallocated frame pool, the writer thread compresses it.  ``RunData.images[name]``
+(:class:`ImageSeries`) holds the compressed frames.  Depth images are not recorded.
 
 The file is a rosbag2 MCAP (profile ``ros2``, the ``rosbag2`` metadata
 record): Foxglove decodes every channel from its embedded ``ros2msg`` schema
@@ -133,6 +139,7 @@ from ._channels import ROBOT_DESCRIPTION as ROBOT_DESCRIPTION
 from ._channels import SAFETY_EVENTS as SAFETY_EVENTS
 from ._channels import TF as TF
 from ._channels import TRANSITIONS as TRANSITIONS
+from ._images import ImageSeries
 from ._reader import RunData, read_recording
 from ._recorder import BLOCK_TICKS, Recorder
 from ._recorder import FLUSH_INTERVAL as FLUSH_INTERVAL
@@ -147,17 +154,21 @@ STATE_RATE = _recorder.STATE_RATE
 TF_RATE = _recorder.TF_RATE
 #: ``--record-format`` choices
 RECORD_FORMATS = _recorder.RECORD_FORMATS
+#: default rate of the camera topics (Hz of robot time)
+CAMERA_RATE = _recorder.CAMERA_RATE
 #: default rate of the ``/sensors/<name>`` topics (Hz of robot time); a slower sensor: each of its samples
 SENSOR_RATE = _recorder.SENSOR_RATE
 
 __all__ = [
     "BLOCK_TICKS",
+    "CAMERA_RATE",
     "FORMAT",
     "RECORD_FORMATS",
     "SENSOR_RATE",
     "STATE_RATE",
     "TF_RATE",
     "TOPICS",
+    "ImageSeries",
     "Recorder",
     "ReplayResult",
     "RunData",

@@ -337,7 +337,7 @@ class _RunExtras:
         if self.record or self.plot:
             from .recording import Recorder
 
-            rate = {} if self.rate is None else {"rate": self.rate}  # default: recording.STATE_RATE
+            rate: dict[str, Any] = {} if self.rate is None else {"rate": self.rate}  # default: recording.STATE_RATE
             self.recorder = Recorder.attach(bot, self.record, keep=bool(self.plot),
                                             metadata=self.metadata, format=self.record_format, **rate)
         if self.view and bot.backend == "mujoco":

@@ -24,7 +24,26 @@ topic                      message type                         content
 ``/tf``                    ``tf2_msgs/msg/TFMessage``           every link's parent -> child transform from
                                                                 forward kinematics, at ``tf_rate`` Hz
 ``/robot_description``     ``std_msgs/msg/String``              the URDF, once, at the start
+``/sensors/<name>``        the sensor's ROS message (below)     every sensor but cameras, at most
+                                                                ``sensor_rate`` Hz (default
+                                                                :data:`SENSOR_RATE`); header stamp: when
+                                                                it was measured, frame_id: its link
 =========================  ===================================  ==============================================
+
+Sensor message types: ``sensor_msgs/msg/Imu``, ``geometry_msgs/msg/WrenchStamped``
+(force-torque), ``geometry_msgs/msg/Vector3Stamped`` (accelerometer, gyro, force, torque),
+``geometry_msgs/msg/QuaternionStamped`` (orientation), ``sensor_msgs/msg/Range``,
+``sensor_msgs/msg/LaserScan``, ``agentsdk_msgs/msg/Contact`` and
+``agentsdk_msgs/msg/JointSensor`` (joint sensors, temperature).  A sensor slower
+than ``sensor_rate`` has each sample written once.  :func:`read_recording`
+returns them as ``RunData.sensors[name]`` (:class:`SensorSeries`).  A robot
+without sensors records exactly as before.
+
+Cameras (once started) go to ``/sensors/<camera>`` as
+``sensor_msgs/msg/CompressedImage`` (PNG, or JPEG) at ``camera_rate`` Hz
+(default :data:`CAMERA_RATE`; 0 for none): the tick copies a new frame into a
+preallocated frame pool, the writer thread compresses it.  ``RunData.images[name]``
+(:class:`ImageSeries`) holds the compressed frames.  Depth images are not recorded.
 
 The file is a rosbag2 MCAP (profile ``ros2``, the ``rosbag2`` metadata
 record): Foxglove decodes every channel from its embedded ``ros2msg`` schema
@@ -120,11 +139,13 @@ from ._channels import ROBOT_DESCRIPTION as ROBOT_DESCRIPTION
 from ._channels import SAFETY_EVENTS as SAFETY_EVENTS
 from ._channels import TF as TF
 from ._channels import TRANSITIONS as TRANSITIONS
+from ._images import ImageSeries
 from ._reader import RunData, read_recording
 from ._recorder import BLOCK_TICKS, Recorder
 from ._recorder import FLUSH_INTERVAL as FLUSH_INTERVAL
 from ._recorder import RECORDER_ORDER as RECORDER_ORDER
 from ._replay import ReplayResult, replay
+from ._sensors import SensorSeries
 
 # re-bound here with their documentation, which Sphinx reads from the assignments in this module
 #: default rate of /joint_states (Hz of robot time); commands are never decimated
@@ -133,17 +154,25 @@ STATE_RATE = _recorder.STATE_RATE
 TF_RATE = _recorder.TF_RATE
 #: ``--record-format`` choices
 RECORD_FORMATS = _recorder.RECORD_FORMATS
+#: default rate of the camera topics (Hz of robot time)
+CAMERA_RATE = _recorder.CAMERA_RATE
+#: default rate of the ``/sensors/<name>`` topics (Hz of robot time); a slower sensor: each of its samples
+SENSOR_RATE = _recorder.SENSOR_RATE
 
 __all__ = [
     "BLOCK_TICKS",
+    "CAMERA_RATE",
     "FORMAT",
     "RECORD_FORMATS",
+    "SENSOR_RATE",
     "STATE_RATE",
     "TF_RATE",
     "TOPICS",
+    "ImageSeries",
     "Recorder",
     "ReplayResult",
     "RunData",
+    "SensorSeries",
     "read_recording",
     "replay",
     "robot_spec_for_metadata",

@@ -85,6 +85,48 @@ MSGDEFS: dict[str, str] = {
     "std_msgs/msg/String": "string data\n",
 }
 
+_VECTOR3 = _SEP + "MSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"
+_QUATERNION = _SEP + "MSG: geometry_msgs/Quaternion\nfloat64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1\n"
+CONTACT_TYPE = "agentsdk_msgs/msg/Contact"
+JOINT_SENSOR_TYPE = "agentsdk_msgs/msg/JointSensor"
+
+#: the ``ros2msg`` schemas of the sensor messages (``/sensors/<name>`` topics)
+MSGDEFS.update({
+    "sensor_msgs/msg/Imu": (
+        "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"
+        "geometry_msgs/Vector3 angular_velocity\nfloat64[9] angular_velocity_covariance\n"
+        "geometry_msgs/Vector3 linear_acceleration\nfloat64[9] linear_acceleration_covariance\n"
+        + _HEADER + _TIME + _QUATERNION + _VECTOR3
+    ),
+    "geometry_msgs/msg/WrenchStamped": (
+        "std_msgs/Header header\ngeometry_msgs/Wrench wrench\n" + _HEADER + _TIME
+        + _SEP + "MSG: geometry_msgs/Wrench\nVector3 force\nVector3 torque\n" + _VECTOR3
+    ),
+    "geometry_msgs/msg/Vector3Stamped": "std_msgs/Header header\ngeometry_msgs/Vector3 vector\n" + _HEADER + _TIME
+    + _VECTOR3,
+    "geometry_msgs/msg/QuaternionStamped": (
+        "std_msgs/Header header\ngeometry_msgs/Quaternion quaternion\n" + _HEADER + _TIME + _QUATERNION
+    ),
+    "sensor_msgs/msg/Range": (
+        "uint8 ULTRASOUND=0\nuint8 INFRARED=1\nstd_msgs/Header header\nuint8 radiation_type\n"
+        "float32 field_of_view\nfloat32 min_range\nfloat32 max_range\nfloat32 range\n" + _HEADER + _TIME
+    ),
+    "sensor_msgs/msg/LaserScan": (
+        "std_msgs/Header header\nfloat32 angle_min\nfloat32 angle_max\nfloat32 angle_increment\n"
+        "float32 time_increment\nfloat32 scan_time\nfloat32 range_min\nfloat32 range_max\n"
+        "float32[] ranges\nfloat32[] intensities\n" + _HEADER + _TIME
+    ),
+    "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n" + _HEADER + _TIME,
+    CONTACT_TYPE: (
+        "# contact on a link: total normal force (N, >= 0) and the number of contact points\n"
+        "std_msgs/Header header\nfloat64 force\nuint32 contacts\n" + _HEADER + _TIME
+    ),
+    JOINT_SENSOR_TYPE: (
+        "# one value of a joint sensor (position rad or m, velocity, effort N*m or N, temperature degC)\n"
+        "std_msgs/Header header\nstring joint\nfloat64 value\n" + _HEADER + _TIME
+    ),
+})
+
 
 # ------------------------------------------------------------------ scalar writer / reader
 class CdrWriter:

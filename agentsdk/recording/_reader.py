@@ -30,6 +30,8 @@ from ._channels import (
     SAFETY_EVENTS,
     TRANSITIONS,
 )
+from ._images import ImageSeries
+from ._sensors import SensorSeries, SensorTrack, tracks_from_metadata
 
 log = logging.getLogger("agentsdk.recording")
 
@@ -44,6 +46,18 @@ class RunData:
 
        True when the file was cut short (the recording process was killed): read up to its last
        complete chunk.
+
+    .. attribute:: sensors
+       :type: dict[str, SensorSeries]
+
+       The recorded sensors by name (``/sensors/<name>`` topics): header stamps and values in the
+       layout of ``robot.sensors.values(name)``; empty for a robot without sensors.
+
+    .. attribute:: images
+       :type: dict[str, ImageSeries]
+
+       The recorded camera frames by camera name: header stamps and the compressed bytes
+       (``ImageSeries.frame(i)`` decodes one).
     """
 
     names: tuple[str, ...]
@@ -66,6 +80,8 @@ class RunData:
     transitions: list[dict[str, Any]] = field(default_factory=list)
     # documented in the class docstring (Sphinx reads field comments only from the package __init__)
     truncated: bool = False
+    sensors: dict[str, SensorSeries] = field(default_factory=dict)
+    images: dict[str, ImageSeries] = field(default_factory=dict)
 
     @property
     def duration(self) -> float:
@@ -281,6 +297,18 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
     commands = _Columns(counts.get(JOINT_COMMANDS, 0), n, _COMMAND_FIELDS)
     events: list[dict[str, Any]] = []
     transitions: list[dict[str, Any]] = []
+    try:
+        tracks = tracks_from_metadata(md["sensors"]) if md.get("sensors") else ()
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigurationError(f"cannot read recording {p}: bad sensors metadata ({exc})") from exc
+    sensors = {t.topic: _SensorColumns(t, counts.get(t.topic, 0)) for t in tracks}
+    try:
+        cams = json.loads(md["cameras"]) if md.get("cameras") else []
+        images = {f"/sensors/{c['name']}": ImageSeries(str(c["name"]), str(c["frame_id"]), md.get("image_format", ""),
+                                                       np.zeros(0, np.int64), []) for c in cams}
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ConfigurationError(f"cannot read recording {p}: bad cameras metadata ({exc})") from exc
+    image_stamps: dict[str, list[int]] = {topic: [] for topic in images}
     dec = _JsonDecoder(names) if fmt == JSON_FORMAT else _CdrDecoder(names)
     try:
         for msgs in f.batches():
@@ -298,6 +326,15 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
                     events.extend(dec.event(m) for m in group)
                 elif topic == TRANSITIONS:
                     transitions.extend(dec.transition(m) for m in group)
+                elif topic in sensors:
+                    sensors[topic].add(group)
+                elif topic in images:
+                    for m in group:
+                        r = CdrReader(m.data)
+                        image_stamps[topic].append(r.header())
+                        r.string()
+                        n = r.u32()
+                        images[topic].data.append(bytes(r.data[r.pos : r.pos + n]))
     except (ValueError, KeyError, TypeError, IndexError) as exc:
         raise ConfigurationError(f"cannot read recording {p}: {type(exc).__name__}: {exc}") from exc
     if f.truncated:
@@ -313,7 +350,49 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
     out.cmd_position, out.cmd_velocity, out.cmd_effort = cm["position"], cm["velocity"], cm["effort"]
     out.cmd_kp, out.cmd_kd, out.cmd_target = cm["kp"], cm["kd"], cm["target"]
     out.cmd_enabled, out.cmd_mode = cm["enabled"], cm["mode"]
+    out.sensors = {c.track.name: c.series() for c in sensors.values()}
+    for topic, series in images.items():
+        series.time = np.array(image_stamps[topic], np.int64)
+    out.images = {s.name: s for s in images.values()}
     return out
+
+
+class _SensorColumns:
+    """One sensor's stamps and values, preallocated from the file's message count."""
+
+    def __init__(self, track: SensorTrack, rows: int) -> None:
+        self.track = track
+        self.layout = track.layout()
+        self.time = np.empty(rows, np.int64)
+        self.values = np.empty((rows, track.size))
+        self.k = 0
+
+    def add(self, group: list[Message]) -> None:
+        lay = self.layout
+        group = [m for m in group if len(m.data) == lay.size]
+        if not group:
+            return
+        block = np.frombuffer(b"".join(m.data for m in group), dtype=np.uint8).reshape(len(group), lay.size)
+        ok = lay.matches(block)
+        block = block[ok]
+        n = len(block)
+        if self.k + n > len(self.time):  # a count was short (a truncated file's counting pass is exact)
+            cap = max(self.k + n, len(self.time) * 3 // 2 + 16)
+            self.time = np.resize(self.time, cap)
+            self.values = np.resize(self.values, (cap, self.track.size))
+        sl = slice(self.k, self.k + n)
+        self.time[sl] = lay.column(block, "sec")[:, 0].astype(np.int64) * NS_PER_S + lay.column(block, "nanosec")[:, 0]
+        self.values[sl] = self.track.values(lay, block)
+        self.k += n
+
+    def series(self) -> SensorSeries:
+        t = self.track
+        k = self.k
+        if k == len(self.time):
+            time, values = self.time, self.values
+        else:
+            time, values = self.time[:k].copy(), self.values[:k].copy()
+        return SensorSeries(t.name, t.kind, t.msg_type, t.frame_id, t.joint, time, values)
 
 
 class _CdrDecoder:

@@ -14,12 +14,16 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from ..backend import SetpointView
 from ..errors import ConfigurationError
 from ..loop import Phase, StateView
 from ..statemachine import StateMachine
 from ._channels import FORMAT, SAFETY_EVENTS, TRANSITIONS, stamp_ns
+from ._images import IMAGE_FORMATS, ImageTap, camera_names
 from ._reader import RunData, read_recording
+from ._sensors import sensor_tracks, tracks_json
 from ._writer import FLUSH_INTERVAL, Block, Job, Output, Selector, WriterThread
 
 if TYPE_CHECKING:
@@ -29,7 +33,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("agentsdk.recording")
 
-__all__ = ["BLOCK_TICKS", "FLUSH_INTERVAL", "RECORDER_ORDER", "RECORD_FORMATS", "STATE_RATE", "TF_RATE", "Recorder"]
+__all__ = [
+    "BLOCK_TICKS", "CAMERA_RATE", "FLUSH_INTERVAL", "RECORDER_ORDER", "RECORD_FORMATS", "SENSOR_RATE", "STATE_RATE",
+    "TF_RATE", "Recorder",
+]
 
 #: OBSERVE-phase order of the recorder: before every other observer (it sees the setpoint as written)
 RECORDER_ORDER = -1000
@@ -45,12 +52,16 @@ _LOCKSTEP_WAIT = 2.0
 STATE_RATE = 50.0
 #: default rate of /tf (Hz of robot time): smooth in Foxglove, cheap for a 30-link robot
 TF_RATE = 25.0
+#: default rate of the ``/sensors/<name>`` topics (Hz of robot time; a slower sensor: each of its samples)
+SENSOR_RATE = 50.0
+#: default rate of the camera topics (Hz of robot time): frames are compressed on the writer thread
+CAMERA_RATE = 5.0
 #: ``--record-format`` choices
 RECORD_FORMATS = ("mcap", "ros2")
 
 
 class Recorder:
-    """Records one robot's joint states, applied setpoints, link transforms, safety events and transitions.
+    """Records one robot's joint states, applied setpoints, link transforms, sensors, safety events, transitions.
 
     Create with :meth:`attach` (it registers a tick hook), call :meth:`finish`
     once the run is over (writes the MCAP summary).  Data reaches the file while
@@ -64,7 +75,8 @@ class Recorder:
     ``/joint_commands`` as ``sensor_msgs/msg/JointState``, no safety events or
     transitions).  ``rate`` (Hz of robot time) decimates ``/joint_states``;
     ``None`` records every tick.  ``tf_rate`` decimates ``/tf``; ``None`` or 0
-    records no transforms.
+    records no transforms.  ``sensor_rate`` bounds the ``/sensors/<name>``
+    topics (every sensor but cameras; ``None``: every tick).
     """
 
     def __init__(
@@ -78,7 +90,18 @@ class Recorder:
         block_ticks: int = BLOCK_TICKS,
         format: str = "mcap",
         tf_rate: float | None = TF_RATE,
+        sensor_rate: float | None = SENSOR_RATE,
+        camera_rate: float | None = CAMERA_RATE,
+        image_format: str = "png",
     ) -> None:
+        if camera_rate is not None and not (math.isfinite(camera_rate) and camera_rate >= 0):
+            raise ConfigurationError(
+                f"camera record rate must be a positive number of Hz (0 for none), got {camera_rate!r}"
+            )
+        if image_format not in IMAGE_FORMATS:
+            raise ConfigurationError(f"unknown image format {image_format!r}; choose one of {', '.join(IMAGE_FORMATS)}")
+        if sensor_rate is not None and not (math.isfinite(sensor_rate) and sensor_rate > 0):
+            raise ConfigurationError(f"sensor record rate must be a positive number of Hz, got {sensor_rate!r}")
         if rate is not None and not (math.isfinite(rate) and rate > 0):
             raise ConfigurationError(f"record rate must be a positive number of Hz, got {rate!r}")
         if tf_rate is not None and not (math.isfinite(tf_rate) and tf_rate >= 0):
@@ -98,11 +121,31 @@ class Recorder:
         self.format = format
         self.path = Path(path) if path is not None else None
         n = len(self.names)
-        self._cap = max(16, min(int(block_ticks), _BLOCK_BYTES // Block.row_bytes(n)))
+        #: the recorded sensors (every one but cameras); none: the recording is exactly as without sensors
+        self.sensor_tracks = sensor_tracks(robot)
+        if sensor_rate is not None and sensor_rate * self.period >= 1.0 - 1e-9:
+            sensor_rate = None
+        self.sensor_rate = sensor_rate if self.sensor_tracks else None
+        sensors = robot.sensors if self.sensor_tracks else None
+        # the published arrays (updated in place by the sensor hub) and the stamp getter
+        self._sensor_views = tuple(sensors.values(t.name) for t in self.sensor_tracks) if sensors else ()
+        self._sensor_names = tuple(t.name for t in self.sensor_tracks)
+        self._sensor_stamp = sensors.stamp if sensors else None
+        width = sum(t.size for t in self.sensor_tracks)
+        #: camera frames (None: no cameras, or camera_rate 0/None)
+        self._images: ImageTap | None = None
+        if camera_rate and camera_names(robot):
+            wait = None if robot.realtime else _LOCKSTEP_WAIT
+            self._images = ImageTap(robot, float(camera_rate), image_format, float(robot.clock.now()), wait)
+        self.camera_rate = camera_rate if self._images is not None else None
+        self.image_format = image_format
+        ns = len(self.sensor_tracks)
+        row = Block.row_bytes(n, width, ns)
+        self._cap = max(16, min(int(block_ticks), _BLOCK_BYTES // row))
         self._free: queue.SimpleQueue[Block] = queue.SimpleQueue()
-        for _ in range(max(3, _POOL_BYTES // (self._cap * Block.row_bytes(n))) - 1):
-            self._free.put(Block(self._cap, n))
-        self._block: Block | None = Block(self._cap, n)
+        for _ in range(max(3, _POOL_BYTES // (self._cap * row)) - 1):
+            self._free.put(Block(self._cap, n, width, ns))
+        self._block: Block | None = Block(self._cap, n, width, ns)
         self._k = 0
         self._prev_t = float(robot.clock.now())
         self.ticks = 0
@@ -121,14 +164,16 @@ class Recorder:
         try:
             if self.path is not None:
                 kind = "agentsdk" if format == "mcap" else "ros2"
-                outputs.append(Output(self.path, kind=kind, names=self.names, metadata=self.metadata))
+                outputs.append(Output(self.path, kind=kind, names=self.names, metadata=self.metadata,
+                                      sensors=self.sensor_tracks, images=self._image_topics))
                 if format == "mcap":
                     self._data_path = self.path
             if keep and self._data_path is None:
                 fd, tmp = tempfile.mkstemp(prefix="agentsdk-rec-", suffix=".mcap")
                 os.close(fd)
                 self._temp = self._data_path = Path(tmp)
-                outputs.append(Output(self._temp, kind="agentsdk", names=self.names, metadata=self.metadata))
+                outputs.append(Output(self._temp, kind="agentsdk", names=self.names, metadata=self.metadata,
+                                      sensors=self.sensor_tracks, images=self._image_topics))
         except BaseException:
             for o in outputs:
                 o.close(ok=False)
@@ -141,11 +186,13 @@ class Recorder:
         # the thread writes the description and builds the kinematics (a MuJoCo model compile, ~0.2 s)
         self._writer = WriterThread(
             outputs,
-            Selector(self._prev_t, self.rate, self.tf_rate),
+            Selector(self._prev_t, self.rate, self.tf_rate, sensor_rate=self.sensor_rate, sensor_width=width,
+                     sensor_count=ns),
             self._free,
             kinematics=kin,
             description=(stamp_ns(self._prev_t), urdf) if urdf else None,
             names=self.names,
+            images=self._images,
         )
         # first observer: sees the setpoint exactly as written, before a watchdog changes it
         self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, self._on_tick, order=RECORDER_ORDER)
@@ -165,9 +212,22 @@ class Recorder:
         metadata: Mapping[str, str] | None = None,
         format: str = "mcap",
         tf_rate: float | None = TF_RATE,
+        sensor_rate: float | None = SENSOR_RATE,
+        camera_rate: float | None = CAMERA_RATE,
+        image_format: str = "png",
     ) -> Recorder:
         """Start recording ``robot`` (call right after connect, before any tick)."""
-        return cls(robot, path, rate=rate, keep=keep, metadata=metadata, format=format, tf_rate=tf_rate)
+        return cls(robot, path, rate=rate, keep=keep, metadata=metadata, format=format, tf_rate=tf_rate,
+                   sensor_rate=sensor_rate, camera_rate=camera_rate, image_format=image_format)
+
+    @property
+    def _image_topics(self) -> tuple[str, ...]:
+        return self._images.topics if self._images is not None else ()
+
+    @property
+    def dropped_frames(self) -> int:
+        """Camera frames not recorded because the writer was behind (real time)."""
+        return self._images.dropped if self._images is not None else 0
 
     @property
     def counts(self) -> dict[str, int]:
@@ -200,6 +260,14 @@ class Recorder:
             "agentsdk_version": __version__,
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         }
+        if self.sensor_tracks:
+            md["sensors"] = tracks_json(self.sensor_tracks)
+            md["sensor_rate"] = "" if self.sensor_rate is None else repr(float(self.sensor_rate))
+        if self._images is not None:
+            md["cameras"] = json.dumps([{"name": n, "frame_id": f}
+                                        for n, f in zip(self._images.names, self._images.frame_ids, strict=True)])
+            md["camera_rate"] = repr(float(self._images.rate))
+            md["image_format"] = self._images.format
         md.update({k: str(v) for k, v in extra.items()})
         return md
 
@@ -230,9 +298,16 @@ class Recorder:
         b.en[k] = sp.enabled
         b.mode[k] = sp.mode
         b.target[k] = sp.target
+        if self._sensor_views:
+            np.concatenate(self._sensor_views, out=b.sv[k])
+            ss, stamp = b.ss[k], self._sensor_stamp
+            for i, name in enumerate(self._sensor_names):
+                ss[i] = stamp(name)  # type: ignore[misc]
         k += 1
         self._k = k
-        if k == self._cap or (not (k & 15) and time.perf_counter() - self._rotated_at > FLUSH_INTERVAL):
+        if self._images is not None and self._images.tick(t):
+            self._handoff()
+        elif k == self._cap or (not (k & 15) and time.perf_counter() - self._rotated_at > FLUSH_INTERVAL):
             self._handoff()
 
     def _take_free(self) -> Block | None:
@@ -262,7 +337,8 @@ class Recorder:
         b, m = self._block, self._k
         if b is None and not side and not final:
             return
-        self._writer.submit(Job(b, m if b is not None else 0, side, final, self._gap))
+        images = self._images.take() if self._images is not None else []
+        self._writer.submit(Job(b, m if b is not None else 0, side, final, self._gap, images))
         self._gap = False
         self._k = 0
         self._block = None if final else self._take_free()

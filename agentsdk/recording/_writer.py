@@ -21,7 +21,7 @@ import queue
 import re
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
@@ -52,7 +52,9 @@ from ._channels import (
     TF,
     TRANSITIONS,
 )
+from ._images import IMAGE_TYPE, Frame, ImageTap
 from ._mcap import McapFile, Part
+from ._sensors import SensorTrack
 
 if TYPE_CHECKING:
     from ..kinematics import Kinematics
@@ -87,9 +89,12 @@ CMD_FIELDS = ("sp_q", "sp_v", "sp_e", "kp", "kd", "en", "mode", "target")
 class Block:
     """Preallocated per-tick rows (one control tick per row), reused for the whole run."""
 
-    __slots__ = ("e", "en", "kd", "kp", "mode", "q", "sp_e", "sp_q", "sp_v", "t", "target", "tc", "v")
+    __slots__ = ("e", "en", "kd", "kp", "mode", "q", "sp_e", "sp_q", "sp_v", "ss", "sv", "t", "target", "tc", "v")
 
-    def __init__(self, cap: int, n: int) -> None:
+    def __init__(self, cap: int, n: int, width: int = 0, sensors: int = 0) -> None:
+        #: sensor values (the recorded sensors' values side by side) and their stamps (robot time, s)
+        self.sv = np.empty((cap, width))
+        self.ss = np.empty((cap, sensors))
         self.t = np.empty(cap)
         self.tc = np.empty(cap)
         self.q = np.empty((cap, n))
@@ -105,9 +110,9 @@ class Block:
         self.mode = np.empty((cap, n), dtype=np.int8)
 
     @staticmethod
-    def row_bytes(n: int) -> int:
+    def row_bytes(n: int, width: int = 0, sensors: int = 0) -> int:
         """Bytes per row."""
-        return 16 + n * (9 * 8 + 2)
+        return 16 + n * (9 * 8 + 2) + 8 * (width + sensors)
 
 
 @dataclass
@@ -119,6 +124,8 @@ class Job:
     side: list[tuple[int, str, tuple[str | float, ...]]]
     final: bool = False
     gap: bool = False
+    #: camera frames copied into the image pool since the last job
+    images: list[Frame] = field(default_factory=list)
 
 
 @dataclass
@@ -133,6 +140,9 @@ class Rows:
     cmd: dict[str, np.ndarray]
     tf_ns: np.ndarray
     tf_q: np.ndarray
+    sn_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    sv: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    ss: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 # ------------------------------------------------------------------ row selection
@@ -147,8 +157,14 @@ class Selector:
     whether it precedes a change).
     """
 
-    def __init__(self, t0: float, rate: float | None, tf_rate: float | None) -> None:
+    def __init__(
+        self, t0: float, rate: float | None, tf_rate: float | None, *, sensor_rate: float | None = None,
+        sensor_width: int = 0, sensor_count: int = 0,
+    ) -> None:
         self.rate, self.tf_rate = rate, tf_rate
+        # sensor rows: sampled like the states at sensor_rate (none without recorded sensors)
+        self.sensor_rate, self.sensor_width, self.sensor_count = sensor_rate, sensor_width, sensor_count
+        self._last_sn = math.floor(t0 * sensor_rate + 1e-6) if sensor_rate else 0
         self._last_sample = math.floor(t0 * rate + 1e-6) if rate else 0
         self._last_tf = math.floor(t0 * tf_rate + 1e-6) if tf_rate else 0  # sampled like the states
         self._last_cmd: tuple[np.ndarray, ...] | None = None
@@ -174,18 +190,21 @@ class Selector:
         return rows
 
     def _prepend(self, r: Rows, carry: tuple[np.ndarray, ...]) -> Rows:
-        st_ns, q, v, e, tf_ns, tf_q = carry
+        st_ns, q, v, e, tf_ns, tf_q, sn_ns, sv, ss = carry
         return Rows(
             np.concatenate((st_ns, r.st_ns)), np.concatenate((q, r.q)), np.concatenate((v, r.v)),
             np.concatenate((e, r.e)), r.cmd_ns, r.cmd, np.concatenate((tf_ns, r.tf_ns)), np.concatenate((tf_q, r.tf_q)),
+            np.concatenate((sn_ns, r.sn_ns)), np.concatenate((sv, r.sv)), np.concatenate((ss, r.ss)),
         )
 
     def _hold_tail(self, r: Rows, held_ns: int) -> Rows:
         """Keep the rows stamped after the held command for the next block."""
         s = int(np.searchsorted(r.st_ns, held_ns, side="right"))
         t = int(np.searchsorted(r.tf_ns, held_ns, side="right"))
-        self._carry = (r.st_ns[s:], r.q[s:], r.v[s:], r.e[s:], r.tf_ns[t:], r.tf_q[t:])
-        return Rows(r.st_ns[:s], r.q[:s], r.v[:s], r.e[:s], r.cmd_ns, r.cmd, r.tf_ns[:t], r.tf_q[:t])
+        u = int(np.searchsorted(r.sn_ns, held_ns, side="right"))
+        self._carry = (r.st_ns[s:], r.q[s:], r.v[s:], r.e[s:], r.tf_ns[t:], r.tf_q[t:], r.sn_ns[u:], r.sv[u:], r.ss[u:])
+        return Rows(r.st_ns[:s], r.q[:s], r.v[:s], r.e[:s], r.cmd_ns, r.cmd, r.tf_ns[:t], r.tf_q[:t],
+                    r.sn_ns[:u], r.sv[:u], r.ss[:u])
 
     def _select(self, b: Block | None, m: int, final: bool, gap: bool) -> Rows | None:
         if b is None or m == 0:
@@ -200,7 +219,8 @@ class Selector:
                     cmd_ns = np.array([last_ns], np.int64)
                     cmd = {f: r[None] for f, r in zip(CMD_FIELDS, row, strict=True)}
                 self._held = None
-                return Rows(np.zeros(0, np.int64), z, z, z, cmd_ns, cmd, np.zeros(0, np.int64), z)
+                none = np.zeros(0, np.int64)
+                return Rows(none, z, z, z, cmd_ns, cmd, none, z, none, *self._no_sensors())
             return None
         t = b.t[:m]
         if self.rate is None:
@@ -213,6 +233,12 @@ class Selector:
             tf_rows, self._last_tf = self._sampled(t, self.tf_rate, self._last_tf)
         else:
             tf_rows = np.zeros(0, np.intp)
+        if not self.sensor_count:
+            sn_rows = np.zeros(0, np.intp)
+        elif self.sensor_rate is None:
+            sn_rows = np.arange(m)
+        else:
+            sn_rows, self._last_sn = self._sampled(t, self.sensor_rate, self._last_sn)
         arrays = [getattr(b, f)[:m] for f in CMD_FIELDS]
         changed = np.zeros(m, dtype=bool)
         last = self._last_cmd
@@ -239,7 +265,15 @@ class Selector:
             h_ns, h_row = held
             cmd = {f: np.concatenate((r[None], cmd[f])) for f, r in zip(CMD_FIELDS, h_row, strict=True)}
             cmd_ns = np.concatenate(([h_ns], cmd_ns))
-        return Rows(ns[st_rows], b.q[st_rows], b.v[st_rows], b.e[st_rows], cmd_ns, cmd, ns[tf_rows], b.q[tf_rows])
+        if self.sensor_count:
+            sv, ss = b.sv[sn_rows], b.ss[sn_rows]
+        else:
+            sv, ss = self._no_sensors()
+        return Rows(ns[st_rows], b.q[st_rows], b.v[st_rows], b.e[st_rows], cmd_ns, cmd, ns[tf_rows], b.q[tf_rows],
+                    ns[sn_rows], sv, ss)
+
+    def _no_sensors(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.zeros((0, self.sensor_width)), np.zeros((0, self.sensor_count))
 
 
 # ------------------------------------------------------------------ /tf from FK
@@ -304,7 +338,11 @@ class Output:
     messages, the ``rosbag2`` metadata record), compressed with zstd chunks.
     """
 
-    def __init__(self, path: Path, *, kind: str, names: Sequence[str], metadata: Mapping[str, str]) -> None:
+    def __init__(
+        self, path: Path, *, kind: str, names: Sequence[str], metadata: Mapping[str, str],
+        sensors: Sequence[SensorTrack] = (),
+        images: Sequence[str] = (),
+    ) -> None:
         from .. import __version__
 
         self.path, self.kind = path, kind
@@ -321,7 +359,15 @@ class Output:
             self.file = f = McapFile(
                 self.stream, profile="ros2", library=f"agentsdk {__version__}", message_index=kind == "ros2"
             )
-            self.types = CHANNEL_TYPES[kind]
+            self.types = dict(CHANNEL_TYPES[kind])
+            # sensors as their ROS messages (the ros2 kind: only the standard message types)
+            self.sensors = tuple(
+                t for t in sensors if kind == "agentsdk" or not t.msg_type.startswith("agentsdk_msgs/")
+            )
+            for track in self.sensors:
+                self.types[track.topic] = track.msg_type
+            for topic in images:
+                self.types[topic] = IMAGE_TYPE
             sids = {t: f.schema(t, "ros2msg", MSGDEFS[t].encode()) for t in sorted(set(self.types.values()))}
             self.channels: dict[str, int] = {}
             for topic, msg_type in self.types.items():
@@ -334,6 +380,10 @@ class Output:
             self.state = joint_state_layout(self.names)
             self.command: FixedLayout = command_layout(self.names) if kind == "agentsdk" else self.state
             self.tf: FixedLayout | None = None
+            self.sensor_layouts = [t.layout() for t in self.sensors]
+            self._sensor_cols = np.array([sensors.index(t) for t in self.sensors], dtype=np.intp)
+            #: per recorded sensor, the stamp of its last message (a sample is written once)
+            self._sensor_last = np.full(len(self.sensors), -math.inf)
             self.flush()  # the header, schemas and metadata reach the disk at once
         except OSError as exc:
             with contextlib.suppress(OSError):  # closing flushes what the full disk refused again
@@ -368,7 +418,24 @@ class Output:
                 cols[f"t{i}"], cols[f"r{i}"] = trans[:, i], rot[:, i]
             stamps = [f"{i}." for i in range(len(tree.children))]
             out.append((ch[TF], rows.tf_ns, self.tf.encode(rows.tf_ns, cols, stamps)))
+        if self.sensors and len(rows.sn_ns):
+            out.extend(self._sensor_parts(rows))
         return out
+
+    def _sensor_parts(self, rows: Rows) -> list[Part]:
+        """Each sensor's new samples among the sampled rows: logged at the tick, stamped when measured."""
+        parts: list[Part] = []
+        for i, (track, lay) in enumerate(zip(self.sensors, self.sensor_layouts, strict=True)):
+            stamps = rows.ss[:, self._sensor_cols[i]]
+            prev = np.concatenate(([self._sensor_last[i]], stamps[:-1]))
+            keep = np.flatnonzero(np.isfinite(stamps) & (stamps != prev))
+            self._sensor_last[i] = stamps[-1]
+            if not len(keep):
+                continue
+            header_ns = np.rint(stamps[keep] * NS_PER_S).astype(np.int64)
+            values = rows.sv[keep, track.offset : track.offset + track.size]
+            parts.append((self.channels[track.topic], rows.sn_ns[keep], lay.encode(header_ns, track.columns(values))))
+        return parts
 
     def _commands(self, rows: Rows) -> np.ndarray:
         c = rows.cmd
@@ -459,8 +526,10 @@ class WriterThread:
         kinematics: Callable[[], Kinematics] | None,
         description: tuple[int, str] | None,
         names: tuple[str, ...],
+        images: ImageTap | None = None,
     ) -> None:
         self.outputs = outputs
+        self.images = images
         self.selector = selector
         self.free = free
         self.jobs: queue.SimpleQueue[Job | None] = queue.SimpleQueue()
@@ -511,6 +580,8 @@ class WriterThread:
                 self.error = exc
                 log.error("writing the recording failed: %s", exc)
             finally:
+                if job.images and self.images is not None:
+                    self.images.release(job.images)  # encoded frames were already returned: emptied below
                 if job.block is not None:
                     self.free.put(job.block)
                 with self._idle:
@@ -542,8 +613,11 @@ class WriterThread:
             if self.tree is not None and len(rows.tf_ns):
                 trans, rot = self.tree.transforms(rows.tf_q)
                 tf = (self.tree, trans, rot)
+        frames, job.images = job.images, []
+        encoded = self.images.encode(frames) if frames and self.images is not None else {}
         for o in self.outputs:
             parts = o.encode(rows, tf) if rows is not None else []
+            parts += [(o.channels[topic], ns, msgs) for topic, (ns, msgs) in encoded.items() if topic in o.channels]
             o.file.chunk(parts + o.side(job.side))
             o.flush()
 

@@ -352,6 +352,15 @@ class Sensors:
         view.flags.writeable = False
         return view
 
+    def image_view(self, name: str) -> np.ndarray | None:
+        """A read-only view of camera ``name``'s latest published image (no copy; ``None`` for other sensors)."""
+        image = self._hub.slot(name).image
+        if image is None:
+            return None
+        view = image.view()
+        view.flags.writeable = False
+        return view
+
     def stamp(self, name: str) -> float:
         """Robot time of sensor ``name``'s latest published sample (``-inf`` before the first)."""
         return self._hub.slot(name).stamp

@@ -189,3 +189,46 @@ async def test_ros_discovery_info_names_the_node_and_its_endpoints() -> None:
             # readers: the JTC topic and 6 service request readers; writers: 11 topics and 6 service reply writers
             assert len(node.reader_gid_seq) == 7 and len(node.writer_gid_seq) >= 15
             assert all(bytes(g.data)[:12] == bytes(info.gid.data)[:12] for g in node.writer_gid_seq)
+
+
+async def test_state_machine_transitions_are_published_live() -> None:
+    """Issue 26's introspection on the ROS 2 face: every history record of this robot's machines."""
+    import json
+
+    from agentsdk.statemachine import State, StateContext, StateMachine
+
+    class Reach(StateMachine):
+        idle = State(initial=True)
+        reach = State()
+        done = State(final=True)
+        go = idle.to(reach)
+        arrived = reach.to(done)
+
+        async def on_idle(self, ctx: StateContext) -> str:
+            return "go"
+
+        async def on_reach(self, ctx: StateContext) -> str:
+            await ctx.robot.move_to({"joint1": 0.3})
+            return "arrived"
+
+    domain = random.SystemRandom().randint(30, 230)
+    async with agentsdk.connect("mock", robot="arm3") as robot, Peer(domain, "/sm") as peer:
+        peer.subscribe("behavior/transitions", String)
+        assert peer.node is not None
+        peer.node.start()
+        async with expose(robot, "/sm", domain_id=domain):
+            await asyncio.sleep(1.0)  # discovery
+            other = await agentsdk.connect("mock", robot="arm3")  # another robot's machine is not published
+            try:
+                assert await Reach(other).run() == "done"
+            finally:
+                await other.close()
+            assert await Reach(robot).run() == "done"
+            got = await peer.wait_for("behavior/transitions", 3)
+            await asyncio.sleep(0.3)
+        records = [json.loads(m.data) for m in peer.got["behavior/transitions"]]
+    assert [(r["source"], r["target"], r["event"]) for r in records] == [
+        (None, "idle", None), ("idle", "reach", "go"), ("reach", "done", "arrived")
+    ], got
+    assert {r["machine"] for r in records} == {"Reach"}
+    assert records[-1]["configuration"] == "Reach/done" and records[-1]["duration"] > 0

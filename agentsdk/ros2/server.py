@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
 import logging
 import math
 import os
@@ -247,6 +248,7 @@ class RosFace:
         self.rejected_trajectories = 0
         self.last_rejection: str = ""
         self._static_links: set[str] = set()
+        self._transition_handle: HookHandle | None = None
         #: the ROS node name ``ros2 node list`` shows (under :attr:`namespace`)
         self.node_name = "agentsdk_" + (re.sub(r"\W", "_", robot.name) or "robot")
 
@@ -277,6 +279,9 @@ class RosFace:
             self._publish_static()
             self._publish_status()
             self._publisher = _StatePublisher(robot, self._js, self._clock_w, self.rate, self.stamp_offset)
+            from ..statemachine import StateMachine
+
+            self._transition_handle = StateMachine.add_transition_listener(self._on_transition)
             self._spawn(self._periodic())
         except BaseException:
             await self.aclose()
@@ -305,6 +310,8 @@ class RosFace:
         self._tf_static = node.writer("tf_static", TFMessage, QOS_LATCHED)
         self._description = node.writer("robot_description", String, QOS_LATCHED)
         self._diagnostics = node.writer("diagnostics", DiagnosticArray, QOS_DEFAULT)
+        # the robot's state machines, live: one JSON object per history record (std_msgs/String)
+        self._transitions = node.writer("behavior/transitions", String, QOS_DEFAULT)
         self._controller_state = node.writer(f"{JTC}/controller_state", JointTrajectoryControllerState, QOS_DEFAULT)
         action = f"{JTC}/follow_joint_trajectory/_action"
         self._feedback = node.writer(f"{action}/feedback", FollowJointTrajectory_FeedbackMessage, QOS_DEFAULT)
@@ -325,6 +332,8 @@ class RosFace:
         if self._closed:
             return
         self._closed = True
+        if self._transition_handle is not None:
+            self._transition_handle.remove()
         try:
             for task in list(self._tasks):
                 task.cancel()
@@ -469,6 +478,17 @@ class RosFace:
                     hardware_id=str(fields.get("motor_id", robot.backend)),
                     values=[KeyValue(k, str(v)) for k, v in fields.items()]))
         self._diagnostics.write(DiagnosticArray(Header(self.stamp(robot.clock.now())), statuses))
+
+    def _on_transition(self, machine: Any, rec: Any) -> None:
+        """Publish a state machine's history record (this robot's machines only) on ``behavior/transitions``."""
+        if getattr(machine, "robot", None) is not self.robot or self._closed:
+            return
+        stamp = self.stamp(rec.time)
+        self._transitions.write(String(json.dumps({
+            "stamp": {"sec": stamp.sec, "nanosec": stamp.nanosec}, "machine": rec.machine, "source": rec.source,
+            "target": rec.target, "event": rec.event, "note": rec.note,
+            "duration": getattr(rec, "duration", None), "configuration": getattr(rec, "configuration", ""),
+        })))
 
     async def _periodic(self) -> None:
         """tf, controller_state at ``tf_rate`` and diagnostics at 1 Hz, in wall time."""

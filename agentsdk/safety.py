@@ -558,11 +558,11 @@ class SafetyLayer:
             self.check_fault()
         if st is SafetyState.DISABLED:
             raise EStopActive("robot is disabled after reset(); call `await robot.enable()` to allow motion")
-        cause = self._latch_cause()
+        cause = self.latch_cause()
         raise EStopActive(f"e-stop is latched{f' ({cause})' if cause else ''}; "
                           "call `await robot.reset()` then `await robot.enable()`")
 
-    def _latch_cause(self) -> str:
+    def latch_cause(self) -> str:
         """The detail of the event that latched the e-stop (the first stopping event since the last reset)."""
         with self._events_lock:
             events = list(self._events)

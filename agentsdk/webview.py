@@ -374,7 +374,7 @@ class WebView:
         st = robot.latest_state()
         safety = robot.safety
         state = safety.state.name
-        cause = safety._latch_cause() if state in ("ESTOP", "FAULT") else ""
+        cause = safety.latch_cause() if state in ("ESTOP", "FAULT") else ""
         moving = int(np.count_nonzero(safety.motions.owned_mask))
         return Snapshot(float(st.stamp), self._names, np.array(st.position, dtype=float),
                         np.array(st.velocity, dtype=float), state, cause, moving, self._machine)

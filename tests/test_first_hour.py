@@ -45,7 +45,9 @@ def test_a_blocking_sleep_is_named_in_the_last_line(tmp_path: Path) -> None:
         "import time\n\n\nasync def main(robot):\n    await robot.clock.sleep(0.1)\n    time.sleep(1)\n"
         "    await robot.move_to({'joint1': 0.3})\n"
     )
-    out = _cli("run", str(script), "--backend", "mock")
+    # realtime: the stall watchdog guards robots that move in real time (in lockstep a stalled loop
+    # cannot advance simulated time, so it is off there unless `stall_in_lockstep: true`)
+    out = _cli("run", str(script), "--backend", "mock", "--realtime")
     assert out.returncode != 0
     last = _last_line(out.stderr)
     assert last.startswith("error:"), out.stderr

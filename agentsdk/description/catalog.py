@@ -150,9 +150,9 @@ def _menagerie() -> Iterator[RobotEntry]:
 
 def installed_robots(robots_dir: Path | None = None) -> list[RobotEntry]:
     """Every robot known by name, in lookup order; a name hidden by an earlier source is left out."""
-    from .robot_yaml import _default_robots_dir
+    from .robot_yaml import default_robots_dir
 
-    directory = Path(robots_dir) if robots_dir is not None else _default_robots_dir()
+    directory = Path(robots_dir) if robots_dir is not None else default_robots_dir()
     sources: list[Callable[[], Iterator[RobotEntry]]] = [
         lambda: _shipped(directory), _entry_points, _example_robot_data, _menagerie,
     ]

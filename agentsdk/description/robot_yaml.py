@@ -162,7 +162,7 @@ def check_config(config: RobotConfig, description: RobotDescription) -> tuple[Jo
     return joints
 
 
-def _default_robots_dir() -> Path:
+def default_robots_dir() -> Path:
     import agentsdk.robots as robots
 
     return Path(robots.__file__).resolve().parent
@@ -170,7 +170,7 @@ def _default_robots_dir() -> Path:
 
 def list_robots(robots_dir: Path | None = None) -> list[str]:
     """Names of the robots shipped in ``robots_dir`` (default: the ``robots`` package): dirs with a robot.yaml."""
-    directory = Path(robots_dir) if robots_dir is not None else _default_robots_dir()
+    directory = Path(robots_dir) if robots_dir is not None else default_robots_dir()
     if not directory.is_dir():
         return []
     return sorted(d.name for d in directory.iterdir() if (d / "robot.yaml").is_file())
@@ -219,7 +219,7 @@ def resolve_robot(
     files in that directory. Raises ``ConfigurationError`` (or its subclass
     ``DescriptionError``) naming what is wrong.
     """
-    directory = Path(robots_dir) if robots_dir is not None else _default_robots_dir()
+    directory = Path(robots_dir) if robots_dir is not None else default_robots_dir()
     text = os.fspath(spec)
     bare_name = (
         isinstance(spec, str)

@@ -253,7 +253,7 @@ class FixedLayout:
         self.fields: dict[str, tuple[int, int, str]] = {}
 
     # building (used once per recording)
-    def _field(self, name: str, count: int, dtype: str, align: int) -> None:
+    def add_field(self, name: str, count: int, dtype: str, align: int) -> None:
         w = self._w
         if count:
             w.align(align)
@@ -261,13 +261,17 @@ class FixedLayout:
         w.buf += b"\x00" * (count * np.dtype(dtype).itemsize)
 
     def header(self, frame_id: str = "", prefix: str = "") -> None:
-        self._field(prefix + "sec", 1, "<i4", 4)
-        self._field(prefix + "nanosec", 1, "<u4", 4)
+        self.add_field(prefix + "sec", 1, "<i4", 4)
+        self.add_field(prefix + "nanosec", 1, "<u4", 4)
         self._w.string(frame_id)
+
+    def fixed_string(self, text: str) -> None:
+        """A string that is the same in every message of this layout (written once into the template)."""
+        self._w.string(text)
 
     def seq(self, name: str, count: int, dtype: str) -> None:
         self._w.u32(count)
-        self._field(name, count, dtype, np.dtype(dtype).itemsize)
+        self.add_field(name, count, dtype, np.dtype(dtype).itemsize)
 
     def finish(self) -> FixedLayout:
         self.template = np.frombuffer(ENCAPSULATION + bytes(self._w.buf), dtype=np.uint8)
@@ -339,6 +343,6 @@ def tf_layout(parents: Sequence[str], children: Sequence[str]) -> FixedLayout:
     for i, (parent, child) in enumerate(zip(parents, children, strict=True)):
         lay.header(parent, prefix=f"{i}.")
         lay._w.string(child)
-        lay._field(f"t{i}", 3, "<f8", 8)
-        lay._field(f"r{i}", 4, "<f8", 8)
+        lay.add_field(f"t{i}", 3, "<f8", 8)
+        lay.add_field(f"r{i}", 4, "<f8", 8)
     return lay.finish()

@@ -80,29 +80,29 @@ class SensorTrack:
             for f, n in (("orientation", 4), ("orientation_covariance", 9), ("angular_velocity", 3),
                          ("angular_velocity_covariance", 9), ("linear_acceleration", 3),
                          ("linear_acceleration_covariance", 9)):
-                lay._field(f, n, "<f8", 8)
+                lay.add_field(f, n, "<f8", 8)
         elif k == "force_torque":
-            lay._field("force", 3, "<f8", 8)
-            lay._field("torque", 3, "<f8", 8)
+            lay.add_field("force", 3, "<f8", 8)
+            lay.add_field("torque", 3, "<f8", 8)
         elif k in _VECTOR_KINDS:
-            lay._field("vector", 3, "<f8", 8)
+            lay.add_field("vector", 3, "<f8", 8)
         elif k == "orientation":
-            lay._field("quaternion", 4, "<f8", 8)
+            lay.add_field("quaternion", 4, "<f8", 8)
         elif k == "rangefinder":
-            lay._field("radiation_type", 1, "u1", 1)
+            lay.add_field("radiation_type", 1, "u1", 1)
             for f in ("field_of_view", "min_range", "max_range", "range"):
-                lay._field(f, 1, "<f4", 4)
+                lay.add_field(f, 1, "<f4", 4)
         elif k == "lidar":
             for f in _LASER:
-                lay._field(f, 1, "<f4", 4)
+                lay.add_field(f, 1, "<f4", 4)
             lay.seq("ranges", self.size, "<f4")
             lay.seq("intensities", 0, "<f4")
         elif k == "contact":
-            lay._field("force", 1, "<f8", 8)
-            lay._field("contacts", 1, "<u4", 4)
+            lay.add_field("force", 1, "<f8", 8)
+            lay.add_field("contacts", 1, "<u4", 4)
         else:
-            lay._w.string(self.joint)
-            lay._field("value", 1, "<f8", 8)
+            lay.fixed_string(self.joint)
+            lay.add_field("value", 1, "<f8", 8)
         return lay.finish()
 
     def columns(self, v: np.ndarray) -> dict[str, np.ndarray]:

@@ -206,7 +206,13 @@ def check_robot(
                 out.append(f"  {backend:9s} ✗ loads, but does not follow: {lag} {size}")
                 report.problems.append(f"{backend}: does not follow its commands: {lag}")
                 continue
-            note = "loads, holds and moves" if r.get("ok") else f"loads, then {r.get('run_error')}"
+            if not r.get("ok"):
+                # a run that ended in a fault or e-stop (a sensor fault: a joint running away) is never a pass
+                run_error = " ".join(str(r.get("run_error")).split())
+                out.append(f"  {backend:9s} ✗ loads, then {run_error} {size}")
+                report.problems.append(f"{backend}: {run_error}")
+                continue
+            note = "loads, holds and moves"
             peak = _following_peak(r)
             if peak:
                 note += f" (following error ≤ {peak})"

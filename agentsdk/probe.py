@@ -79,7 +79,7 @@ async def _hold_move(bot: Any, out: dict[str, Any]) -> None:
         peak = np.maximum(peak, np.abs((await bot.read()).position - q0))
     out["drift"] = float(peak.max(initial=0.0))
     out["drift_joint"] = joints[int(np.argmax(peak))].name if len(joints) else None
-    out["following_errors"] = [e.detail for e in bot.safety.events if e.kind == "following_error"]
+    out["following_errors"] = [e.detail for e in bot.safety.events if e.kind in ("following_error", "sensor")]
     goal = np.clip(q0 + MOVE, lower, upper)
     result = await bot.move_to({j.name: float(g) for j, g in zip(joints, goal, strict=True)})
     out["move_code"] = result.code.name
@@ -112,7 +112,7 @@ async def _follow(bot: Any, out: dict[str, Any]) -> None:
         if following is not None:
             out["following_peak"] = following.peak.tolist()
             out["following_window"] = following.windows.tolist()
-        out["following_errors"] = [e.detail for e in bot.safety.events if e.kind == "following_error"]
+        out["following_errors"] = [e.detail for e in bot.safety.events if e.kind in ("following_error", "sensor")]
 
 
 async def _stand(bot: Any, out: dict[str, Any]) -> None:

@@ -95,4 +95,7 @@ def test_check_reports_a_joint_that_does_not_follow() -> None:
     armature = _agentsdk("check", str(FIXTURES / "following" / "healthy.yaml"))
     assert armature.returncode == 1
     assert "mujoco    ✓ loads, holds and moves (following error ≤ " in armature.stdout, armature.stdout
-    assert "pybullet  ✗ loads, but does not follow: joint 'wrist' is " in armature.stdout, armature.stdout
+    # the wrist runs away: a following error, or a jump faster than the plausibility gate allows
+    assert ("pybullet  ✗ loads, but does not follow: joint 'wrist' is " in armature.stdout
+            or "pybullet  ✗ loads, then SafetyFault: safety FAULT: sensor fault on joint 'wrist'" in armature.stdout
+            ), armature.stdout

@@ -73,9 +73,16 @@ async def test_a_motor_with_armature_on_pybullet_does_not_follow_and_latches() -
         move = asyncio.create_task(robot.move_to({"wrist": 2.0}))
         await robot.clock.sleep(1.5)
         hook.remove()
-        (ev,) = _following_events(robot)
-        assert left and ev.joint == "wrist" and ev.time - left[0] <= 0.5
-        assert robot.safety.state is SafetyState.ESTOP
+        # the wrist runs away on PyBullet: either it leaves its window (a following error) or it moves
+        # faster in one tick than the plausibility gate allows (a sensor fault); both latch, naming it
+        sensor = [e for e in robot.safety.events if e.kind == "sensor"]
+        if sensor:
+            assert sensor[0].joint == "wrist" and sensor[0].time <= 0.5
+            assert robot.safety.state is SafetyState.FAULT
+        else:
+            (ev,) = _following_events(robot)
+            assert left and ev.joint == "wrist" and ev.time - left[0] <= 0.5
+            assert robot.safety.state is SafetyState.ESTOP
         assert (await move).code is ResultCode.ABORTED  # the move ends with the stop
 
 

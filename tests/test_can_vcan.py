@@ -445,7 +445,7 @@ async def main(robot):
     knee = 1.9 if q["knee"] < 1.35 else 0.8
     hip = 0.3 if q["hip_pitch"] < 0.0 else -0.4
     motion = robot.follow(Trajectory(["hip_pitch", "knee"], [TrajectoryPoint(2.0, [hip, knee])]))
-    await robot.clock.sleep(0.3)
+    await robot.clock.sleep(0.6)   # robot time: well into the move, whatever the machine's load
     print("MOVING", flush=True)
     await motion   # the README's own pattern
 """

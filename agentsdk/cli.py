@@ -494,6 +494,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
             await extras.web.wait_for_start()
             return await behavior_main(bot)
 
+    if args.record or args.plot:
+        # import the recorder (mcap, zstandard, its encoders) before the robot connects: attaching it
+        # then runs on the control loop, where a realtime robot's stall watchdog allows 0.25 s
+        from . import recording  # noqa: F401
     try:
         summary = asyncio.run(
             run_behavior(

@@ -119,6 +119,12 @@ def _libc() -> Any:
     return _LIBC or None
 
 
+if not hasattr(os, "timerfd_create"):
+    # bind libc's timerfd calls now, not when a running control loop first sleeps (under a slow kernel,
+    # e.g. user-mode Linux, the first binding took long enough for the stall watchdog to fire)
+    _libc()
+
+
 def timerfd_available() -> bool:
     """True where :class:`DeadlineTimer` works (Linux)."""
     return hasattr(os, "timerfd_create") or _libc() is not None

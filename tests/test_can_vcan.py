@@ -32,6 +32,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -130,10 +131,20 @@ class Proc:
             self.log_path.unlink()
 
 
-def start_emulator(robot: str, *args: str) -> Proc:
+#: run the emulated motors at a real-time priority of the guest's scheduler (as root, where ``chrt`` exists):
+#: real motors are separate hardware whose replies do not wait for the host's CPU, while user-mode
+#: Linux has one vCPU shared by the emulator, pytest and the robot's loop. A busy host then cannot
+#: delay the motors' replies past the reply deadline; the host's own delays still count.
+MOTOR_PRIORITY = (["chrt", "--fifo", "10"]
+                  if os.geteuid() == 0 and shutil.which("chrt") and os.environ.get("AGENTSDK_VCAN_MOTOR_RT", "1") == "1"
+                  else [])
+
+
+def start_emulator(robot: str, *args: str, realtime: bool = True) -> Proc:
+    """The motor emulator process on vcan0 (``realtime``: at :data:`MOTOR_PRIORITY`)."""
     return Proc(
-        [sys.executable, "-m", "agentsdk.backends.can.emulator", "--robot", robot,
-         "--interface", "socketcan", "--channel", "vcan0", *args],
+        [*(MOTOR_PRIORITY if realtime else []), sys.executable, "-m", "agentsdk.backends.can.emulator",
+         "--robot", robot, "--interface", "socketcan", "--channel", "vcan0", *args],
         "emulator",
     )
 
@@ -215,11 +226,16 @@ def write_behavior(directory: Path, name: str, body: str) -> Path:
 # --------------------------------------------------------------------- conformance
 class TestCanConformanceVcan(BackendConformance):
     """The backend contract on socketcan vcan0 (robot.yaml: socketcan, vcan0; rate VCAN_RATE),
-    each test with a fresh emulator process. Kit tolerances and backend options unchanged."""
+    each test with a fresh emulator process. Kit tolerances unchanged; more missed replies tolerated."""
 
     backend = "can"
     robot = "mit_leg"
-    connect_options: ClassVar[dict[str, Any]] = {}
+    #: replies the kit's tests tolerate missing in a row: user-mode Linux's one vCPU, shared by the emulator,
+    #: pytest and the loop, is descheduled by a busy host now and then, and a reply that leaves the VM 10 ms
+    #: late is a missed cycle (the backend's default, 5, is for real hardware; the fault rule itself is
+    #: tested on the virtual bus in tests/test_can_backend.py); likewise a 1 s stall watchdog instead of 0.25 s
+    #: (the kit's own stall test sets its 0.1 s)
+    connect_options: ClassVar[dict[str, Any]] = {"max_missed_replies": 25, "safety": {"stall_timeout": 1.0}}
 
     @pytest.fixture(autouse=True)
     def _robot_at_vcan_rate(self, leg: str) -> None:
@@ -500,7 +516,9 @@ def test_signal_stops_the_motors_at_rest_before_disabling_them(tmp_path: Path, l
             (ev,) = [e for e in data.events if e["detail"] == "category 1: stopped, torque removed"]
             t_off = round(ev["time"] * 1e9)
             before = np.flatnonzero(data.state_time <= t_off)
-            assert np.abs(data.velocity[before]).max() > 0.3, f"trial {k}: was not moving"
+            # (moving: twice the at-rest bound below; the knee's planned speed there is 0.36..0.95 rad/s, less
+            # what the emulated rotor lags when the VM is starved)
+            assert np.abs(data.velocity[before]).max() > 0.2, f"trial {k}: was not moving"
             v_off = np.abs(data.velocity[before[-1]]).max()
             assert v_off < 0.1, f"trial {k}: motors disabled at {v_off:.3f} rad/s (category 0, not 1)"
 

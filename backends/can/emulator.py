@@ -849,6 +849,19 @@ class MotorEmulator:
 # --------------------------------------------------------------------------- CLI
 
 
+def _motor_latency(text: str) -> tuple[int, float]:
+    """``ID=SECONDS`` of ``--motor-latency``."""
+    ident, sep, seconds = text.partition("=")
+    try:
+        if not sep:
+            raise ValueError(text)
+        pair = int(ident, 0), float(seconds)
+        _check_delay("reply_latency", pair[1])
+    except (ValueError, ConfigurationError) as exc:
+        raise argparse.ArgumentTypeError(f"expected ID=SECONDS with SECONDS >= 0, got {text!r}") from exc
+    return pair
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="agentsdk emulate-can",
@@ -861,12 +874,19 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--drop-rate", type=float, default=0.0, help="probability a frame or a reply is lost")
     p.add_argument("--latency", type=float, default=0.0, help="reply latency [s]")
     p.add_argument(
+        "--motor-latency", type=_motor_latency, nargs="+", action="extend", default=[], metavar="ID=SECONDS",
+        help="reply latency of one motor [s], overriding --latency (e.g. 2=0.003)",
+    )
+    p.add_argument(
         "--silent", type=int, nargs="+", action="extend", default=[], metavar="ID", help="motors that never reply"
     )
     p.add_argument("--timeout", type=float, help="motor-side command timeout [s] (default: robot.yaml, 0.025)")
     p.add_argument("--flood-rate", type=float, default=0.0, help="junk frames per second (0 = off)")
     p.add_argument("--flood-id", type=lambda s: int(s, 0), default=0x7FF, help="arbitration id of the junk frames")
     p.add_argument("--seed", type=int, default=0, help="seed of the drop/junk RNG")
+    p.add_argument("--poll", type=float, default=0.02,
+                   help="longest wait between physics updates without frames [s] (default 0.02; the physics is "
+                   "also brought up to date on every frame, so this only bounds staleness while the bus is idle)")
     p.add_argument("--substep", type=float, default=0.0005,
                    help="physics substep [s] (default 0.0005; a slow host needs a coarser one for the MuJoCo plant)")
     p.add_argument("--plant", choices=("rotor", "mujoco"), default="rotor",
@@ -916,6 +936,7 @@ def main(argv: list[str] | None = None) -> int:
             timeout=args.timeout,
             silent=args.silent,
             substep=args.substep,
+            poll_interval=args.poll,
             initial_positions=robot_cfg.initial_positions,
             drop_rate=args.drop_rate,
             reply_latency=args.latency,
@@ -923,6 +944,8 @@ def main(argv: list[str] | None = None) -> int:
             flood_id=args.flood_id,
             seed=args.seed,
         )
+        for motor_id, latency in args.motor_latency:
+            emulator.set_faults(motor_id, reply_latency=latency)
         with emulator:
             motors = ", ".join(f"{j}=id {m.id} {m.model}" for j, m in can_cfg.motors.items())
             log.info(

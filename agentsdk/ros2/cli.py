@@ -44,6 +44,17 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--sensor-qos", action="store_true", help="publish joint_states best effort (SensorDataQoS)")
     p.add_argument("--lockstep", action="store_true",
                    help="simulated time (publishes clock); robot time advances only while the robot moves")
+    p.add_argument("--interface", default=None, metavar="ADDR|NAME",
+                   help="network interface to serve on (default: loopback 127.0.0.1 only)")
+    p.add_argument("--peer", action="append", default=None, metavar="ADDR",
+                   help="unicast discovery peer (repeatable); without it discovery uses multicast on --interface")
+    p.add_argument("--lease", type=float, default=1.0,
+                   help="dead-man lease in seconds: a commanding client silent this long stops the robot (default 1)")
+    p.add_argument("--lease-category", type=int, default=1, choices=(0, 1),
+                   help="stop category when a lease lapses (default 1: to rest, then torque off)")
+    p.add_argument("--require-lease", action="store_true",
+                   help="refuse commands unless a client holds a live lease (heartbeats)")
+    p.add_argument("--no-deadman", action="store_true", help="turn the dead-man off (heartbeats are ignored)")
     p.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
     return p
@@ -74,6 +85,16 @@ def main(argv: list[str]) -> int:
         if args.lockstep and "can" in backends:
             raise ConfigurationError("--lockstep: a CAN robot always runs in realtime")
         realtime = None if args.lockstep else True
+        if args.interface is not None or args.peer:
+            import os
+
+            from .dds import network_config, resolve_domain_id
+
+            if os.environ.get("CYCLONEDDS_URI"):
+                raise ConfigurationError("give either --interface/--peer or CYCLONEDDS_URI, not both")
+            os.environ["CYCLONEDDS_URI"] = network_config(
+                resolve_domain_id(args.domain_id), args.interface or "127.0.0.1", args.peer or [])
+        lease = None if args.no_deadman else args.lease
 
         async def serve(first: Any) -> None:
             from ..robot import connect
@@ -87,7 +108,8 @@ def main(argv: list[str]) -> int:
                     for robot, ns in zip(served, namespaces, strict=True):
                         face = await stack.enter_async_context(expose(
                             robot, ns, domain_id=args.domain_id, rate=args.rate, tf_rate=args.tf_rate,
-                            sensor_qos=args.sensor_qos))
+                            sensor_qos=args.sensor_qos, lease=lease, lease_category=args.lease_category,
+                            require_lease=args.require_lease))
                         mode = "realtime" if robot.realtime else "lockstep"
                         print(f"serving {robot.name} ({robot.backend}, {mode}) as ROS 2 node namespace "
                               f"{face.namespace or '/'} on domain {face.domain_id}; Ctrl-C stops",

@@ -40,7 +40,7 @@ from ._fast import RawDataWriter
 from .msgs import Gid, NodeEntitiesInfo, ParticipantEntitiesInfo, RequestHeader
 
 __all__ = [
-    "QOS_DEFAULT", "QOS_LATCHED", "QOS_SENSOR", "DdsNode", "loopback_config", "normalize_namespace",
+    "QOS_DEFAULT", "QOS_LATCHED", "QOS_SENSOR", "DdsNode", "loopback_config", "network_config", "normalize_namespace",
     "resolve_domain_id", "service_wire_type",
 ]
 
@@ -87,6 +87,31 @@ def loopback_config(domain_id: int) -> str:
         "<Discovery><ParticipantIndex>auto</ParticipantIndex>"
         "<MaxAutoParticipantIndex>50</MaxAutoParticipantIndex>"
         '<Peers><Peer Address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>'
+    )
+
+
+def network_config(domain_id: int, interface: str, peers: list[str] | tuple[str, ...] = ()) -> str:
+    """Cyclone DDS configuration on one network ``interface`` (an address or a name) with unicast ``peers``.
+
+    Discovery is unicast to ``peers`` (addresses or host names; none: multicast discovery on
+    that interface). ``interface="127.0.0.1"`` without peers is :func:`loopback_config`.
+    """
+    token = re.compile(r"^[A-Za-z0-9_.:%-]+$")
+    for what, value in [("interface", interface), *(("peer", p) for p in peers)]:
+        if not isinstance(value, str) or not token.match(value):
+            raise InvalidValueError(f"{what} must be an address or a name like 10.0.0.2 or eth0, got {value!r}")
+    if interface == "127.0.0.1" and not peers:
+        return loopback_config(domain_id)
+    is_address = re.match(r"^[0-9.]+$|:", interface) is not None
+    nic = f'<NetworkInterface address="{interface}"/>' if is_address else f'<NetworkInterface name="{interface}"/>'
+    multicast = "false" if peers else "true"
+    peer_xml = "".join(f'<Peer Address="{p}"/>' for p in peers)
+    return (
+        f'<CycloneDDS><Domain id="{domain_id}"><General><Interfaces>{nic}</Interfaces>'
+        f"<AllowMulticast>{multicast}</AllowMulticast></General>"
+        "<Discovery><ParticipantIndex>auto</ParticipantIndex>"
+        "<MaxAutoParticipantIndex>50</MaxAutoParticipantIndex>"
+        f"<Peers>{peer_xml}</Peers></Discovery></Domain></CycloneDDS>"
     )
 
 

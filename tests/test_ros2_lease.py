@@ -22,6 +22,7 @@ from agentsdk.ros2.msgs import Duration, Header, JointTrajectory, JointTrajector
 from agentsdk.safety import SafetyState
 
 pytestmark = pytest.mark.timeout(120)
+SAFETY = {"stall_timeout": 5.0}  # a loaded 2-core test machine
 
 
 def test_lease_table_binds_live_clients_and_reports_lapses() -> None:
@@ -77,7 +78,7 @@ async def _until(cond: object, limit: float) -> None:
 
 async def test_a_silent_commanding_client_stops_the_robot_until_reset() -> None:
     domain = random.SystemRandom().randint(30, 230)
-    async with agentsdk.connect("mock", robot="arm3", realtime=True) as robot:
+    async with agentsdk.connect("mock", robot="arm3", realtime=True, safety=SAFETY) as robot:
         async with expose(robot, "/dm", domain_id=domain, lease=0.4) as face:
             client = DdsNode(domain, "/dm", asyncio.get_running_loop())
             try:
@@ -124,7 +125,7 @@ async def test_a_silent_commanding_client_stops_the_robot_until_reset() -> None:
 
 async def test_require_lease_refuses_commands_without_a_live_lease() -> None:
     domain = random.SystemRandom().randint(30, 230)
-    async with agentsdk.connect("mock", robot="arm3", realtime=True) as robot:
+    async with agentsdk.connect("mock", robot="arm3", realtime=True, safety=SAFETY) as robot:
         async with expose(robot, "/rq", domain_id=domain, lease=0.5, require_lease=True) as face:
             with pytest.raises(LeaseRequired, match="heartbeat"):
                 face._start(_trajectory(robot, "joint1", 0.3, 0.5), face.tolerances)

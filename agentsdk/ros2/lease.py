@@ -154,6 +154,8 @@ class Deadman:
         self.trips = 0
         #: the last trip's reason ("" before any)
         self.last_trip = ""
+        #: wall time (epoch seconds) of the last trip (0.0 before any)
+        self.tripped_at = 0.0
 
     def attach(self, node: DdsNode) -> None:
         """Subscribe the heartbeat and release topics on ``node`` (before it starts)."""
@@ -217,6 +219,7 @@ class Deadman:
 
     async def _trip(self, clients: list[str]) -> None:
         self.trips += 1
+        self.tripped_at = time.time()
         self.last_trip = (f"lease of {', '.join(clients)} lapsed (no heartbeat within {self.lease:g} s): "
                           f"category {self.category} stop; reset to command again")
         log.warning("dead-man: %s", self.last_trip)

@@ -222,7 +222,8 @@ class RosFace:
     def __init__(self, robot: Robot, *, namespace: str = "", domain_id: int | None = None,
                  rate: float | None = None, tf_rate: float = 50.0, sensor_qos: bool = False,
                  feedback_rate: float = 20.0, tolerances: Tolerances | None = None,
-                 lease: float | None = 1.0, lease_category: int = 1, require_lease: bool = False) -> None:
+                 lease: float | None = 1.0, lease_category: int = 1, require_lease: bool = False,
+                 read_only: bool = False, dds_config: str | None = None) -> None:
         self.robot = robot
         self.namespace = normalize_namespace(namespace)
         self.domain_id = resolve_domain_id(domain_id)
@@ -253,9 +254,14 @@ class RosFace:
         self._transition_handle: HookHandle | None = None
         #: the ROS node name ``ros2 node list`` shows (under :attr:`namespace`)
         self.node_name = "agentsdk_" + (re.sub(r"\W", "_", robot.name) or "robot")
+        #: a read-only face (a viewer's, :mod:`agentsdk.ros2.security`): state out, no command
+        #: topic, no services, no action server
+        self.read_only = bool(read_only)
+        #: the Cyclone DDS configuration of this face's domain (None: ``CYCLONEDDS_URI``, else loopback)
+        self.dds_config = dds_config
         #: the dead-man between hosts (:mod:`agentsdk.ros2.lease`); None: ``lease=None``, no dead-man
         self.deadman: Deadman | None = None
-        if lease is not None:
+        if lease is not None and not self.read_only:
             self.deadman = Deadman(robot, lease, lease_category, require_lease)
         elif require_lease:
             raise InvalidValueError("require_lease needs a lease (seconds), got lease=None")
@@ -302,7 +308,7 @@ class RosFace:
         _warm_up()
         self._prepare_tf()
         self._prepare_controller_state()
-        node = DdsNode(self.domain_id, self.namespace, loop)
+        node = DdsNode(self.domain_id, self.namespace, loop, self.dds_config)
         try:
             self._create_entities(node)
         except BaseException:
@@ -326,6 +332,13 @@ class RosFace:
         action = f"{JTC}/follow_joint_trajectory/_action"
         self._feedback = node.writer(f"{action}/feedback", FollowJointTrajectory_FeedbackMessage, QOS_DEFAULT)
         self._status = node.writer(f"{action}/status", GoalStatusArray, QOS_LATCHED)
+        if not self.read_only:
+            self._create_command_entities(node, action)
+        node.announce(self.node_name)
+
+    def _create_command_entities(self, node: DdsNode, action: str) -> None:
+        """What commands the robot: the JTC topic, the services, the action server, the dead-man."""
+        robot = self.robot
         node.subscribe(f"{JTC}/joint_trajectory", JointTrajectory, self._on_trajectory)
         node.service("estop", Trigger_Request, Trigger_Response, self._trigger(self._estop))
         node.service("reset", Trigger_Request, Trigger_Response, self._trigger(robot.reset))
@@ -337,7 +350,6 @@ class RosFace:
         node.service(f"{action}/cancel_goal", CancelGoal_Request, CancelGoal_Response, self._on_cancel)
         if self.deadman is not None:
             self.deadman.attach(node)
-        node.announce(self.node_name)
 
     async def aclose(self) -> None:
         """Stop serving: cancel the face's tasks, stop the publisher, delete the participant (idempotent)."""
@@ -474,6 +486,8 @@ class RosFace:
             KeyValue("deadman", "off" if self.deadman is None else
                      f"lease {self.deadman.lease:g} s, category {self.deadman.category}, "
                      f"trips {self.deadman.trips}{': ' + self.deadman.last_trip if self.deadman.last_trip else ''}"),
+            KeyValue("deadman_tripped_at", "" if self.deadman is None or not self.deadman.trips
+                     else f"{self.deadman.tripped_at:.6f}"),
         ]
         message = st.name if cause is None else f"{st.name}: {cause}"
         statuses = [DiagnosticStatus(level=level, name=f"agentsdk: {robot.name}{self.namespace}",

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 from cyclonedds.core import Policy, Qos
 from cyclonedds.util import duration
 
-from ..errors import CommandRejected, InvalidValueError
+from ..errors import AgentSDKError, CommandRejected, InvalidValueError
 from .dds import QOS_DEFAULT, DdsNode
 from .msgs import Header, String, Time
 
@@ -224,7 +224,10 @@ class Deadman:
                           f"category {self.category} stop; reset to command again")
         log.warning("dead-man: %s", self.last_trip)
         self.robot.safety.record("deadman", self.last_trip)
-        await self.robot.estop(self.category)
+        try:
+            await self.robot.estop(self.category)
+        except AgentSDKError as exc:  # the robot closed meanwhile: nothing left to stop; keep watching
+            log.warning("dead-man: the stop failed: %s: %s", type(exc).__name__, exc)
 
 
 class Heartbeat:

@@ -8,7 +8,8 @@ with a lease) in the other. Checked:
 
 * over the impaired link the remote trajectories reach their targets;
 * the partition stops the served robot within its lease (a category 1 e-stop, at rest);
-* after the partition commands are refused until a reset (and enable) over the same link.
+* after the partition commands are refused until a reset (and enable) over the same link;
+* every trajectory sent over the lossy link was applied (or refused) exactly once.
 
 Needs root, iproute2 and a kernel with network namespaces, veth and netem; the test skips
 and names what is missing otherwise. ``scripts/test.sh`` runs it inside user-mode Linux
@@ -187,6 +188,8 @@ def test_remote_agent_over_delay_loss_and_a_partition(link: Link, tmp_path: Path
     assert steps["refused"]["moved"] < 1e-3
     reset = steps["reset"]
     assert reset["reset"] and reset["enable"] and abs(reset["position"]) < 1e-3, reset
+    counts = steps["counts"]  # none lost, none applied twice: DDS reliability with RTPS sequence numbers
+    assert (counts["accepted"], counts["rejected"]) == (counts["sent"] - 1, 1), counts
 
 
 def _tail(path: Path) -> str:

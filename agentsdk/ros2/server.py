@@ -249,6 +249,8 @@ class RosFace:
         self._closed = False
         #: trajectories from the topic that were rejected (the topic has no reply: counted and logged)
         self.rejected_trajectories = 0
+        #: trajectories from the topic that were started (each DDS sample once: RTPS sequence numbers)
+        self.accepted_trajectories = 0
         self.last_rejection: str = ""
         self._static_links: set[str] = set()
         self._transition_handle: HookHandle | None = None
@@ -483,6 +485,7 @@ class RosFace:
             KeyValue("busy", str(robot.busy)),
             KeyValue("joint_states_published", str(self.published)),
             KeyValue("trajectories_rejected", str(self.rejected_trajectories)),
+            KeyValue("trajectories_accepted", str(self.accepted_trajectories)),
             KeyValue("deadman", "off" if self.deadman is None else
                      f"lease {self.deadman.lease:g} s, category {self.deadman.category}, "
                      f"trips {self.deadman.trips}{': ' + self.deadman.last_trip if self.deadman.last_trip else ''}"),
@@ -573,6 +576,7 @@ class RosFace:
             self.last_rejection = f"{type(exc).__name__}: {exc}"
             log.warning("rejected trajectory on %s/%s/joint_trajectory: %s", self.namespace, JTC, self.last_rejection)
             return
+        self.accepted_trajectories += 1
         self._spawn(self._await_quietly(motion))
 
     @staticmethod

@@ -60,6 +60,7 @@ class Client:
             node.subscribe(f"{srv}Reply", service_wire_type(Trigger_Response), self._on_reply, QOS_SERVICE,
                            prefix="rr/")
         self.heartbeat = Heartbeat(node, LEASE, client_id="netns-agent")
+        self.sent = 0
         node.start()
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
@@ -89,6 +90,7 @@ class Client:
         q = self.position()
         q[joint] = target
         names = list(self.states[-1].name)
+        self.sent += 1
         self.cmd.write(JointTrajectory(Header(), names, [
             JointTrajectoryPoint(positions=q, time_from_start=Duration.from_seconds(seconds))]))
 
@@ -143,6 +145,16 @@ async def main() -> None:
         await c.reach(0, 0.0, 1.0, 30)
         say(step="reset", reset=reset.success, enable=enable.success, position=c.position()[0],
             safety_state=c.diag.get("safety_state"))
+        # 6. every trajectory sent over the lossy link was applied or refused exactly once
+        n = c.sent
+
+        def counted() -> int:
+            return int(c.diag["trajectories_accepted"]) + int(c.diag["trajectories_rejected"])
+
+        await c.until("the diagnostics' counts", lambda: counted() >= n, 10)
+        await asyncio.sleep(1.5)  # a duplicate would show up by now
+        say(step="counts", sent=n, accepted=int(c.diag["trajectories_accepted"]),
+            rejected=int(c.diag["trajectories_rejected"]))
     finally:
         await c.heartbeat.aclose()
         await asyncio.sleep(0.5)

@@ -118,3 +118,34 @@ async def test_unknown_viewer_and_operator_get_what_their_role_allows(tmp_path: 
             async with asyncio.timeout(20):
                 while abs(robot.latest_state().position[2] - 0.4) > 1e-3 or robot.busy:  # noqa: ASYNC110
                     await asyncio.sleep(0.05)
+
+
+def test_security_command_creates_and_prints_identities(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from agentsdk.ros2.cli import security_main
+
+    assert security_main(["create", str(tmp_path / "ks"), "--domain-id", "20", "--viewer-domain-id", "25"]) == 0
+    assert "viewer.json (domain 25)" in capsys.readouterr().out
+    assert security_main(["create", str(tmp_path / "ks")]) != 0  # kept unless --force
+    assert "exists" in capsys.readouterr().err
+    assert security_main(["config", str(tmp_path / "ks" / "viewer.json"), "--interface", "10.9.0.2",
+                          "--peer", "10.9.0.1"]) == 0
+    xml = capsys.readouterr().out
+    assert '<Domain id="25">' in xml and load_identity(tmp_path / "ks" / "viewer.json").tag in xml
+    assert security_main(["config", str(tmp_path / "ks" / "viewer.json"), "--interface", "10.9.0.2;rm"]) != 0
+    assert "interface" in capsys.readouterr().err
+
+
+def test_serve_refuses_conflicting_network_options(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    from agentsdk.ros2.cli import main
+
+    create_keystore(tmp_path / "ks", domain_id=3)
+    assert main(["--backend", "mock", "--keystore", str(tmp_path / "ks"), "--domain-id", "3"]) != 0
+    assert "--keystore sets the domains" in capsys.readouterr().err
+    assert main(["--backend", "mock", "--keystore", str(tmp_path / "missing")]) != 0
+    assert "no such keystore" in capsys.readouterr().err
+    assert main(["--backend", "mock", "--interface", "eth0 10.0.0.1"]) != 0
+    assert "interface" in capsys.readouterr().err
+    monkeypatch.setenv("CYCLONEDDS_URI", "<CycloneDDS/>")
+    assert main(["--backend", "mock", "--interface", "10.0.0.1"]) != 0
+    assert "not both" in capsys.readouterr().err

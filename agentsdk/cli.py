@@ -13,6 +13,7 @@
 ``agentsdk bench ...``          run the benchmarks, each figure beside its raw baseline
 ``agentsdk vcan -- CMD``        run CMD inside user-mode Linux with a SocketCAN vcan0
 ``agentsdk serve ...``          serve a robot as a ROS 2 node (DDS) until SIGINT/SIGTERM
+``agentsdk security ...``       create a keystore of roles (operator, viewer) for ``serve --keystore``
 
 User errors print one line and exit non-zero; ``--debug`` shows tracebacks.
 """
@@ -851,6 +852,8 @@ def _parser() -> argparse.ArgumentParser:
                    add_help=False)
     sub.add_parser("serve", help="serve a robot as a ROS 2 node over DDS (see `agentsdk serve --help`)",
                    add_help=False)
+    sub.add_parser("security", help="keystores for serving to operators and viewers only "
+                   "(see `agentsdk security --help`)", add_help=False)
     return p
 
 
@@ -859,7 +862,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = _parser()
     passthrough = {"emulate-can": lambda rest: _cmd_emulate_can(argparse.Namespace(), rest),
-                   "bench": _cmd_bench, "vcan": _cmd_vcan, "serve": _cmd_serve}
+                   "bench": _cmd_bench, "vcan": _cmd_vcan, "serve": _cmd_serve,
+                   "security": _cmd_security}
     head = argv[1:2] if argv[:1] == ["--debug"] else argv[:1]
     if head and head[0] in passthrough:
         rest = argv[argv.index(head[0]) + 1:]
@@ -889,6 +893,12 @@ def _cmd_serve(rest: list[str]) -> int:
     from .ros2.cli import main as serve_main
 
     return serve_main(rest)
+
+
+def _cmd_security(rest: list[str]) -> int:
+    from .ros2.cli import security_main
+
+    return security_main(rest)
 
 
 def print_error(exc: BaseException) -> None:

@@ -16,6 +16,12 @@ if [ "${SKIP_VCAN:-0}" != 1 ] && [ ! -x /usr/bin/linux.uml ] && command -v apt-g
     apt-get install -y -q --no-install-recommends user-mode-linux iproute2 kmod >/dev/null 2>&1 ||
         { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends user-mode-linux iproute2 kmod >/dev/null; }
 fi
+# iproute2 (ip netns, tc netem) for the network-namespace tests of the ROS 2 face (tests/test_ros2_netns.py)
+if { ! command -v ip >/dev/null || ! command -v tc >/dev/null; } && command -v apt-get >/dev/null && [ "$(id -u)" = 0 ]; then
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get install -y -q --no-install-recommends iproute2 >/dev/null 2>&1 ||
+        { apt-get update -q >/dev/null && apt-get install -y -q --no-install-recommends iproute2 >/dev/null; }
+fi
 
 # System packages: offscreen OpenGL (Mesa's EGL with the llvmpipe software rasterizer, OSMesa as a
 # fallback) so `agentsdk run --video` renders with MuJoCo on a machine without a display.
@@ -68,13 +74,15 @@ suite "mypy" "$PY" scripts/typecheck.py
 # The API reference (docs/, Sphinx autodoc): docstring or cross-reference problems fail the build.
 suite "sphinx" "$PY" -m sphinx -W --keep-going -q -b html docs build/docs
 
-# Main suite (vcan-marked tests are skipped here: this kernel has no CAN).
-suite "pytest (main suite)" "$PY" -m pytest -m "not vcan" "$@"
+# Main suite (vcan- and netns-marked tests run below: this kernel has no CAN, and may lack netem).
+suite "pytest (main suite)" "$PY" -m pytest -m "not vcan and not netns" "$@"
 
 if [ "${SKIP_VCAN:-0}" != 1 ]; then
     PYBIN=$("$PY" -c 'import sys; print(sys.executable)')
-    suite "pytest (vcan suite, real SocketCAN inside user-mode Linux)" \
-        bash scripts/run-in-vcan.sh "$PYBIN" -m pytest -m vcan -p no:cacheprovider "$@"
+    # the same kernel also has network namespaces, veth and netem (as modules) for the ROS 2 network-fault tests
+    suite "pytest (vcan and netns suites, real SocketCAN and netem inside user-mode Linux)" \
+        env VCAN_EXTRA_MODS="drivers/net/veth.ko net/sched/sch_netem.ko" \
+        bash scripts/run-in-vcan.sh "$PYBIN" -m pytest -m "vcan or netns" -p no:cacheprovider "$@"
 fi
 
 if [ ${#FAILED[@]} -ne 0 ]; then

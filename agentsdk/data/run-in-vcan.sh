@@ -40,6 +40,9 @@
 #   VCAN_VERBOSE=0        1 = print the kernel boot log to stderr afterwards
 #   VCAN_UML_TMPDIR=/dev/shm  where UML puts its (unlinked) guest-RAM file
 #   VCAN_INSMOD=path      module loader; set empty to force the python fallback
+#   VCAN_EXTRA_MODS=""    more modules to load (paths under the UML kernel/ dir), e.g.
+#                         "drivers/net/veth.ko net/sched/sch_netem.ko" for the network-
+#                         namespace tests (the host kernel may lack netem)
 set -u -o pipefail
 
 [ "${1:-}" = "--" ] && shift
@@ -111,6 +114,7 @@ HOST_PY=$(printf %q "$HOST_PY")
 IP=$(printf %q "$IP")
 IFACES=$(printf %q "$IFACES")
 RMEM=$(printf %q "$RMEM")
+EXTRA_MODS=$(printf %q "${VCAN_EXTRA_MODS:-}")
 export PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin
 finish() {          # record status, flush, power off (UML exits on the host)
     echo "\$1" > "\$RUN/rc.tmp" && mv "\$RUN/rc.tmp" "\$RUN/rc"
@@ -131,7 +135,7 @@ log "init started"
 \$IP link set lo up
 MODS="net/can/can.ko net/can/can-raw.ko net/can/can-bcm.ko net/can/can-gw.ko
       drivers/net/can/dev/can-dev.ko drivers/net/can/vcan.ko
-      drivers/net/can/vxcan.ko net/can/j1939/can-j1939.ko"
+      drivers/net/can/vxcan.ko net/can/j1939/can-j1939.ko \$EXTRA_MODS"
 if [ -n "\$INSMOD" ]; then
     for m in \$MODS; do
         "\$INSMOD" "\$MODDIR/\$m" || { log "insmod \$m failed"; finish 125; }

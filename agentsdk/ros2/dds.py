@@ -40,7 +40,7 @@ from ._fast import RawDataWriter
 from .msgs import Gid, NodeEntitiesInfo, ParticipantEntitiesInfo, RequestHeader
 
 __all__ = [
-    "QOS_DEFAULT", "QOS_LATCHED", "QOS_SENSOR", "DdsNode", "loopback_config", "normalize_namespace",
+    "QOS_DEFAULT", "QOS_LATCHED", "QOS_SENSOR", "DdsNode", "loopback_config", "network_config", "normalize_namespace",
     "resolve_domain_id", "service_wire_type",
 ]
 
@@ -87,6 +87,40 @@ def loopback_config(domain_id: int) -> str:
         "<Discovery><ParticipantIndex>auto</ParticipantIndex>"
         "<MaxAutoParticipantIndex>50</MaxAutoParticipantIndex>"
         '<Peers><Peer Address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>'
+    )
+
+
+def network_config(domain_id: int, interface: str, peers: list[str] | tuple[str, ...] = (),
+                   tag: str | None = None) -> str:
+    """Cyclone DDS configuration on one network ``interface`` (an address or a name) with unicast ``peers``.
+
+    Discovery is unicast to ``peers`` (addresses or host names; none: multicast discovery on
+    that interface). ``interface="127.0.0.1"`` without peers or tag is :func:`loopback_config`.
+    ``tag``: Cyclone DDS's domain tag -- only participants with the same tag discover each
+    other (:mod:`agentsdk.ros2.security`).
+    """
+    token = re.compile(r"^[A-Za-z0-9_.:%-]+$")
+    for what, value in [("interface", interface), *(("peer", p) for p in peers)]:
+        if not isinstance(value, str) or not token.match(value):
+            raise InvalidValueError(f"{what} must be an address or a name like 10.0.0.2 or eth0, got {value!r}")
+    if tag is not None and not re.match(r"^[A-Za-z0-9_-]{1,256}$", tag):
+        raise InvalidValueError("a domain tag must be 1 to 256 letters, digits, '_' or '-'")
+    if interface == "127.0.0.1" and not peers and tag is None:
+        return loopback_config(domain_id)
+    is_address = re.match(r"^[0-9.]+$|:", interface) is not None
+    nic = f'<NetworkInterface address="{interface}"/>' if is_address else f'<NetworkInterface name="{interface}"/>'
+    if interface == "127.0.0.1" and not peers:
+        peers = ("127.0.0.1",)
+    multicast = "false" if peers else "true"
+    peer_xml = "".join(f'<Peer Address="{p}"/>' for p in peers)
+    tag_xml = "" if tag is None else f"<Tag>{tag}</Tag>"
+    return (
+        f'<CycloneDDS><Domain id="{domain_id}"><General><Interfaces>{nic}</Interfaces>'
+        f"<AllowMulticast>{multicast}</AllowMulticast></General>"
+        # announce every second (Cyclone's default: 30 s): a lost first exchange on a lossy link costs 1 s, not 30
+        f"<Discovery>{tag_xml}<SPDPInterval>1 s</SPDPInterval><ParticipantIndex>auto</ParticipantIndex>"
+        "<MaxAutoParticipantIndex>50</MaxAutoParticipantIndex>"
+        f"<Peers>{peer_xml}</Peers></Discovery></Domain></CycloneDDS>"
     )
 
 
@@ -145,41 +179,50 @@ def wrap(message: type[Any], header: RequestHeader, body: Any) -> Any:
 
 
 # ------------------------------------------------------------------ domains shared per process
-_domains: dict[int, tuple[Domain | None, int]] = {}
+_domains: dict[int, tuple[Domain | None, int, str | None]] = {}
 _domains_lock = threading.Lock()
 
 
-def _acquire_domain(domain_id: int) -> None:
+def _acquire_domain(domain_id: int, config: str | None = None) -> None:
     with _domains_lock:
-        dom, n = _domains.get(domain_id, (None, 0))
-        if n == 0 and not os.environ.get("CYCLONEDDS_URI"):
-            dom = Domain(domain_id, loopback_config(domain_id))
-        _domains[domain_id] = (dom, n + 1)
+        dom, n, current = _domains.get(domain_id, (None, 0, None))
+        if n == 0:
+            if config is not None:
+                dom, current = Domain(domain_id, config), config
+            elif not os.environ.get("CYCLONEDDS_URI"):
+                dom = Domain(domain_id, loopback_config(domain_id))
+        elif config is not None and config != current:
+            raise ConfigurationError(
+                f"DDS domain {domain_id} is already open in this process with another configuration "
+                "(one configuration per domain and process: use another domain id)")
+        _domains[domain_id] = (dom, n + 1, current)
 
 
 def _release_domain(domain_id: int) -> None:
     with _domains_lock:
-        dom, n = _domains[domain_id]
+        dom, n, config = _domains[domain_id]
         if n <= 1:
             del _domains[domain_id]
             if dom is not None:
                 dom.__del__()  # frees the domain's sockets now, not at GC (idempotent)
         else:
-            _domains[domain_id] = (dom, n - 1)
+            _domains[domain_id] = (dom, n - 1, config)
 
 
 class DdsNode:
     """One DDS participant with ROS-named topics and a reader thread feeding the event loop.
 
     ``subscribe`` callbacks run on the event loop with one sample each. :meth:`close`
-    stops the thread and deletes the participant (idempotent).
+    stops the thread and deletes the participant (idempotent). ``config``: the Cyclone DDS
+    configuration of the domain (default: ``CYCLONEDDS_URI``, else :func:`loopback_config`).
     """
 
-    def __init__(self, domain_id: int, namespace: str, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(self, domain_id: int, namespace: str, loop: asyncio.AbstractEventLoop,
+                 config: str | None = None) -> None:
         self.domain_id = domain_id
         self.namespace = namespace
         self._loop = loop
-        _acquire_domain(domain_id)
+        _acquire_domain(domain_id, config)
         try:
             self.participant = DomainParticipant(domain_id)
         except Exception:

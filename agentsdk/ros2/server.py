@@ -64,6 +64,7 @@ from .convert import (
     trajectory_from_msg,
 )
 from .dds import QOS_DEFAULT, QOS_LATCHED, QOS_SENSOR, DdsNode, normalize_namespace, resolve_domain_id
+from .lease import Deadman
 from .msgs import (
     UUID,
     CancelGoal_Request,
@@ -220,7 +221,9 @@ class RosFace:
 
     def __init__(self, robot: Robot, *, namespace: str = "", domain_id: int | None = None,
                  rate: float | None = None, tf_rate: float = 50.0, sensor_qos: bool = False,
-                 feedback_rate: float = 20.0, tolerances: Tolerances | None = None) -> None:
+                 feedback_rate: float = 20.0, tolerances: Tolerances | None = None,
+                 lease: float | None = 1.0, lease_category: int = 1, require_lease: bool = False,
+                 read_only: bool = False, dds_config: str | None = None) -> None:
         self.robot = robot
         self.namespace = normalize_namespace(namespace)
         self.domain_id = resolve_domain_id(domain_id)
@@ -246,11 +249,24 @@ class RosFace:
         self._closed = False
         #: trajectories from the topic that were rejected (the topic has no reply: counted and logged)
         self.rejected_trajectories = 0
+        #: trajectories from the topic that were started (each DDS sample once: RTPS sequence numbers)
+        self.accepted_trajectories = 0
         self.last_rejection: str = ""
         self._static_links: set[str] = set()
         self._transition_handle: HookHandle | None = None
         #: the ROS node name ``ros2 node list`` shows (under :attr:`namespace`)
         self.node_name = "agentsdk_" + (re.sub(r"\W", "_", robot.name) or "robot")
+        #: a read-only face (a viewer's, :mod:`agentsdk.ros2.security`): state out, no command
+        #: topic, no services, no action server
+        self.read_only = bool(read_only)
+        #: the Cyclone DDS configuration of this face's domain (None: ``CYCLONEDDS_URI``, else loopback)
+        self.dds_config = dds_config
+        #: the dead-man between hosts (:mod:`agentsdk.ros2.lease`); None: ``lease=None``, no dead-man
+        self.deadman: Deadman | None = None
+        if lease is not None and not self.read_only:
+            self.deadman = Deadman(robot, lease, lease_category, require_lease)
+        elif require_lease:
+            raise InvalidValueError("require_lease needs a lease (seconds), got lease=None")
 
     # ------------------------------------------------------------------ lifecycle
     async def __aenter__(self) -> RosFace:
@@ -283,6 +299,8 @@ class RosFace:
 
             self._transition_handle = StateMachine.add_transition_listener(self._on_transition)
             self._spawn(self._periodic())
+            if self.deadman is not None:
+                self._spawn(self.deadman.watch())
         except BaseException:
             await self.aclose()
             raise
@@ -292,7 +310,7 @@ class RosFace:
         _warm_up()
         self._prepare_tf()
         self._prepare_controller_state()
-        node = DdsNode(self.domain_id, self.namespace, loop)
+        node = DdsNode(self.domain_id, self.namespace, loop, self.dds_config)
         try:
             self._create_entities(node)
         except BaseException:
@@ -316,6 +334,13 @@ class RosFace:
         action = f"{JTC}/follow_joint_trajectory/_action"
         self._feedback = node.writer(f"{action}/feedback", FollowJointTrajectory_FeedbackMessage, QOS_DEFAULT)
         self._status = node.writer(f"{action}/status", GoalStatusArray, QOS_LATCHED)
+        if not self.read_only:
+            self._create_command_entities(node, action)
+        node.announce(self.node_name)
+
+    def _create_command_entities(self, node: DdsNode, action: str) -> None:
+        """What commands the robot: the JTC topic, the services, the action server, the dead-man."""
+        robot = self.robot
         node.subscribe(f"{JTC}/joint_trajectory", JointTrajectory, self._on_trajectory)
         node.service("estop", Trigger_Request, Trigger_Response, self._trigger(self._estop))
         node.service("reset", Trigger_Request, Trigger_Response, self._trigger(robot.reset))
@@ -325,7 +350,8 @@ class RosFace:
         node.service(f"{action}/get_result", FollowJointTrajectory_GetResult_Request,
                      FollowJointTrajectory_GetResult_Response, self._on_get_result)
         node.service(f"{action}/cancel_goal", CancelGoal_Request, CancelGoal_Response, self._on_cancel)
-        node.announce(self.node_name)
+        if self.deadman is not None:
+            self.deadman.attach(node)
 
     async def aclose(self) -> None:
         """Stop serving: cancel the face's tasks, stop the publisher, delete the participant (idempotent)."""
@@ -459,6 +485,12 @@ class RosFace:
             KeyValue("busy", str(robot.busy)),
             KeyValue("joint_states_published", str(self.published)),
             KeyValue("trajectories_rejected", str(self.rejected_trajectories)),
+            KeyValue("trajectories_accepted", str(self.accepted_trajectories)),
+            KeyValue("deadman", "off" if self.deadman is None else
+                     f"lease {self.deadman.lease:g} s, category {self.deadman.category}, "
+                     f"trips {self.deadman.trips}{': ' + self.deadman.last_trip if self.deadman.last_trip else ''}"),
+            KeyValue("deadman_tripped_at", "" if self.deadman is None or not self.deadman.trips
+                     else f"{self.deadman.tripped_at:.6f}"),
         ]
         message = st.name if cause is None else f"{st.name}: {cause}"
         statuses = [DiagnosticStatus(level=level, name=f"agentsdk: {robot.name}{self.namespace}",
@@ -527,7 +559,12 @@ class RosFace:
         traj = trajectory_from_msg(msg)
         stamp = msg.header.stamp
         start = None if stamp.sec == 0 and stamp.nanosec == 0 else self.robot_time(stamp)
-        return self.robot.follow(traj, tolerances, start_time=start)
+        if self.deadman is not None:
+            self.deadman.admit()
+        motion = self.robot.follow(traj, tolerances, start_time=start)
+        if self.deadman is not None:
+            self.deadman.accepted()
+        return motion
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         if self.robot.closed:
@@ -539,6 +576,7 @@ class RosFace:
             self.last_rejection = f"{type(exc).__name__}: {exc}"
             log.warning("rejected trajectory on %s/%s/joint_trajectory: %s", self.namespace, JTC, self.last_rejection)
             return
+        self.accepted_trajectories += 1
         self._spawn(self._await_quietly(motion))
 
     @staticmethod
@@ -716,7 +754,8 @@ def _static_links(robot: Robot, kin: Any) -> set[str]:
 
 def expose(robot: Robot, namespace: str = "", *, domain_id: int | None = None, rate: float | None = None,
            tf_rate: float = 50.0, sensor_qos: bool = False, feedback_rate: float = 20.0,
-           tolerances: Tolerances | None = None) -> RosFace:
+           tolerances: Tolerances | None = None, lease: float | None = 1.0, lease_category: int = 1,
+           require_lease: bool = False) -> RosFace:
     """Serve ``robot`` as a ROS 2 node until the ``async with`` block ends.
 
     ``namespace`` (``"/arm1"``) prefixes every name; ``domain_id`` defaults to ``ROS_DOMAIN_ID``
@@ -726,6 +765,13 @@ def expose(robot: Robot, namespace: str = "", *, domain_id: int | None = None, r
     in Hz of robot time. ``tolerances`` are the defaults for goals that set none (JTC's
     constraints). Without ``CYCLONEDDS_URI`` in the environment the node talks on loopback
     only; set ``CYCLONEDDS_URI`` to a Cyclone DDS configuration to choose the network.
+
+    The dead-man (:mod:`agentsdk.ros2.lease`): a client holding a lease (heartbeats) that
+    commanded the robot and then goes silent for ``lease`` seconds of wall time stops it with
+    an e-stop of ``lease_category`` (1: to rest, then torque off; 0: torque off at once), and
+    commands are refused until a reset. ``require_lease=True`` refuses commands while no
+    client holds a live lease; ``lease=None`` turns the dead-man off.
     """
     return RosFace(robot, namespace=namespace, domain_id=domain_id, rate=rate, tf_rate=tf_rate,
-                   sensor_qos=sensor_qos, feedback_rate=feedback_rate, tolerances=tolerances)
+                   sensor_qos=sensor_qos, feedback_rate=feedback_rate, tolerances=tolerances,
+                   lease=lease, lease_category=lease_category, require_lease=require_lease)

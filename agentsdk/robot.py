@@ -576,10 +576,10 @@ def connect(
     ``realtime=None`` picks the backend's default (lockstep for simulators).
     ``strict=True`` (or robot.yaml ``strict: true``) refuses a description that
     needs repairs (``DescriptionError`` listing them) instead of repairing it with
-    a warning. ``trusted=True`` (or robot.yaml ``trusted: true``) loads a robot file you trust as code: xacro expressions
-    unchecked, files outside its package allowed (by default a robot file is data,
-    see README "Bring your own robot"). ``safety`` overrides fields of the
-    robot.yaml ``safety`` section;
+    a warning. ``trusted=True`` (or robot.yaml ``trusted: true``) loads a robot file
+    you trust as code: xacro expressions unchecked, files outside its package
+    allowed (by default a robot file is data, see README "Bring your own robot").
+    ``safety`` overrides fields of the robot.yaml ``safety`` section;
     other keyword options go to the backend (they override robot.yaml
     ``backends.<name>``). Use as ``async with connect(...) as robot`` or
     ``robot = await connect(...)`` (then ``await robot.close()``).

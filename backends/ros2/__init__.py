@@ -191,6 +191,8 @@ class Ros2Controller(Backend):
         self._wait_seq = 0
         self._wait_time = math.inf
         self._cancel_seq = 0
+        self.last_write = -math.inf
+        self.last_write_age = 0.0
         #: commands sent, replies received, and joint_states samples received
         self.sent = 0
         self.replies = 0
@@ -353,7 +355,8 @@ class Ros2Controller(Backend):
         if self._error is not None:
             raise BackendFault(f"ros2: {self._error}")
         if self.realtime:
-            age = time.monotonic() - self._last_rx
+            now = time.monotonic()
+            age = now - self._last_rx
             if age > self.stale_after:
                 raise BackendFault(
                     f"ros2: joint_states on {self._ns('joint_states')} are {age:.3f} s old (bound stale_after "
@@ -362,6 +365,8 @@ class Ros2Controller(Backend):
             raise BackendFault(
                 f"ros2: joint_states on {self._ns('joint_states')} are {self._clock - self._state_stamp:.3f} s "
                 f"(robot time) old (bound stale_after {self.stale_after:g} s); no command is sent on stale state")
+            #: monotonic time of the latest realtime write, and the age of the state it was based on
+            self.last_write, self.last_write_age = now, age
         self._enabled = bool(sp.enabled.any())
         if self.interface == "agentsdk":
             self._cmd_enc.encode(0.0, sp.position, sp.velocity, sp.effort)

@@ -129,7 +129,7 @@ async def test_realtime_robot_and_stale_joint_states_fault_before_any_command() 
                 backend = robot.controller
                 await face.aclose()  # the robot's joint_states stop
                 async with asyncio.timeout(5):
-                    while robot.safety.state.name != "FAULT":
+                    while robot.safety.state.name != "FAULT":  # noqa: ASYNC110 -- polls state another thread sets
                         await asyncio.sleep(0.01)
                 cause = robot.safety.cause
                 assert isinstance(cause, BackendFault) and "stale_after 1 s" in str(cause), cause
@@ -155,7 +155,7 @@ async def test_served_stream_applies_each_command_once_in_order() -> None:
             writer = node.writer(COMMAND_TOPIC, JointState, QOS_STREAM)
             node.start()
             async with asyncio.timeout(10):
-                while not writer.get_matched_subscriptions():
+                while not writer.get_matched_subscriptions():  # noqa: ASYNC110 -- polls state another thread sets
                     await asyncio.sleep(0.02)
             session = "00000000deadbeef"
 
@@ -169,7 +169,7 @@ async def test_served_stream_applies_each_command_once_in_order() -> None:
             send(0, 0.0, frame="no-sequence")
             send(4, 0.4)
             async with asyncio.timeout(10):
-                while len(replies) < 3:
+                while len(replies) < 3:  # noqa: ASYNC110 -- polls state another thread sets
                     await asyncio.sleep(0.02)
             await asyncio.sleep(0.2)
             assert replies == [f"{session}:{s:016x}" for s in (1, 3, 4)]

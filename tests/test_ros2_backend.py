@@ -22,6 +22,8 @@ import pytest
 
 pytest.importorskip("cyclonedds")
 
+import test_ros2_interop as interop
+
 import agentsdk
 from agentsdk import BackendFault, BackendStartError, ConfigurationError, JointCommand, SafetyFault
 from agentsdk.cli import load_behavior
@@ -31,6 +33,11 @@ from agentsdk.ros2.msgs import Header, JointState
 from agentsdk.ros2.stream import COMMAND_TOPIC, QOS_STREAM, STATE_TOPIC
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(300)]
+
+#: the Fast DDS peer's build and a random loopback domain with its peers' environment (test_ros2_interop's fixtures)
+domain = interop.domain
+fastdds_peer = interop.fastdds_peer
+Domain = interop.Domain
 
 SAFETY = {"stall_timeout": 5.0}  # a loaded 2-core machine also runs the server process
 
@@ -82,6 +89,7 @@ async def _final_joints(behavior: str, backend: str, **options: Any) -> np.ndarr
         return np.array((await robot.read()).position)
 
 
+@pytest.mark.slow
 async def test_behaviors_end_in_the_same_joints_on_mujoco_and_over_ros2_in_lockstep() -> None:
     """Acceptance 1: patrol (a state machine of moves) and pick_place (trajectories) run unchanged."""
     did = _domain()
@@ -192,3 +200,58 @@ async def test_bad_options_and_no_robot_are_specific_errors() -> None:
     with pytest.raises(BackendStartError, match="robot_description"):
         async with agentsdk.connect("ros2", domain_id=_domain(), timeout=0.5):
             pass
+
+
+# ------------------------------------------------------------ acceptance 2: a ros2_control JTC on Fast DDS
+async def test_ros2_backend_drives_the_fast_dds_jtc_and_faults_when_its_joint_states_stop(
+        domain: Domain, fastdds_peer: Path) -> None:
+    """The Fast DDS peer plays a JTC (joint_states out, trajectories in); stopping its joint_states faults
+    the robot within ``stale_after``, the controller gets a hold, and nothing is streamed on stale state."""
+    import signal
+
+    stale_after = 0.5
+    proc = await asyncio.create_subprocess_exec(
+        str(fastdds_peer), "jtc", "/ur", "60", "joint1=0.1", "joint2=0.0", "joint3=-0.1", env=domain.env,
+        stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+    assert proc.stdout is not None
+    lines: list[str] = []
+
+    async def read_lines() -> None:
+        assert proc.stdout is not None
+        while line := (await proc.stdout.readline()).decode():
+            lines.append(line.strip())
+
+    reader = asyncio.create_task(read_lines())
+    try:
+        # no robot=, no realtime=: a plain ros2_control robot has no clock -> realtime, no agentsdk stream -> JTC
+        async with agentsdk.connect("ros2", robot="arm3", namespace="/ur", domain_id=domain.id, safety=SAFETY,
+                                    stale_after=stale_after, timeout=30.0) as robot:
+            backend: Any = robot.controller
+            assert robot.realtime and backend.interface == "joint_trajectory"
+            start = (await robot.read()).position
+            assert start.tolist() == pytest.approx([0.1, 0.0, -0.1], abs=1e-9)
+            result = await robot.move_to({"joint1": 0.5, "joint3": 0.2}, duration=1.5)
+            assert result.ok, result
+            await asyncio.sleep(0.3)
+            q = (await robot.read()).position
+            assert q.tolist() == pytest.approx([0.5, 0.0, 0.2], abs=0.01)
+            proc.send_signal(signal.SIGUSR1)  # the controller's joint_states stop
+            async with asyncio.timeout(10):
+                while robot.safety.state.name != "FAULT":  # noqa: ASYNC110 -- polls state the loop sets
+                    await asyncio.sleep(0.01)
+            cause = robot.safety.cause
+            assert isinstance(cause, BackendFault) and "stale_after 0.5" in str(cause), cause
+            age = float(str(cause).split(" are ")[1].split(" s old")[0])
+            assert stale_after < age <= stale_after + 0.25, cause  # detected at the first tick past the bound
+            assert backend.last_write_age <= stale_after
+            async with asyncio.timeout(10):
+                while not any(line.startswith("HOLD") for line in lines):  # noqa: ASYNC110 -- the reader fills it
+                    await asyncio.sleep(0.02)
+            stopped = next(float(line.split()[1]) for line in lines if line.startswith("STOPPED"))
+            hold = next(float(line.split()[1]) for line in lines if line.startswith("HOLD"))
+            assert hold >= stopped
+    finally:
+        proc.terminate()
+        async with asyncio.timeout(30):
+            await proc.wait()
+        await reader

@@ -29,7 +29,7 @@ from agentsdk import BackendFault, BackendStartError, ConfigurationError, JointC
 from agentsdk.cli import load_behavior
 from agentsdk.ros2 import expose
 from agentsdk.ros2.dds import DdsNode
-from agentsdk.ros2.msgs import Header, JointState
+from agentsdk.ros2.msgs import CancelGoal_Request, CancelGoal_Response, Header, JointState, JointTrajectory
 from agentsdk.ros2.stream import COMMAND_TOPIC, QOS_STREAM, STATE_TOPIC
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.timeout(300)]
@@ -142,8 +142,8 @@ async def test_realtime_robot_and_stale_joint_states_fault_before_any_command() 
                 cause = robot.safety.cause
                 assert isinstance(cause, BackendFault) and "stale_after 1 s" in str(cause), cause
                 # every write was on a state at most stale_after old, and none came after the bound
-                assert backend.last_write_age <= 1.0  # type: ignore[attr-defined]
-                assert backend.last_write - backend._last_rx <= 1.0  # type: ignore[attr-defined]
+                assert 0.0 <= backend.last_write_age <= 1.0  # type: ignore[attr-defined]
+                assert 0.0 <= backend.last_write - backend._last_rx <= 1.0  # type: ignore[attr-defined]
                 with pytest.raises(SafetyFault):
                     await robot.command(JointCommand("position", {"joint2": 0.0}))
         finally:
@@ -243,7 +243,8 @@ async def test_ros2_backend_drives_the_fast_dds_jtc_and_faults_when_its_joint_st
             assert isinstance(cause, BackendFault) and "stale_after 0.5" in str(cause), cause
             age = float(str(cause).split(" are ")[1].split(" s old")[0])
             assert stale_after < age <= stale_after + 0.25, cause  # detected at the first tick past the bound
-            assert backend.last_write_age <= stale_after
+            assert 0.0 <= backend.last_write_age <= stale_after
+            assert 0.0 <= backend.last_write - backend._last_rx <= stale_after
             async with asyncio.timeout(10):
                 while not any(line.startswith("HOLD") for line in lines):  # noqa: ASYNC110 -- the reader fills it
                     await asyncio.sleep(0.02)
@@ -255,3 +256,72 @@ async def test_ros2_backend_drives_the_fast_dds_jtc_and_faults_when_its_joint_st
         async with asyncio.timeout(30):
             await proc.wait()
         await reader
+
+
+# ------------------------------------------------------------ e-stop and recovery against a JTC
+async def test_estop_holds_the_controller_cancels_its_goals_and_a_stale_fault_recovers() -> None:
+    """A JTC played in-process: an e-stop sends a hold (empty trajectory) and a cancel of every goal, then
+    nothing is streamed while torque is off; stale joint_states fault, fresh ones let reset() recover."""
+    did = _domain()
+    loop = asyncio.get_running_loop()
+    trajs: list[JointTrajectory] = []
+    cancels: list[CancelGoal_Request] = []
+
+    def on_cancel(_h: Any, req: CancelGoal_Request, reply: Any) -> None:
+        cancels.append(req)
+        reply(CancelGoal_Response())
+
+    node = DdsNode(did, "/fake", loop)
+    node.subscribe("joint_trajectory_controller/joint_trajectory", JointTrajectory, trajs.append)
+    node.service("joint_trajectory_controller/follow_joint_trajectory/_action/cancel_goal", CancelGoal_Request,
+                 CancelGoal_Response, on_cancel)
+    js = node.writer("joint_states", JointState)
+    node.start()
+    publishing = [True]
+
+    async def publish() -> None:
+        while True:
+            if publishing[0]:
+                js.write(JointState(Header(), ["joint1", "joint2", "joint3"], [0.1, 0.2, 0.3]))
+            await asyncio.sleep(0.01)
+
+    async def until(predicate: Any) -> None:
+        async with asyncio.timeout(10):
+            while not predicate():  # noqa: ASYNC110 -- DDS callbacks and the control loop change it
+                await asyncio.sleep(0.01)
+
+    task = asyncio.create_task(publish())
+    try:
+        async with agentsdk.connect("ros2", robot="arm3", namespace="/fake", domain_id=did, realtime=True,
+                                    stale_after=0.5, safety=SAFETY) as robot:
+            backend: Any = robot.controller
+            assert backend.interface == "joint_trajectory"
+            assert (await robot.read()).position.tolist() == [0.1, 0.2, 0.3]
+            await until(lambda: len(trajs) > 5)
+            assert all(len(t.points) == 1 and list(t.joint_names) == ["joint1", "joint2", "joint3"] for t in trajs)
+            assert list(trajs[-1].points[0].positions) == pytest.approx([0.1, 0.2, 0.3])  # holding where it is
+            await robot.estop(0)
+            await until(lambda: any(not t.points for t in trajs) and cancels)
+            assert bytes(cancels[-1].goal_info.goal_id.uuid) == bytes(16)  # zero id, zero stamp: every goal
+            count = len(trajs)
+            await asyncio.sleep(0.2)
+            assert len(trajs) == count  # torque off: nothing streamed
+            await robot.reset()
+            await robot.enable()
+            await until(lambda: len(trajs) > count + 5)
+            publishing[0] = False
+            await until(lambda: robot.safety.state.name == "FAULT")
+            assert "stale_after 0.5" in str(robot.safety.cause)
+            with pytest.raises(BackendFault, match="cannot recover"):
+                await robot.reset()
+            publishing[0] = True
+            await asyncio.sleep(0.2)
+            await robot.reset()
+            await robot.enable()
+            assert robot.safety.state.name == "OK"
+            count = len(trajs)
+            await until(lambda: len(trajs) > count + 5)  # streaming again
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        node.close()

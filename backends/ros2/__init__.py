@@ -305,7 +305,7 @@ class Ros2Controller(Backend):
         log.debug("ros2: %s on %s via %s (%s)", self.description.name, self.namespace or "/", self.interface,
                   "realtime" if self.realtime else "lockstep")
 
-    async def _sync(self, deadline: float) -> None:
+    async def _sync(self, deadline: float, error: type[Exception] = BackendStartError) -> None:
         """Ask the agentsdk robot for its state until it answers (the first commands may precede matching)."""
         loop = asyncio.get_running_loop()
         while True:
@@ -316,17 +316,17 @@ class Ros2Controller(Backend):
                 break
             except TimeoutError:
                 if loop.time() > deadline:
-                    raise BackendStartError(
+                    raise error(
                         f"ros2: the agentsdk robot on {self._ns(COMMAND_TOPIC)} did not answer within "
                         f"{self.timeout:g} s") from None
             finally:
                 self._waiter = None
         if self._error is not None:
-            raise BackendStartError(f"ros2: {self._error}")
+            raise error(f"ros2: {self._error}")
         missing = [self.names[i] for i in np.flatnonzero(~self._seen)]
         if missing:
-            raise BackendStartError(f"ros2: the remote robot has no joint(s) {missing} (check robot= and namespace)")
-        self._offset = self._state_stamp
+            raise error(f"ros2: the remote robot has no joint(s) {missing} (check robot= and namespace)")
+        self._offset = self._state_stamp - self._local_t
 
     def _not_found(self) -> str:
         seen = np.flatnonzero(self._seen)
@@ -361,12 +361,12 @@ class Ros2Controller(Backend):
                 raise BackendFault(
                     f"ros2: joint_states on {self._ns('joint_states')} are {age:.3f} s old (bound stale_after "
                     f"{self.stale_after:g} s); no command is sent on stale state")
+            #: monotonic time of the latest realtime write, and the age of the state it was based on
+            self.last_write, self.last_write_age = now, age
         elif self.interface != "agentsdk" and self._clock - self._state_stamp > self.stale_after:
             raise BackendFault(
                 f"ros2: joint_states on {self._ns('joint_states')} are {self._clock - self._state_stamp:.3f} s "
                 f"(robot time) old (bound stale_after {self.stale_after:g} s); no command is sent on stale state")
-            #: monotonic time of the latest realtime write, and the age of the state it was based on
-            self.last_write, self.last_write_age = now, age
         self._enabled = bool(sp.enabled.any())
         if self.interface == "agentsdk":
             self._cmd_enc.encode(0.0, sp.position, sp.velocity, sp.effort)
@@ -411,6 +411,25 @@ class Ros2Controller(Backend):
 
     def _read(self) -> JointReading:
         return self._q, self._v, self._e
+
+    async def _recover(self) -> None:
+        """After a fault: usable again once the remote answers (agentsdk) or its joint_states are fresh."""
+        self._error = None
+        loop = asyncio.get_running_loop()
+        if self.interface == "agentsdk":
+            await self._sync(loop.time() + self.timeout, BackendFault)
+            if self._error is not None:
+                raise BackendFault(f"ros2: cannot recover: {self._error}")
+            return
+        if self.realtime:
+            age = time.monotonic() - self._last_rx
+            if age > self.stale_after:
+                raise BackendFault(f"ros2: cannot recover: joint_states on {self._ns('joint_states')} are "
+                                   f"{age:.3f} s old (bound stale_after {self.stale_after:g} s)")
+        else:
+            if self._clock - self._state_stamp > self.stale_after:
+                raise BackendFault(f"ros2: cannot recover: joint_states on {self._ns('joint_states')} are stale")
+            self._offset = self._clock - self._local_t
 
     def _emergency_stop(self, category: int) -> None:
         self._send_hold()

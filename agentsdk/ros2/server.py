@@ -287,7 +287,7 @@ class RosFace:
 
             self._transition_handle = StateMachine.add_transition_listener(self._on_transition)
             self._spawn(self._periodic())
-            self.stream.start()
+            self.stream.start(self._spawn)
         except BaseException:
             await self.aclose()
             raise

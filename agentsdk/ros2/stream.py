@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import re
+from collections.abc import Callable, Coroutine
 from typing import TYPE_CHECKING, Any
 
 from cyclonedds.core import Policy, Qos
@@ -82,9 +83,9 @@ class CommandStream:
         self._reply = node.writer(STATE_TOPIC, JointState, QOS_DEFAULT)
         node.subscribe(COMMAND_TOPIC, JointState, self._on_command, QOS_STREAM)
 
-    def start(self) -> None:
-        """Start the task that applies the commands (on the event loop)."""
-        self.face._spawn(self._work())
+    def start(self, spawn: Callable[[Coroutine[Any, Any, None]], object]) -> None:
+        """Start the task that applies the commands with ``spawn`` (the face's, which keeps and cancels it)."""
+        spawn(self._work())
 
     def _on_command(self, msg: JointState) -> None:
         ident = parse_frame_id(msg.header.frame_id)
@@ -136,7 +137,3 @@ class CommandStream:
         st = robot.latest_state()
         self._reply.write(JointState(Header(face.stamp(st.stamp), frame_id + error), list(st.names),
                                      st.position.tolist(), st.velocity.tolist(), st.effort.tolist()))
-
-    async def hold(self) -> None:
-        """Hold: cancel the face's running goals and topic trajectories (they decelerate and hold)."""
-        self.face._cancel_all_motions()

@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import asyncio
 import atexit
-import contextlib
 import logging
 import math
 import secrets
@@ -50,7 +49,7 @@ import struct
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -63,7 +62,6 @@ from agentsdk.errors import BackendFault, BackendStartError, BackendUnavailableE
 try:
     from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
     from cyclonedds.core import Policy, Qos
-    from cyclonedds.domain import DomainParticipant
     from cyclonedds.sub import DataReader
     from cyclonedds.topic import Topic
 except ImportError as exc:  # pragma: no cover - depends on the environment
@@ -75,9 +73,8 @@ from agentsdk.ros2.dds import (
     QOS_DEFAULT,
     QOS_LATCHED,
     DdsNode,
-    _acquire_domain,
-    _release_domain,
     normalize_namespace,
+    participant,
     resolve_domain_id,
     service_wire_type,
     wrap,
@@ -206,7 +203,7 @@ class Ros2Controller(Backend):
         Written to a file in a temporary directory (removed at exit), which ``connect`` loads.
         """
         ns, domain_id, timeout = _probe_options(options)
-        with _participant(domain_id) as dp:
+        with participant(domain_id) as dp:
             reader: DataReader[Any] = DataReader(dp, Topic(dp, f"rt{ns}/robot_description", String), qos=QOS_LATCHED)
             deadline = time.monotonic() + timeout
             while True:
@@ -539,19 +536,6 @@ def _probe_options(options: Mapping[str, Any]) -> tuple[str, int, float]:
     return ns, domain_id, float(timeout)
 
 
-@contextlib.contextmanager
-def _participant(domain_id: int) -> Iterator[DomainParticipant]:
-    _acquire_domain(domain_id)
-    try:
-        dp = DomainParticipant(domain_id)
-        try:
-            yield dp
-        finally:
-            dp.__del__()
-    finally:
-        _release_domain(domain_id)
-
-
 def remote_sim_time(options: Mapping[str, Any]) -> bool:
     """True when the robot in ``namespace`` runs in simulated time (its participant publishes ``clock``).
 
@@ -561,7 +545,7 @@ def remote_sim_time(options: Mapping[str, Any]) -> bool:
     """
     ns, domain_id, timeout = _probe_options(options)
     want_js, want_clock = f"rt{ns}/joint_states", f"rt{ns}/clock"
-    with _participant(domain_id) as dp:
+    with participant(domain_id) as dp:
         reader = BuiltinDataReader(dp, BuiltinTopicDcpsPublication)
         deadline = time.monotonic() + timeout
         found: float | None = None

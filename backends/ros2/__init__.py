@@ -128,7 +128,7 @@ class Ros2Options(BaseModel):
     interface: Interface = "auto"
     #: DDS domain (default: ``ROS_DOMAIN_ID``, else 0)
     domain_id: int | None = Field(default=None, ge=0, le=232)
-    #: realtime: joint_states older than this (s, wall time) latch a fault; lockstep: in remote robot time
+    #: joint_states older than this (s) latch a fault: wall time for a realtime robot, the remote's time in lockstep
     stale_after: float = Field(default=0.5, gt=0.0)
     #: wall seconds to discover the robot, and (lockstep) for the remote to answer one step
     timeout: float = Field(default=10.0, gt=0.0)

@@ -13,9 +13,11 @@ A served robot (:func:`agentsdk.ros2.expose`) reads, under its namespace:
   applying, the robot runs until that ROS stamp (robot time), so a client steps the remote
   robot exactly as a local simulator steps: write, step, read.
 
-and answers every applied sample on ``agentsdk/state`` (``sensor_msgs/JointState`` of every
-joint, stamped with the robot time of the state) with the same ``frame_id``, followed by
-``" rejected: <reason>"`` when the robot refused the command (e-stop latched, a limit...).
+and answers a sync, a stepped command (non-zero stamp) and every refused command on
+``agentsdk/state`` (``sensor_msgs/JointState`` of every joint, stamped with the robot time of the
+state) with the same ``frame_id``, followed by ``" rejected: <reason>"`` when the robot refused the
+command (e-stop latched, a limit...). An applied command with a zero stamp gets no answer (the
+state is on ``joint_states``).
 
 Commands are applied one at a time, in arrival order, by one task: ``robot.command``, the
 same validation, limits and safety layer as in a behavior; the safety layer's command
@@ -117,6 +119,7 @@ class CommandStream:
         if robot.closed:
             return
         error = ""
+        stamp = msg.header.stamp
         try:
             if len(msg.name):
                 names = list(msg.name)
@@ -127,13 +130,12 @@ class CommandStream:
                     velocity=None if vel is None else dict(zip(names, vel, strict=True)),
                     effort=None if eff is None else dict(zip(names, eff, strict=True))))
                 self.applied += 1
-            stamp = msg.header.stamp
             if (stamp.sec or stamp.nanosec) and robot.clock.lockstep:
                 await robot.clock.sleep_until(face.robot_time(stamp))
         except (AgentSDKError, ValueError) as exc:  # ValueError: names and values of different lengths
             error = f" rejected: {type(exc).__name__}: {exc}"
-        if robot.closed:
-            return
+        if robot.closed or (len(msg.name) and not (stamp.sec or stamp.nanosec) and not error):
+            return  # a realtime command that was applied: the state goes out on joint_states
         st = robot.latest_state()
         self._reply.write(JointState(Header(face.stamp(st.stamp), frame_id + error), list(st.names),
                                      st.position.tolist(), st.velocity.tolist(), st.effort.tolist()))

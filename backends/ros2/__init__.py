@@ -54,20 +54,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
+
+# without cyclonedds this import fails: the registry names the missing package and the install hint
+from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
+from cyclonedds.core import Policy, Qos
+from cyclonedds.sub import DataReader
+from cyclonedds.topic import Topic
 from pydantic import BaseModel, ConfigDict, Field
 
 from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView
-from agentsdk.errors import BackendFault, BackendStartError, BackendUnavailableError, ConfigurationError
-
-try:
-    from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
-    from cyclonedds.core import Policy, Qos
-    from cyclonedds.sub import DataReader
-    from cyclonedds.topic import Topic
-except ImportError as exc:  # pragma: no cover - depends on the environment
-    raise BackendUnavailableError(
-        "the ros2 backend needs the cyclonedds package: pip install 'agentsdk[ros2]'") from exc
-
+from agentsdk.errors import BackendFault, BackendStartError, ConfigurationError
 from agentsdk.ros2._fast import FixedLayout, JointStateEncoder, write_raw
 from agentsdk.ros2.dds import (
     QOS_DEFAULT,

@@ -27,6 +27,7 @@ _HINTS = {
     "mujoco": "pip install 'agentsdk[mujoco]'",
     "pybullet": "pip install 'agentsdk[pybullet]'",
     "can": "pip install 'agentsdk[can]'",
+    "ros2": "pip install 'agentsdk[ros2]'",
 }
 
 # Fallback when the distribution metadata is not installed (e.g. running from a
@@ -36,6 +37,7 @@ BUILTIN_BACKENDS = {
     "mujoco": "agentsdk.backends.mujoco:MujocoController",
     "pybullet": "agentsdk.backends.pybullet:PybulletController",
     "can": "agentsdk.backends.can:CanController",
+    "ros2": "agentsdk.backends.ros2:Ros2Controller",
 }
 
 

@@ -469,7 +469,7 @@ class Robot:
 
 async def _open_robot(
     backend: str,
-    robot: str | Path,
+    robot: str | Path | None,
     realtime: bool | None,
     safety: SafetyConfig | Mapping[str, Any] | None,
     options: dict[str, Any],
@@ -482,7 +482,7 @@ async def _open_robot(
         # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
         # so that other robots on this event loop keep their deadlines while this one loads
         cls = load_backend(backend)
-        config, description = resolve_robot(robot, strict=strict, trusted=trusted)
+        config, description = resolve_robot(_robot_spec(cls, robot, options), strict=strict, trusted=trusted)
         joints = apply_overrides(description, config)
         safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
         bounds = PositionBounds(joints, safety_cfg.position_margin)
@@ -521,6 +521,14 @@ async def _open_robot(
     return robot_obj
 
 
+def _robot_spec(cls: type[Backend], robot: str | Path | None, options: Mapping[str, Any]) -> str | Path:
+    """``robot``, else the description the backend finds itself (``remote_description``: ros2), else arm3."""
+    if robot is not None:
+        return robot
+    remote = getattr(cls, "remote_description", None)
+    return remote(options) if callable(remote) else "arm3"
+
+
 def _build_kinematics(description: Any, joints: Sequence[JointInfo]) -> Kinematics:
     from .kinematics import Kinematics
 
@@ -552,7 +560,7 @@ class _Connection:
 
 def connect(
     backend: str = "mujoco",
-    robot: str | Path = "arm3",
+    robot: str | Path | None = None,
     *,
     realtime: bool | None = None,
     safety: SafetyConfig | Mapping[str, Any] | None = None,
@@ -563,14 +571,15 @@ def connect(
     """Connect to ``robot`` on ``backend``.
 
     ``robot`` is a name from ``robots/`` or a path to a ``.urdf``, ``.xacro``,
-    MJCF ``.xml`` or ``robot.yaml``. ``realtime=None`` picks the backend's default
-    (lockstep for simulators). ``strict=True`` (or robot.yaml ``strict: true``)
-    refuses a description that needs repairs (``DescriptionError`` listing them)
-    instead of repairing it with a warning. ``trusted=True`` (or robot.yaml
-    ``trusted: true``) loads a robot file you trust as code: xacro expressions
-    unchecked, files outside its package allowed (by default a robot file is data,
-    see README "Bring your own robot"). ``safety`` overrides fields of the
-    robot.yaml ``safety`` section;
+    MJCF ``.xml`` or ``robot.yaml``; omitted: ``arm3``, except on a backend that reads the
+    description from the robot itself (``ros2``: the ``robot_description`` topic).
+    ``realtime=None`` picks the backend's default (lockstep for simulators).
+    ``strict=True`` (or robot.yaml ``strict: true``) refuses a description that
+    needs repairs (``DescriptionError`` listing them) instead of repairing it with
+    a warning. ``trusted=True`` (or robot.yaml ``trusted: true``) loads a robot file
+    you trust as code: xacro expressions unchecked, files outside its package
+    allowed (by default a robot file is data, see README "Bring your own robot").
+    ``safety`` overrides fields of the robot.yaml ``safety`` section;
     other keyword options go to the backend (they override robot.yaml
     ``backends.<name>``). Use as ``async with connect(...) as robot`` or
     ``robot = await connect(...)`` (then ``await robot.close()``).

@@ -11,13 +11,14 @@ from tiny_backend import TinyController
 
 import agentsdk
 from agentsdk.backends.can.testing import EmulatedCanConformance
+from agentsdk.backends.ros2.testing import ServedRos2Conformance
 from agentsdk.registry import available_backends
 from agentsdk.testing import BackendConformance, SensorConformance
 
 pytest_plugins = ["pytester"]
 
 #: backends that need a fixture around them (hardware -> emulator)
-FIXTURES: dict[str, type[BackendConformance]] = {"can": EmulatedCanConformance}
+FIXTURES: dict[str, type[BackendConformance]] = {"can": EmulatedCanConformance, "ros2": ServedRos2Conformance}
 
 for _name in available_backends():
     _base = FIXTURES.get(_name, BackendConformance)

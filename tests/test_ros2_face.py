@@ -186,9 +186,9 @@ async def test_ros_discovery_info_names_the_node_and_its_endpoints() -> None:
             info = next(i for i in got if i.node_entities_info_seq)
             node = info.node_entities_info_seq[0]
             assert (node.node_namespace, node.node_name) == ("/arm7", face.node_name) == ("/arm7", "agentsdk_arm3")
-            # readers: the JTC topic, the lease's heartbeat and release and 6 service request readers;
-            # writers: 11 topics and 6 service reply writers
-            assert len(node.reader_gid_seq) == 9 and len(node.writer_gid_seq) >= 15
+            # readers: the JTC topic, the lease's heartbeat and release, the ros2 backend's command stream and
+            # 6 service request readers; writers: 12 topics and 6 service reply writers
+            assert len(node.reader_gid_seq) == 10 and len(node.writer_gid_seq) >= 15
             assert all(bytes(g.data)[:12] == bytes(info.gid.data)[:12] for g in node.writer_gid_seq)
 
 

@@ -17,13 +17,14 @@ hands the samples to the event loop with ``call_soon_threadsafe``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import logging
 import os
 import re
 import threading
 import typing
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from cyclonedds.core import GuardCondition, InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
@@ -41,6 +42,7 @@ from .msgs import Gid, NodeEntitiesInfo, ParticipantEntitiesInfo, RequestHeader
 
 __all__ = [
     "QOS_DEFAULT", "QOS_LATCHED", "QOS_SENSOR", "DdsNode", "loopback_config", "network_config", "normalize_namespace",
+    "participant",
     "resolve_domain_id", "service_wire_type",
 ]
 
@@ -196,6 +198,23 @@ def _acquire_domain(domain_id: int, config: str | None = None) -> None:
                 f"DDS domain {domain_id} is already open in this process with another configuration "
                 "(one configuration per domain and process: use another domain id)")
         _domains[domain_id] = (dom, n + 1, current)
+
+
+@contextlib.contextmanager
+def participant(domain_id: int) -> Iterator[DomainParticipant]:
+    """A bare participant on ``domain_id`` (the process's shared domain: loopback unless ``CYCLONEDDS_URI``).
+
+    For short blocking look-ups off the event loop (discovery, a latched topic); deleted on exit.
+    """
+    _acquire_domain(domain_id)
+    try:
+        dp = DomainParticipant(domain_id)
+        try:
+            yield dp
+        finally:
+            dp.__del__()  # frees it now, not at GC (idempotent)
+    finally:
+        _release_domain(domain_id)
 
 
 def _release_domain(domain_id: int) -> None:

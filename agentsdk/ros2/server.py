@@ -98,6 +98,7 @@ from .msgs import (
     Trigger_Response,
     Vector3,
 )
+from .stream import CommandStream
 
 if TYPE_CHECKING:
     from ..pose import Pose
@@ -246,6 +247,9 @@ class RosFace:
         self._publisher: _StatePublisher | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
         self._goals: OrderedDict[bytes, _Goal] = OrderedDict()
+        #: the ``ros2`` backend's sequenced command stream (:mod:`agentsdk.ros2.stream`)
+        self.stream = CommandStream(self)
+        self._topic_motions: set[Motion] = set()
         self._closed = False
         #: trajectories from the topic that were rejected (the topic has no reply: counted and logged)
         self.rejected_trajectories = 0
@@ -301,6 +305,7 @@ class RosFace:
             self._spawn(self._periodic())
             if self.deadman is not None:
                 self._spawn(self.deadman.watch())
+            self.stream.start(self._spawn)
         except BaseException:
             await self.aclose()
             raise
@@ -352,6 +357,7 @@ class RosFace:
         node.service(f"{action}/cancel_goal", CancelGoal_Request, CancelGoal_Response, self._on_cancel)
         if self.deadman is not None:
             self.deadman.attach(node)
+        self.stream.create(node)
 
     async def aclose(self) -> None:
         """Stop serving: cancel the face's tasks, stop the publisher, delete the participant (idempotent)."""
@@ -569,6 +575,9 @@ class RosFace:
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         if self.robot.closed:
             return
+        if not msg.points:  # JTC's topic interface: an empty trajectory holds the current position
+            self._cancel_all_motions()
+            return
         try:
             motion = self._start(msg, self.tolerances)
         except (CommandRejected, SafetyError) as exc:
@@ -577,12 +586,23 @@ class RosFace:
             log.warning("rejected trajectory on %s/%s/joint_trajectory: %s", self.namespace, JTC, self.last_rejection)
             return
         self.accepted_trajectories += 1
+        self._topic_motions.add(motion)
         self._spawn(self._await_quietly(motion))
 
-    @staticmethod
-    async def _await_quietly(motion: Motion) -> None:
-        result = await motion
+    async def _await_quietly(self, motion: Motion) -> None:
+        try:
+            result = await motion
+        finally:
+            self._topic_motions.discard(motion)
         log.debug("topic trajectory ended: %s", result)
+
+    def _cancel_all_motions(self) -> None:
+        """Hold: cancel every running goal and topic trajectory (each decelerates, then holds)."""
+        for motion in list(self._topic_motions):
+            motion.cancel()
+        for goal in self._goals.values():
+            if goal.result is None and goal.motion is not None:
+                goal.motion.cancel()
 
     # ------------------------------------------------------------------ action server
     def _publish_status(self) -> None:

@@ -3,10 +3,16 @@
 //
 //   fastdds_peer listen NS SECONDS          print joint_states, robot_description, tf_static
 //   fastdds_peer traj NS T joint=pos ...    publish one trajectory_msgs/JointTrajectory point at T s
+//   fastdds_peer jtc NS SECONDS joint=pos ... play a ros2_control JointTrajectoryController for SECONDS:
+//       joint_states out (reliable, 100 Hz, wall-clock stamps), joint_trajectory_controller/joint_trajectory
+//       in (each trajectory replaces the current one from the current position, interpolated linearly
+//       through its points; an empty one holds). SIGUSR1 stops joint_states (prints STOPPED); the
+//       controller keeps running. Prints HOLD for each empty trajectory, then TRAJ and FINAL.
 //
 // The participant takes its transports from the default XML profile (FASTRTPS_DEFAULT_PROFILES_FILE):
 // the tests give it an interface whitelist of 127.0.0.1 and a loopback initial peer.
 #include <chrono>
+#include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -120,6 +126,120 @@ static int traj(const std::string &ns, double t, int argc, char **argv) {
   return ok ? 0 : 1;
 }
 
+static volatile std::sig_atomic_t stop_states = 0;
+static void on_usr1(int) { stop_states = 1; }
+
+struct Plan {
+  double t0 = 0;
+  std::vector<double> start;
+  std::vector<double> times;
+  std::vector<std::vector<double>> pos;
+};
+
+// positions and velocities of the plan at time t (linear between the points, then the last point)
+static void eval(const Plan &p, double t, std::vector<double> &q, std::vector<double> &v) {
+  double dt = t - p.t0, prev_t = 0;
+  const std::vector<double> *prev = &p.start;
+  q = p.start;
+  v.assign(q.size(), 0.0);
+  for (size_t k = 0; k < p.times.size(); k++) {
+    const std::vector<double> &nxt = p.pos[k];
+    double span = p.times[k] - prev_t;
+    if (dt <= p.times[k]) {
+      double a = span > 0 ? (dt - prev_t) / span : 1.0;
+      for (size_t j = 0; j < q.size(); j++) {
+        q[j] = (*prev)[j] + a * (nxt[j] - (*prev)[j]);
+        v[j] = span > 0 ? (nxt[j] - (*prev)[j]) / span : 0.0;
+      }
+      return;
+    }
+    prev_t = p.times[k];
+    prev = &nxt;
+  }
+  q = *prev;
+}
+
+static int jtc(const std::string &ns, double seconds, int argc, char **argv) {
+  std::vector<std::string> names;
+  Plan plan;
+  for (int i = 0; i < argc; i++) {
+    std::string a = argv[i];
+    size_t eq = a.find('=');
+    if (eq == std::string::npos) { std::fprintf(stderr, "expected joint=pos\n"); return 2; }
+    names.push_back(a.substr(0, eq));
+    plan.start.push_back(std::strtod(a.c_str() + eq + 1, nullptr));
+  }
+  std::signal(SIGUSR1, on_usr1);
+  Publisher *pub = pp->create_publisher(PUBLISHER_QOS_DEFAULT);
+  DataWriterQos wq = DATAWRITER_QOS_DEFAULT;
+  wq.reliability().kind = RELIABLE_RELIABILITY_QOS;
+  wq.durability().kind = VOLATILE_DURABILITY_QOS;
+  wq.history().kind = KEEP_LAST_HISTORY_QOS;
+  wq.history().depth = 10;
+  DataWriter *js = pub->create_datawriter(
+      topic(new sensor_msgs::msg::dds_::JointState_PubSubType(), ros_topic(ns, "joint_states")), wq);
+  Subscriber *sub = pp->create_subscriber(SUBSCRIBER_QOS_DEFAULT);
+  DataReader *tr = reader(sub, topic(new trajectory_msgs::msg::dds_::JointTrajectory_PubSubType(),
+                                     ros_topic(ns, "joint_trajectory_controller/joint_trajectory")), false, 100);
+  auto t_start = Clock::now();
+  auto now = [&] { return std::chrono::duration<double>(Clock::now() - t_start).count(); };
+  std::vector<double> q, v;
+  long received = 0, holds = 0, rejected = 0;
+  double next_pub = 0;
+  bool stopped = false;
+  SampleInfo info;
+  while (now() < seconds) {
+    trajectory_msgs::msg::dds_::JointTrajectory_ m;
+    while (tr->take_next_sample(&m, &info) == ReturnCode_t::RETCODE_OK) {
+      if (!info.valid_data) continue;
+      double t = now();
+      eval(plan, t, q, v);
+      std::vector<int> idx;
+      bool ok = true;
+      for (auto &n : m.joint_names()) {
+        int found = -1;
+        for (size_t j = 0; j < names.size(); j++) if (names[j] == n) found = static_cast<int>(j);
+        if (found < 0) ok = false;
+        idx.push_back(found);
+      }
+      for (auto &p : m.points()) if (p.positions().size() != idx.size()) ok = false;
+      if (!ok) { rejected++; std::printf("REJECT %.3f\n", t); std::fflush(stdout); continue; }
+      Plan next;
+      next.t0 = t;
+      next.start = q;
+      for (auto &p : m.points()) {
+        std::vector<double> target = q;
+        for (size_t k = 0; k < idx.size(); k++) target[idx[k]] = p.positions()[k];
+        next.times.push_back(p.time_from_start().sec() + p.time_from_start().nanosec() * 1e-9);
+        next.pos.push_back(target);
+      }
+      plan = next;
+      if (m.points().empty()) { holds++; std::printf("HOLD %.3f\n", t); std::fflush(stdout); }
+      else received++;
+    }
+    double t = now();
+    if (stop_states && !stopped) { stopped = true; std::printf("STOPPED %.3f\n", t); std::fflush(stdout); }
+    if (!stopped && t >= next_pub) {
+      eval(plan, t, q, v);
+      sensor_msgs::msg::dds_::JointState_ s;
+      auto wall = std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+      s.header().stamp().sec(static_cast<int32_t>(wall));
+      s.header().stamp().nanosec(static_cast<uint32_t>((wall - static_cast<int32_t>(wall)) * 1e9));
+      s.name(names);
+      s.position(q);
+      s.velocity(v);
+      js->write(&s);
+      next_pub = t + 0.01;
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  eval(plan, now(), q, v);
+  std::printf("TRAJ %ld %ld %ld\nFINAL", received, holds, rejected);
+  for (size_t j = 0; j < names.size(); j++) std::printf(" %s=%.9f", names[j].c_str(), q[j]);
+  std::printf("\n");
+  return 0;
+}
+
 int main(int argc, char **argv) {
   if (argc < 4) { std::fprintf(stderr, "usage: see the source\n"); return 2; }
   const char *dom = std::getenv("ROS_DOMAIN_ID");
@@ -128,6 +248,7 @@ int main(int argc, char **argv) {
   int rc = 2;
   if (!std::strcmp(argv[1], "listen")) rc = listen(argv[2], std::atof(argv[3]));
   else if (!std::strcmp(argv[1], "traj")) rc = traj(argv[2], std::atof(argv[3]), argc - 4, argv + 4);
+  else if (!std::strcmp(argv[1], "jtc")) rc = jtc(argv[2], std::atof(argv[3]), argc - 4, argv + 4);
   std::fflush(stdout);
   pp->delete_contained_entities();
   DomainParticipantFactory::get_instance()->delete_participant(pp);

@@ -50,6 +50,9 @@ from .types import MODES, JointCommand
 
 __all__ = ["BackendConformance", "SensorConformance"]
 
+#: keywords of :func:`agentsdk.connect` itself (the rest of ``connect_options`` go to the backend)
+_CONNECT_KEYWORDS = frozenset({"realtime", "safety", "strict", "trusted"})
+
 
 def _block(seconds: float) -> None:
     """Block the calling thread (the event loop's): what the loop-stall watchdog must catch."""
@@ -100,8 +103,9 @@ class BackendConformance:
             return cached
         config, desc = resolve_robot(self.robot)
         cls = load_backend(self.backend)
-        instance = cls(config, desc, apply_overrides(desc, config), realtime=self.realtime,
-                       **self.connect_options)
+        # (connect()'s own keywords, e.g. ``safety``, are not backend options)
+        backend_options = {k: v for k, v in self.connect_options.items() if k not in _CONNECT_KEYWORDS}
+        instance = cls(config, desc, apply_overrides(desc, config), realtime=self.realtime, **backend_options)
         caps: Capabilities = instance.capabilities
         type.__setattr__(type(self), "_caps", caps)
         return caps

@@ -165,6 +165,8 @@ class DynamicsModel:
                 if len(tops) == 1 and not tops[0].joints:
                     tops[0].add_freejoint()
                     self._free = tops[0].name
+                elif description.free_root is not None:  # an MJCF free joint at the root
+                    self._free = description.free_root
             self.model = spec.compile()
         except Exception as exc:
             raise DescriptionError(f"could not build the dynamics model of {description.name!r}: {exc}") from exc

@@ -80,8 +80,12 @@ def test_gravity_torque_matches_mujocos_own_urdf_import() -> None:
 # --------------------------------------------------------------------------- start pose
 
 
-def test_start_pose_clips_zero_into_the_limits_with_one_warning(caplog: pytest.LogCaptureFixture) -> None:
-    config, desc = resolve_robot(PANDA)
+def test_start_pose_clips_zero_into_the_limits_with_one_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    srdf = tmp_path / "no_states.srdf"  # an SRDF without group states: the joints start at 0, clipped
+    srdf.write_text('<robot name="panda"/>')
+    config, desc = resolve_robot(robot_yaml(tmp_path, PANDA, f"srdf: {srdf}\n"))
     start = start_pose(desc, config, apply_overrides(desc, config))
     assert start.clipped.keys() == {"panda_joint4"}  # 0 is outside [-3.0718, -0.0698]
     assert start.positions["panda_joint4"] == pytest.approx(-0.0698)
@@ -101,6 +105,16 @@ def test_start_pose_from_an_srdf_group_state(tmp_path: Path) -> None:
     assert start.positions["panda_joint2"] == pytest.approx(states["default"]["panda_joint2"])
     assert start.sources["panda_joint2"] == "srdf default"
     assert not start.clipped
+
+
+def test_start_pose_from_the_srdf_beside_the_urdf_without_robot_yaml() -> None:
+    """No initial_group_state: the SRDF found beside the URDF gives its `default` group state (issue 24)."""
+    states = read_group_states(PANDA.parent.parent / "srdf" / "panda.srdf")
+    config, desc = resolve_robot(PANDA)
+    start = start_pose(desc, config, apply_overrides(desc, config))
+    assert set(start.sources.values()) == {"srdf default"}
+    assert start.positions["panda_joint4"] == pytest.approx(states["default"]["panda_joint4"])
+    assert not start.clipped and "from SRDF group_state 'default'" in start.summary()
 
 
 def test_unknown_group_state_names_the_known_ones(tmp_path: Path) -> None:

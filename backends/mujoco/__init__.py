@@ -75,6 +75,8 @@ _WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADCTRL,
 )
 _BADCTRL = mujoco.mjtWarning.mjWARN_BADCTRL
+#: the colour of the ground plane a floating base stands on (light grey: the robot stands out in a video)
+GROUND_RGBA = (0.75, 0.77, 0.8, 1.0)
 
 
 log = logging.getLogger("agentsdk.backends.mujoco")
@@ -272,6 +274,7 @@ class MujocoController(Backend):
             ground.type = mujoco.mjtGeom.mjGEOM_PLANE
             ground.size = [0.0, 0.0, 1.0]  # infinite
             ground.friction = [mu, 0.005, 0.0001]
+            ground.rgba = list(GROUND_RGBA)
             self._ground_height = standing_height(desc, collision)
         return spec
 
@@ -304,6 +307,7 @@ class MujocoController(Backend):
                 ground.type = mujoco.mjtGeom.mjGEOM_PLANE
                 ground.size = [0.0, 0.0, 1.0]  # infinite
                 ground.friction = [mu, 0.005, 0.0001]
+                ground.rgba = list(GROUND_RGBA)
                 self._ground_height = standing_offset(probe, pdata, probe.body(free).id)
         return spec
 

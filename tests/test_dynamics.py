@@ -129,7 +129,8 @@ async def test_simulators_start_exactly_at_the_start_pose_without_a_jump(backend
         q0 = (await robot.read()).position
         expected = np.array([robot.controller.initial_positions[k] for k in range(len(q0))])
         assert q0 == pytest.approx(expected, abs=1e-9)
-        assert q0[robot.joint_names.index("panda_joint4")] == pytest.approx(-0.0698)
+        # the SRDF's `default` group state (found beside the URDF), not 0 clipped to -0.0698
+        assert q0[robot.joint_names.index("panda_joint4")] == pytest.approx(-2.35619, abs=1e-4)
         await robot.clock.sleep(0.2)
         st = await robot.read()
         assert np.abs(st.position - q0).max() < 1e-3

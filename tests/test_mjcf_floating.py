@@ -148,7 +148,8 @@ async def test_a_model_with_its_own_floor_keeps_it(tmp_path: Path) -> None:
 
 
 async def test_a_named_keyframe_places_the_base_too(tmp_path: Path) -> None:
-    async with agentsdk.connect("mujoco", robot=_yaml(tmp_path, _scene(tmp_path), "initial_group_state: crouch\n")) as robot:
+    robot_yaml = _yaml(tmp_path, _scene(tmp_path), "initial_group_state: crouch\n")
+    async with agentsdk.connect("mujoco", robot=robot_yaml) as robot:
         assert float(robot.base_state().pose.position[2]) == pytest.approx(0.18)
         np.testing.assert_allclose((await robot.read()).position[1::2], -1.8)
 

@@ -224,3 +224,24 @@ def test_a_legged_urdf_says_what_to_set() -> None:
     assert looks is not None and looks.floating == "robot.yaml"
     config, desc = resolve_robot(corpus("panda_description/urdf/panda.urdf"))
     assert mobility(desc) is None
+
+
+def test_a_free_object_in_the_scene_is_not_the_base(tmp_path: Path) -> None:
+    """Only a free body carrying commanded joints is the floating base (not a ball beside a mounted arm)."""
+    shutil.copy(WELDED, tmp_path / WELDED.name)
+    scene = tmp_path / "scene.xml"
+    scene.write_text(
+        f'<mujoco model="arm and ball"><include file="{WELDED.name}"/><worldbody>'
+        '<geom name="floor" type="plane" size="0 0 0.05"/>'
+        '<body name="ball" pos="0.4 0 0.05"><freejoint/><geom type="sphere" size="0.04" mass="0.1"/></body>'
+        "</worldbody></mujoco>"
+    )
+    desc = load_description(scene)
+    assert desc.free_root is None and mobility(desc) is None
+    shutil.copy(QUADRUPED, tmp_path / QUADRUPED.name)
+    scene.write_text(
+        f'<mujoco model="dog and ball"><include file="{QUADRUPED.name}"/><worldbody>'
+        '<body name="ball" pos="0.6 0 0.05"><freejoint/><geom type="sphere" size="0.04" mass="0.1"/></body>'
+        "</worldbody></mujoco>"
+    )
+    assert load_description(scene).free_root == "trunk"

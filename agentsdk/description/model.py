@@ -279,11 +279,22 @@ class RobotDescription:
     def free_root(self) -> str | None:
         """The link a free (floating) joint attaches to the root (an MJCF ``<freejoint>``), or None.
 
-        That link is the floating base: the simulators leave it free and report its pose.
+        That link is the floating base: the simulators leave it free and report its pose. Only
+        a body carrying commanded joints counts (a free object in a scene, a ball, is not the base).
         """
+        commanded = {j.child for j in self.joints}
+        children: dict[str, list[str]] = {}
         for j in self.all_joints:
-            if j.type == "floating" and j.parent == self.root_link:
-                return j.child
+            children.setdefault(j.parent, []).append(j.child)
+        for j in self.all_joints:
+            if j.type != "floating" or j.parent != self.root_link:
+                continue
+            stack = [j.child]
+            while stack:
+                link = stack.pop()
+                if link in commanded:
+                    return j.child
+                stack.extend(children.get(link, ()))
         return None
 
     @property

@@ -245,3 +245,31 @@ def test_a_free_object_in_the_scene_is_not_the_base(tmp_path: Path) -> None:
         "</worldbody></mujoco>"
     )
     assert load_description(scene).free_root == "trunk"
+
+
+def test_an_srdf_in_the_package_is_found_and_its_ready_state_starts_the_robot(tmp_path: Path) -> None:
+    """A URDF deeper in its package (pkg/urdf/robots/) finds pkg/srdf/; `ready` is a start-pose name."""
+    pkg = tmp_path / "two_link_description"
+    (pkg / "urdf" / "robots").mkdir(parents=True)
+    (pkg / "srdf").mkdir()
+    (pkg / "package.xml").write_text("<package><name>two_link_description</name></package>")
+    inertial = (
+        '<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>'
+    )
+    joint = '<joint name="{n}" type="revolute"><parent link="{p}"/><child link="{c}"/><origin xyz="0 0 {z}"/>' \
+        '<axis xyz="0 1 0"/><limit lower="-2" upper="2" effort="50" velocity="2"/></joint>'
+    (pkg / "urdf" / "robots" / "two_link.urdf").write_text(
+        '<robot name="two_link"><link name="base"/>'
+        f'<link name="a">{inertial}</link><link name="b">{inertial}</link>'
+        + joint.format(n="j1", p="base", c="a", z=0.1) + joint.format(n="j2", p="a", c="b", z=0.3) + "</robot>"
+    )
+    (pkg / "srdf" / "two_link.srdf").write_text(
+        '<robot name="two_link"><group_state name="folded" group="arm"><joint name="j1" value="1.0"/></group_state>'
+        '<group_state name="ready" group="arm"><joint name="j1" value="0.4"/><joint name="j2" value="-0.7"/>'
+        "</group_state></robot>"
+    )
+    config, desc = resolve_robot(pkg / "urdf" / "robots" / "two_link.urdf")
+    assert desc.srdf == (pkg / "srdf" / "two_link.srdf").resolve()
+    pose = start_pose(desc, config)
+    assert pose.positions == {"j1": 0.4, "j2": -0.7} and set(pose.sources.values()) == {"srdf ready"}
+    assert mobility(desc) is None  # an arm: no feet, no wheels

@@ -50,7 +50,8 @@ LEGGED = (
     # not named in the issue
     "unitree_go1/go1.xml",
     "unitree_a1/a1.xml",
-    "unitree_h1/h1.xml",
+    # not unitree_h1/h1.xml: it has no keyframe, and at q = 0 its joints hold (error < 0.006 rad) while the
+    # rigid robot tips over backwards within 1.5 s (its centre of mass is not over its feet): balance, not servo
 )
 
 

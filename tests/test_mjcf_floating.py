@@ -273,3 +273,36 @@ def test_an_srdf_in_the_package_is_found_and_its_ready_state_starts_the_robot(tm
     pose = start_pose(desc, config)
     assert pose.positions == {"j1": 0.4, "j2": -0.7} and set(pose.sources.values()) == {"srdf ready"}
     assert mobility(desc) is None  # an arm: no feet, no wheels
+
+
+def _two_limbs(tmp_path: Path, name: str, down: bool) -> Path:
+    """A free-standing body (root not 'world') with two 2-joint limbs, hanging down or held out sideways."""
+    inertial = (
+        '<inertial><mass value="1"/><inertia ixx="0.01" iyy="0.01" izz="0.01" ixy="0" ixz="0" iyz="0"/></inertial>'
+    )
+    links = [f'<link name="body">{inertial}</link>']
+    joints = []
+    for side, y in (("left", 0.1), ("right", -0.1)):
+        step = "0 0 -0.2" if down else f"0 {y * 2} 0"
+        for k, (parent, xyz) in enumerate((("body", f"0 {y} 0"), (f"{side}_upper", step))):
+            child = f"{side}_upper" if k == 0 else f"{side}_lower"
+            links.append(f'<link name="{child}">{inertial}</link>')
+            joints.append(
+                f'<joint name="{child}_joint" type="revolute"><parent link="{parent}"/><child link="{child}"/>'
+                f'<origin xyz="{xyz}"/><axis xyz="0 1 0"/>'
+                '<limit lower="-1" upper="1" effort="20" velocity="2"/></joint>'
+            )
+        links.append(f'<link name="{side}_end">{inertial}</link>')
+        joints.append(f'<joint name="{side}_end_joint" type="fixed"><parent link="{side}_lower"/>'
+                      f'<child link="{side}_end"/><origin xyz="{step}"/></joint>')
+    path = tmp_path / f"{name}.urdf"
+    path.write_text(f'<robot name="{name}">' + "".join(links + joints) + "</robot>")
+    return path
+
+
+def test_legs_without_foot_names_are_found_by_where_they_hang(tmp_path: Path) -> None:
+    config, desc = resolve_robot(_two_limbs(tmp_path, "biped", down=True))
+    looks = mobility(desc, positions=start_pose(desc, config).positions)
+    assert looks is not None and looks.kind == "legged" and set(looks.contacts) == {"left_end", "right_end"}
+    config, desc = resolve_robot(_two_limbs(tmp_path, "two_arms", down=False))
+    assert mobility(desc, positions=start_pose(desc, config).positions) is None  # arms held out: not legs

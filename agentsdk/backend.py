@@ -287,8 +287,11 @@ class Backend(ABC):
 
     @property
     def floating_base(self) -> bool:
-        """True when the robot's base floats (robot.yaml ``floating_base``; a simulator's option may override)."""
-        return bool(self.config.floating_base)
+        """True when the robot's base floats (robot.yaml ``floating_base``, or a free joint at the root of an MJCF).
+
+        A simulator's option may override robot.yaml.
+        """
+        return bool(self.config.floating_base) or self.description.free_root is not None
 
     @functools.cached_property
     def dynamics(self) -> DynamicsModel:

@@ -113,7 +113,7 @@ def check_robot(
         return report
 
     try:
-        collision = from_mjcf(desc) if desc.format == "mjcf" else for_robot(desc, config)
+        collision = from_mjcf(desc, config) if desc.format == "mjcf" else for_robot(desc, config)
     except AgentSDKError as exc:
         report.problems.append(f"self-collision model: {' '.join(str(exc).split())}")
         collision = None
@@ -159,6 +159,9 @@ def check_robot(
             out.append(f"  note: {', '.join(pose.clipped)} start clipped into their limits; "
                        "set initial_positions or initial_group_state in robot.yaml")
         out.append("")
+    from .description.mobility import report_lines
+
+    out.extend(report_lines(desc, config, pose))
     gc = [j.name for j in joints if not config.gravity_compensation_for(j.name)]
     out.append("gravity compensation: " + ("on for every joint" if not gc else f"off for {', '.join(gc)}"))
     out.append("")

@@ -651,6 +651,15 @@ def _cmd_describe(args: argparse.Namespace) -> int:
     for line in desc.tree_lines():
         print(line)
     print()
+    from .description.mobility import report_lines
+    from .description.start import start_pose
+
+    try:
+        start = start_pose(desc, config, joints)
+    except AgentSDKError:  # a named start pose that does not exist: `agentsdk check` reports it
+        start = None
+    for line in report_lines(desc, config, start):
+        print(line)
     overrides = f" (after {config.source.name} overrides)" if config.source is not None else ""
     print(f"{len(joints)} actuated joints{overrides}, control rate {config.update_rate:g} Hz:")
     for j in joints:

@@ -14,8 +14,9 @@ Example::
       default: {max_acceleration: 5.0, max_jerk: 100.0}
       joint1: {max_velocity: 1.5}
     initial_positions: {joint2: 0.2}
-    initial_group_state: home           # else an SRDF <group_state> (joints not in initial_positions)
-    floating_base: false                # true: free base on a ground plane (simulators)
+    initial_group_state: home           # else a named pose: MJCF keyframe or SRDF <group_state> (default:
+                                        # home/stand/standing/ready/... when the model has one)
+    floating_base: false                # true: free base on a ground plane (simulators; an MJCF free joint floats)
     ground_friction: 0.8                # ground contact friction coefficient (floating base)
     safety: {command_timeout: 0.2}      # see agentsdk.safety.SafetyConfig
     strict: false                       # true: refuse descriptions that need repairs

@@ -165,6 +165,8 @@ class DynamicsModel:
                 if len(tops) == 1 and not tops[0].joints:
                     tops[0].add_freejoint()
                     self._free = tops[0].name
+                elif description.free_root is not None:  # an MJCF free joint at the root
+                    self._free = description.free_root
             self.model = spec.compile()
         except Exception as exc:
             raise DescriptionError(f"could not build the dynamics model of {description.name!r}: {exc}") from exc
@@ -186,6 +188,7 @@ class DynamicsModel:
                     (int(m.jnt_qposadr[f]), index[leader], float(m.eq_data[e, 1]), float(m.eq_data[e, 0]))
                 )
         self._qpos = m.qpos0.copy()
+        self._free_qadr = int(m.jnt_qposadr[m.body_jntadr[m.body(self._free).id]]) if self._free else 0
         self._mfull = np.zeros((m.nv, m.nv))
         # a floating base: the base link (description.base_link) in the frame of the body that floats
         self._base_in_free = Pose()
@@ -207,8 +210,9 @@ class DynamicsModel:
         if base is not None and self._free:
             free = base @ self._base_in_free.inverse()
             x, y, z, w = free.orientation
-            qpos[:3] = free.position
-            qpos[3:7] = (w, x, y, z)
+            adr = self._free_qadr
+            qpos[adr : adr + 3] = free.position
+            qpos[adr + 3 : adr + 7] = (w, x, y, z)
         return qpos
 
     def gravity(self, positions: np.ndarray, out: np.ndarray | None = None, base: Pose | None = None) -> FloatArray:

@@ -135,6 +135,13 @@ class _MujocoRenderer:
         self._rect = mujoco.MjrRect(0, 0, width, height)
         self._rgb = np.zeros((height, width, 3), dtype=np.uint8)
         self._framed = False
+        # a model with its own floor (a floating base's ground plane, an MJCF scene's floor) is drawn as it
+        # is: a second plane in the same place flickers between the two (large grey triangles)
+        plane = int(mujoco.mjtGeom.mjGEOM_PLANE)
+        self._has_floor = any(
+            int(model.geom_type[g]) == plane and int(model.body_weldid[model.geom_bodyid[g]]) == 0
+            for g in range(model.ngeom)
+        )
 
     def _frame_camera(self) -> None:
         import mujoco
@@ -159,7 +166,7 @@ class _MujocoRenderer:
         import mujoco
 
         scn = self._scene
-        if scn.ngeom >= scn.maxgeom:
+        if scn.ngeom >= scn.maxgeom or self._has_floor:
             return
         size = self._floor_size
         mujoco.mjv_initGeom(scn.geoms[scn.ngeom], int(mujoco.mjtGeom.mjGEOM_PLANE), np.array([size, size, 0.05]),

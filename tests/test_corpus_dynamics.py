@@ -66,7 +66,10 @@ PHYSICALLY_IMPOSSIBLE = {
 
 #: open gaps (issue 13 not yet met), reported as xfail with what was measured
 KNOWN_GAPS = {
-    ("talos_data/robots/talos_left_arm.urdf", "pybullet"): "drifts 0.0066 rad at arm_left_5_joint",
+    # from the SRDF's half_sitting pose (issue 24: the SRDF beside the URDF gives the start pose) PyBullet's
+    # gripper_left_joint sags 0.037 rad (from 0, the arm at rest: 0.0066 rad at arm_left_5_joint)
+    ("talos_data/robots/talos_left_arm.urdf", "pybullet"): "drifts 0.037 rad at gripper_left_joint",
+    ("talos_data/robots/talos_left_arm.urdf", "agree"): "0.035 rad apart (PyBullet's gripper sags)",
     ("xarm_description/urdf/xarm7.urdf", "pybullet"): "drifts 0.0050 rad at joint5",
     # PyBullet's Coulomb friction (implicit step) stops the fingers 0.007..0.016 rad short of MuJoCo's
     ("allegro_hand_description/urdf/allegro_left_hand.urdf", "agree"): "0.016 rad apart (friction)",

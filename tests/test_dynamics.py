@@ -80,8 +80,12 @@ def test_gravity_torque_matches_mujocos_own_urdf_import() -> None:
 # --------------------------------------------------------------------------- start pose
 
 
-def test_start_pose_clips_zero_into_the_limits_with_one_warning(caplog: pytest.LogCaptureFixture) -> None:
-    config, desc = resolve_robot(PANDA)
+def test_start_pose_clips_zero_into_the_limits_with_one_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    srdf = tmp_path / "no_states.srdf"  # an SRDF without group states: the joints start at 0, clipped
+    srdf.write_text('<robot name="panda"/>')
+    config, desc = resolve_robot(robot_yaml(tmp_path, PANDA, f"srdf: {srdf}\n"))
     start = start_pose(desc, config, apply_overrides(desc, config))
     assert start.clipped.keys() == {"panda_joint4"}  # 0 is outside [-3.0718, -0.0698]
     assert start.positions["panda_joint4"] == pytest.approx(-0.0698)
@@ -103,6 +107,16 @@ def test_start_pose_from_an_srdf_group_state(tmp_path: Path) -> None:
     assert not start.clipped
 
 
+def test_start_pose_from_the_srdf_beside_the_urdf_without_robot_yaml() -> None:
+    """No initial_group_state: the SRDF found beside the URDF gives its `default` group state (issue 24)."""
+    states = read_group_states(PANDA.parent.parent / "srdf" / "panda.srdf")
+    config, desc = resolve_robot(PANDA)
+    start = start_pose(desc, config, apply_overrides(desc, config))
+    assert set(start.sources.values()) == {"srdf default"}
+    assert start.positions["panda_joint4"] == pytest.approx(states["default"]["panda_joint4"])
+    assert not start.clipped and "from SRDF group_state 'default'" in start.summary()
+
+
 def test_unknown_group_state_names_the_known_ones(tmp_path: Path) -> None:
     config, desc = resolve_robot(robot_yaml(tmp_path, PANDA, "initial_group_state: nowhere\n"))
     with pytest.raises(ConfigurationError, match=r"no group_state 'nowhere'; its group states: default"):
@@ -115,7 +129,8 @@ async def test_simulators_start_exactly_at_the_start_pose_without_a_jump(backend
         q0 = (await robot.read()).position
         expected = np.array([robot.controller.initial_positions[k] for k in range(len(q0))])
         assert q0 == pytest.approx(expected, abs=1e-9)
-        assert q0[robot.joint_names.index("panda_joint4")] == pytest.approx(-0.0698)
+        # the SRDF's `default` group state (found beside the URDF), not 0 clipped to -0.0698
+        assert q0[robot.joint_names.index("panda_joint4")] == pytest.approx(-2.35619, abs=1e-4)
         await robot.clock.sleep(0.2)
         st = await robot.read()
         assert np.abs(st.position - q0).max() < 1e-3

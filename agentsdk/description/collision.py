@@ -31,7 +31,7 @@ import logging
 import math
 import re
 import threading
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -48,6 +48,7 @@ __all__ = [
     "SrdfRules",
     "for_robot",
     "from_mjcf",
+    "lowest_point",
     "read_srdf",
     "self_collision",
     "standing_height",
@@ -373,62 +374,66 @@ def for_robot(description: RobotDescription, config: object, mode: Mode | bool |
     return result
 
 
-def from_mjcf(description: RobotDescription) -> SelfCollision:
-    """An MJCF model's own contact settings (contype/conaffinity, excludes, MuJoCo's filters) as link pairs."""
+def from_mjcf(description: RobotDescription, config: object | None = None) -> SelfCollision:
+    """An MJCF model's own contact settings (contype/conaffinity, excludes, MuJoCo's filters) as link pairs.
+
+    With robot.yaml ``config`` (``self_collision: auto``, the default), bodies touching at the
+    start pose are left out as the MuJoCo backend leaves them out
+    (:mod:`agentsdk.description.mjcf_scene`).
+    """
     import mujoco
 
+    from ..config import RobotConfig
     from .mjcf import colliding_body_pairs
+    from .mjcf_scene import start_qpos, touching_at_start
+    from .mjspec import mjcf_spec_without_actuators
 
     if description.format != "mjcf":
         raise ValueError("from_mjcf needs an MJCF description")
-    model = mujoco.MjModel.from_xml_path(str(description.source))
+    model = mjcf_spec_without_actuators(str(description.source)).compile()
     pairs = colliding_body_pairs(model, world=False)
     shapes = {rec.name: tuple(enumerate(rec.collisions)) for rec in description.link_records}
     geometric = sorted(n for n, s in shapes.items() if s)
     candidates = [_pair(a, b) for a, b in itertools.combinations(geometric, 2)]
     excluded = {p: "mjcf contact settings" for p in candidates if p not in pairs}
+    start: dict[str, float] = {}
+    if isinstance(config, RobotConfig) and config.self_collision == "auto":
+        from .robot_yaml import apply_overrides
+        from .start import start_pose
+
+        pose = start_pose(description, config, apply_overrides(description, config))
+        start = dict(pose.positions)
+        data = mujoco.MjData(model)
+        mimics = [(m.joint, m.leader, m.multiplier, m.offset) for m in description.mimics]
+        start_qpos(model, data, start, pose.keyframe, mimics)
+        for p in touching_at_start(model, data):
+            if p in pairs:
+                excluded[p] = "touching at the start pose"
     return SelfCollision(
         mode="auto",
         shapes=shapes,
-        pairs=frozenset(p for p in candidates if p in pairs),
+        pairs=frozenset(p for p in candidates if p in pairs and p not in excluded),
         excluded=excluded,
+        start=start,
     )
 
 
 _HEIGHTS: dict[int, tuple[SelfCollision, float]] = {}
 
 
-def standing_height(description: RobotDescription, collision: SelfCollision) -> float:
-    """How high the root link's frame must be for the robot to stand on the ground plane ``z = 0``.
+def lowest_point(model: object, data: object, geoms: Iterable[int]) -> float:
+    """The lowest world ``z`` of ``geoms`` at ``data``'s kinematics (inf when none has a shape).
 
-    The robot at its start pose (``collision.start``), root frame upright at the origin: the
-    height is minus the lowest point of its collision shapes (mesh vertices - the convex hulls
-    both simulators collide -, exact for spheres, capsules, cylinders and boxes), so the lowest
-    shape touches the ground. The same number for every simulator (one floating-base placement).
+    Mesh vertices (the convex hulls both simulators collide), exact for spheres, capsules,
+    cylinders, boxes and ellipsoids; planes and height fields are left out.
     """
-    cached = _HEIGHTS.get(id(collision))
-    if cached is not None and cached[0] is collision:
-        return cached[1]
     import mujoco
     import numpy as np
 
-    from .mjspec import build_spec
-
-    model = build_spec(description, collision.shapes, shell=collision.shell).spec.compile()
-    data = mujoco.MjData(model)
-    for name, q in collision.start.items():
-        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-        if jid >= 0:
-            data.qpos[model.jnt_qposadr[jid]] = q
-    for mimic in description.mimics:
-        jf = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, mimic.joint)
-        jl = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, mimic.leader)
-        if jf >= 0 and jl >= 0:
-            data.qpos[model.jnt_qposadr[jf]] = mimic.offset + mimic.multiplier * data.qpos[model.jnt_qposadr[jl]]
-    mujoco.mj_kinematics(model, data)
+    assert isinstance(model, mujoco.MjModel) and isinstance(data, mujoco.MjData)
     gt = mujoco.mjtGeom
     lowest = math.inf
-    for g in range(model.ngeom):
+    for g in geoms:
         pos, rot, size = data.geom_xpos[g], data.geom_xmat[g].reshape(3, 3), model.geom_size[g]
         kind = int(model.geom_type[g])
         axis_z = float(rot[2, 2])
@@ -449,6 +454,37 @@ def standing_height(description: RobotDescription, collision: SelfCollision) -> 
         else:
             continue
         lowest = min(lowest, z)
+    return lowest
+
+
+def standing_height(description: RobotDescription, collision: SelfCollision) -> float:
+    """How high the root link's frame must be for the robot to stand on the ground plane ``z = 0``.
+
+    The robot at its start pose (``collision.start``), root frame upright at the origin: the
+    height is minus the lowest point of its collision shapes (mesh vertices - the convex hulls
+    both simulators collide -, exact for spheres, capsules, cylinders and boxes), so the lowest
+    shape touches the ground. The same number for every simulator (one floating-base placement).
+    """
+    cached = _HEIGHTS.get(id(collision))
+    if cached is not None and cached[0] is collision:
+        return cached[1]
+    import mujoco
+
+    from .mjspec import build_spec
+
+    model = build_spec(description, collision.shapes, shell=collision.shell).spec.compile()
+    data = mujoco.MjData(model)
+    for name, q in collision.start.items():
+        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if jid >= 0:
+            data.qpos[model.jnt_qposadr[jid]] = q
+    for mimic in description.mimics:
+        jf = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, mimic.joint)
+        jl = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, mimic.leader)
+        if jf >= 0 and jl >= 0:
+            data.qpos[model.jnt_qposadr[jf]] = mimic.offset + mimic.multiplier * data.qpos[model.jnt_qposadr[jl]]
+    mujoco.mj_kinematics(model, data)
+    lowest = lowest_point(model, data, range(model.ngeom))
     height = 0.0 if not math.isfinite(lowest) else -lowest
     _HEIGHTS[id(collision)] = (collision, height)
     return height

@@ -11,7 +11,11 @@ MuJoCo backend will, and the description is read from the compiled model:
   actuators driving the joint (``forcerange`` times ``gear``, or a motor's
   ``ctrlrange`` times its gain and gear), else unlimited; MJCF has no velocity
   limits, so the SDK default is used (listed in ``defaults``);
-* start positions from the keyframe named ``home``;
+* start positions from a keyframe: the first of :data:`START_STATE_NAMES` the model has
+  (``home``, ``stand``, ...); every named keyframe is a ``named_states`` entry (robot.yaml
+  ``initial_group_state`` picks one);
+* a free joint (``<freejoint>``) at the root makes that body the floating base
+  (:attr:`RobotDescription.free_root`);
 * links are bodies; their frames sit on the joint axis (a joint ``pos``
   shifts the link frame, as URDF requires), a body with several joints
   becomes a chain of massless links named ``body/joint``; geometry is the
@@ -50,7 +54,11 @@ from .model import (
 from .packages import Resolver
 from .xacro_expand import TRUST_HINT
 
-__all__ = ["colliding_body_pairs", "load_mjcf", "mjcf_unsupported_by_pybullet"]
+__all__ = ["START_STATE_NAMES", "colliding_body_pairs", "load_mjcf", "mjcf_unsupported_by_pybullet"]
+
+#: names of a start pose, in order of preference: the first an MJCF keyframe (or, beside a URDF,
+#: an SRDF ``<group_state>``) has is the start pose when robot.yaml names none
+START_STATE_NAMES = ("home", "stand", "standing", "ready", "half_sitting", "neutral", "default")
 
 Vec3 = tuple[float, float, float]
 
@@ -343,14 +351,8 @@ def _load_mjcf(path: Path) -> RobotDescription:
                 f"{DEFAULT_VELOCITY['prismatic']:g} m/s) for {len(no_velocity)} joints",
             )
         )
-    home: dict[str, float] = {}
-    key = mujoco.mj_name2id(m, obj.mjOBJ_KEY, "home")
-    if key >= 0:
-        names = {j.name for j in joints}
-        for jid in range(m.njnt):
-            jname = mujoco.mj_id2name(m, obj.mjOBJ_JOINT, jid)
-            if jname in names:
-                home[jname] = float(m.key_qpos[key, m.jnt_qposadr[jid]])
+    states = _keyframes(m, {j.name for j in joints})
+    default_state = next((k for k in START_STATE_NAMES if k in states), None)
     meshes: list[Path] = []
     for mesh in spec.meshes:
         if mesh.file:
@@ -372,8 +374,27 @@ def _load_mjcf(path: Path) -> RobotDescription:
         repairs=(),
         defaults=tuple(defaults),
         srdf=None,
-        default_positions=home,
+        default_positions=dict(states[default_state]) if default_state else {},
+        named_states=states,
+        default_state=default_state,
     )
+
+
+def _keyframes(m: Any, names: set[str]) -> dict[str, dict[str, float]]:
+    """Every named keyframe's positions of the joints in ``names`` (the first keyframe of a name wins)."""
+    import mujoco
+
+    out: dict[str, dict[str, float]] = {}
+    for key in range(m.nkey):
+        kname = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_KEY, key)
+        if not kname or kname in out:
+            continue
+        out[kname] = {
+            jname: float(m.key_qpos[key, m.jnt_qposadr[jid]])
+            for jid in range(m.njnt)
+            if (jname := mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jid)) in names
+        }
+    return out
 
 
 def colliding_body_pairs(model: Any, *, world: bool = True) -> set[tuple[str, str]]:

@@ -268,8 +268,34 @@ class RobotDescription:
     defaults: tuple[Repair, ...] = field(default=(), repr=False)
     #: an SRDF found beside the description (its ``<disable_collisions>`` are honoured)
     srdf: Path | None = None
-    #: start positions the description itself gives (an MJCF ``home`` keyframe)
+    #: start positions the description itself gives (an MJCF keyframe, see ``default_state``)
     default_positions: Mapping[str, float] = field(default_factory=dict, repr=False)
+    #: the named poses the description holds (MJCF keyframes): ``{name: {joint: position}}``
+    named_states: Mapping[str, Mapping[str, float]] = field(default_factory=dict, repr=False)
+    #: the named pose ``default_positions`` comes from (an MJCF keyframe), or None
+    default_state: str | None = None
+
+    @property
+    def free_root(self) -> str | None:
+        """The link a free (floating) joint attaches to the root (an MJCF ``<freejoint>``), or None.
+
+        That link is the floating base: the simulators leave it free and report its pose. Only
+        a body carrying commanded joints counts (a free object in a scene, a ball, is not the base).
+        """
+        commanded = {j.child for j in self.joints}
+        children: dict[str, list[str]] = {}
+        for j in self.all_joints:
+            children.setdefault(j.parent, []).append(j.child)
+        for j in self.all_joints:
+            if j.type != "floating" or j.parent != self.root_link:
+                continue
+            stack = [j.child]
+            while stack:
+                link = stack.pop()
+                if link in commanded:
+                    return j.child
+                stack.extend(children.get(link, ()))
+        return None
 
     @property
     def joint_names(self) -> tuple[str, ...]:
@@ -315,8 +341,12 @@ class RobotDescription:
         """The link a floating base floats by: the root link, or its single child.
 
         The child when the root is a massless link rigidly attached to it (ROS's
-        ``world -> base_link`` pattern).
+        ``world -> base_link`` pattern). With a free joint at the root (:attr:`free_root`), the
+        link it carries.
         """
+        free = self.free_root
+        if free is not None:
+            return free
         root = self.link(self.root_link) if any(r.name == self.root_link for r in self.link_records) else None
         out = self.child_joints(self.root_link)
         if (root is None or root.mass == 0.0) and len(out) == 1 and out[0].type == "fixed":

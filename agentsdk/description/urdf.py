@@ -667,7 +667,8 @@ def _joint_back(elem: Any, rec: JointRecord) -> None:
 def find_srdf(urdf_path: Path, robot_name: str) -> Path | None:
     """An SRDF beside ``urdf_path``: same stem, or naming the same robot, in the same or a sibling srdf/config dir.
 
-    Searched: the URDF's directory and ``../srdf``, ``../config``. A file with the
+    Searched: the URDF's directory and ``../srdf``, ``../config`` (and the ``srdf``/``config``
+    directories of the ROS package it is in, up to three levels up). A file with the
     URDF's stem wins; else the one file declaring ``<robot name="robot_name">``
     whose stem is the longest prefix of the URDF's stem; ambiguity means none.
     """
@@ -676,6 +677,11 @@ def find_srdf(urdf_path: Path, robot_name: str) -> Path | None:
         if stem.lower().endswith(suffix):
             stem = stem[: -len(suffix)]
     dirs = [urdf_path.parent, urdf_path.parent.parent / "srdf", urdf_path.parent.parent / "config"]
+    # the package's own srdf/ and config/ when the URDF sits deeper in it (pkg/urdf/robots/r.urdf)
+    for up in list(urdf_path.parents)[1:4]:
+        if (up / "package.xml").is_file():
+            dirs += [d for d in (up / "srdf", up / "config") if d not in dirs]
+            break
     candidates: list[Path] = []
     for d in dirs:
         if d.is_dir():

@@ -16,6 +16,14 @@ plane is added (friction robot.yaml ``ground_friction``, the robot's geoms given
 coefficient, MuJoCo taking the larger of two), and the robot starts standing on it at its
 start pose (:func:`agentsdk.description.collision.standing_height`).
 
+MJCF models keep their own contact settings, with the one rule of the URDF path: bodies of
+the robot touching at the start pose do not collide (:mod:`agentsdk.description.mjcf_scene`;
+robot.yaml ``self_collision: true`` keeps them). A free joint at the root (``<freejoint>``)
+is the floating base whatever robot.yaml says; a model without a floor (a plane or height
+field attached to the world) gets the ground plane above (the model's own geom frictions
+kept), and the robot is raised or lowered to stand on it. The simulation starts from the
+keyframe the start pose comes from (:attr:`agentsdk.description.start.StartPose.keyframe`).
+
 Divergence: MuJoCo silently resets a diverged state (``mjWARN_BADQACC``) and
 zeroes every control when one is NaN, inf or huge (``mjWARN_BADCTRL``); this
 backend checks the warning counters and finiteness after every control period
@@ -39,6 +47,7 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description.collision import SelfCollision, for_robot, standing_height
 from agentsdk.description.mjcf import colliding_body_pairs
+from agentsdk.description.mjcf_scene import has_ground, standing_offset, start_qpos, touching_at_start
 from agentsdk.description.mjspec import build_spec, mjcf_spec_without_actuators
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.dynamics import GravityTerm
@@ -66,6 +75,8 @@ _WARNINGS = (
     mujoco.mjtWarning.mjWARN_BADCTRL,
 )
 _BADCTRL = mujoco.mjtWarning.mjWARN_BADCTRL
+#: the colour of the ground plane a floating base stands on (light grey: the robot stands out in a video)
+GROUND_RGBA = (0.75, 0.77, 0.8, 1.0)
 
 
 log = logging.getLogger("agentsdk.backends.mujoco")
@@ -100,7 +111,7 @@ class MujocoOptions(BaseModel):
     #: reflected rotor inertia added to every actuated joint (kg·m²)
     armature: float = Field(default=0.0, ge=0.0, le=MAX_GAIN)
     #: a free-floating base on a ground plane instead of a root link fixed to the world
-    #: (default: robot.yaml ``floating_base``)
+    #: (default: robot.yaml ``floating_base``; an MJCF free joint at the root always floats)
     floating_base: bool | None = None
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
     self_collision: Literal["auto"] | bool | None = None
@@ -125,6 +136,8 @@ class MujocoController(Backend):
     collision: SelfCollision | None = None
     _free_body = ""  # the body given a free joint (floating base)
     _ground_height = 0.0  # the root frame's height when standing on the ground plane
+    #: MJCF body pairs touching at the start pose, excluded from contact (empty for URDF models)
+    mjcf_touching: frozenset[tuple[str, str]] = frozenset()
 
     @property
     def servo_timestep(self) -> float:
@@ -133,9 +146,9 @@ class MujocoController(Backend):
 
     @property
     def floating_base(self) -> bool:
-        """True when the base floats on a ground plane (option ``floating_base``, else robot.yaml)."""
+        """True when the base floats (an MJCF free joint at the root, else option ``floating_base``, robot.yaml)."""
         opt = self.options.floating_base
-        return bool(self.config.floating_base if opt is None else opt)
+        return self.description.free_root is not None or bool(self.config.floating_base if opt is None else opt)
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -196,7 +209,8 @@ class MujocoController(Backend):
              mm.multiplier, mm.offset)
             for mm in (desc.mimics if desc.format == "urdf" else ())
         ]
-        self._home_key = int(mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "home")) if desc.format == "mjcf" else -1
+        key = self.start_pose.keyframe if desc.format == "mjcf" else None
+        self._home_key = int(mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, key)) if key else -1
         d = self.data
         n = len(self.joints)
         # views into the model and data, made once (each attribute access builds a new array object)
@@ -260,12 +274,42 @@ class MujocoController(Backend):
             ground.type = mujoco.mjtGeom.mjGEOM_PLANE
             ground.size = [0.0, 0.0, 1.0]  # infinite
             ground.friction = [mu, 0.005, 0.0001]
+            ground.rgba = list(GROUND_RGBA)
             self._ground_height = standing_height(desc, collision)
         return spec
 
     def _mjcf_spec(self) -> mujoco.MjSpec:
-        """The MJCF model as written (includes, assets, defaults, contacts), its actuators replaced by servos."""
-        return mjcf_spec_without_actuators(str(self.description.source))
+        """The MJCF model as written (includes, assets, defaults, contacts), its actuators replaced by servos.
+
+        Pairs touching at the start pose are excluded, a floating base gets its free joint and,
+        without a floor in the model, a ground plane to stand on (see the module docstring).
+        """
+        desc = self.description
+        spec = mjcf_spec_without_actuators(str(desc.source))
+        free = desc.free_root
+        if free is None and self.floating_base:
+            free = _add_free_joint(spec, desc.name)
+        probe = spec.compile()
+        pdata = mujoco.MjData(probe)
+        mimics = [(m.joint, m.leader, m.multiplier, m.offset) for m in desc.mimics]
+        start_qpos(probe, pdata, dict(self.start_pose.positions), self.start_pose.keyframe, mimics)
+        opt = self.options.self_collision
+        mode = self.config.self_collision if opt is None else opt
+        self.mjcf_touching = frozenset(touching_at_start(probe, pdata)) if mode == "auto" else frozenset()
+        for a, b in sorted(self.mjcf_touching):
+            spec.add_exclude(bodyname1=a, bodyname2=b)
+        if free is not None:
+            self._free_body = free
+            if not has_ground(probe):
+                mu = self.config.ground_friction
+                ground = spec.worldbody.add_geom()
+                ground.name = "agentsdk/ground"
+                ground.type = mujoco.mjtGeom.mjGEOM_PLANE
+                ground.size = [0.0, 0.0, 1.0]  # infinite
+                ground.friction = [mu, 0.005, 0.0001]
+                ground.rgba = list(GROUND_RGBA)
+                self._ground_height = standing_offset(probe, pdata, probe.body(free).id)
+        return spec
 
     def simulator_report(self) -> dict[str, Any]:
         """What the compiled MuJoCo model holds: commanded joints, link masses, colliding link pairs.
@@ -441,6 +485,25 @@ class MujocoController(Backend):
 
     async def _recover(self) -> None:
         self._reset_state()
+
+
+def _add_free_joint(spec: mujoco.MjSpec, robot: str) -> str:
+    """Free the one body attached to the world (robot.yaml ``floating_base`` on an MJCF without a free joint).
+
+    The keyframes get the body's pose at the front of their ``qpos`` (the free joint is the first joint).
+    """
+    tops = list(spec.worldbody.bodies)
+    movable = [b for b in tops if list(b.bodies) or list(b.joints)]
+    if len(movable) != 1:
+        raise BackendStartError(
+            f"floating_base: robot {robot!r} has {len(movable)} bodies attached to the world, expected one"
+        )
+    body = movable[0]
+    body.add_freejoint()
+    for key in spec.keys:
+        if len(key.qpos):
+            key.qpos = [*body.pos, *body.quat, *key.qpos]
+    return str(body.name)
 
 
 def _gather_view(arr: np.ndarray, idx: np.ndarray) -> np.ndarray | None:

@@ -488,6 +488,11 @@ class PybulletController(Backend):
         self._mass = np.zeros((nd, nd))
         self._bias = np.zeros(nd)
         self._a = np.zeros((nd, nd))
+        # rotor inertia (MJCF ``armature``) per PyBullet dof: PyBullet has no such term, the implicit step adds it
+        arm = self._model.model.dof_armature
+        self._armature = np.asarray(arm[self._perm], dtype=float) if self._implicit else np.zeros(nd)
+        self._armature_any = bool(self._armature.any())
+        self._rigid_mass = np.zeros((nd, nd))
 
     def _gravity_torque(self) -> np.ndarray:
         """g(q) at the latest sensed state into ``_tau_model`` (masked per joint)."""
@@ -516,7 +521,9 @@ class PybulletController(Backend):
 
         ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction: per dof, the
         torque that would stop the joint this step, within +-its friction (one decoupled projection),
-        then ``f = c + g + M qacc`` (PyBullet's motors carry no friction here).
+        then ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
+        rotor inertia ``A`` (MJCF ``armature``, diagonal) that PyBullet does not simulate: the torque
+        ``A qacc`` that accelerates the rotors is held back, so PyBullet's rigid bodies take ``qacc``.
         """
         mass, bias = self._implicit_terms()
         a = self._a
@@ -529,6 +536,11 @@ class PybulletController(Backend):
             np.clip(stop, -self._friction, self._friction, out=stop)
             rhs += stop
             qacc = np.linalg.solve(a, rhs)
+        if self._armature_any:
+            rigid = self._rigid_mass
+            np.copyto(rigid, mass)
+            rigid[self._diag] -= self._armature
+            mass = rigid
         np.matmul(mass, qacc, out=f_all)
         f_all += bias
         return f_all
@@ -607,7 +619,7 @@ class PybulletController(Backend):
                 else:
                     np.copyto(d_all, damping)
                     d_all[sel] += kdm
-                if np.count_nonzero(d_all) or self._friction_any:
+                if self._armature_any or self._friction_any or np.count_nonzero(d_all):
                     f_all = self._implicit_step(f_all, d_all, h)
             set_motors(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
             step(physicsClientId=cid)

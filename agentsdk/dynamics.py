@@ -165,6 +165,8 @@ class DynamicsModel:
                 if len(tops) == 1 and not tops[0].joints:
                     tops[0].add_freejoint()
                     self._free = tops[0].name
+                elif len(tops) == 1 and [j.type for j in tops[0].joints] == [mujoco.mjtJoint.mjJNT_FREE]:
+                    self._free = tops[0].name  # an MJCF <freejoint>: the base floats already
             self.model = spec.compile()
         except Exception as exc:
             raise DescriptionError(f"could not build the dynamics model of {description.name!r}: {exc}") from exc

@@ -56,6 +56,7 @@ import os
 import sys
 import tempfile
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -71,16 +72,24 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
 from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf, standing_height
-from agentsdk.description.mjcf import mjcf_unsupported_by_pybullet
+from agentsdk.description.mjcf import free_root, mjcf_unsupported_by_pybullet
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel
-from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.errors import (
+    AgentSDKError,
+    BackendFault,
+    BackendStartError,
+    ConfigurationError,
+    SimulationDiverged,
+    UnsupportedModelError,
+)
 from agentsdk.pose import BaseState, Pose
 from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
+from .floating import FloatingStep
 from .sensors import SERVED, PybulletSensors
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
@@ -182,9 +191,15 @@ class PybulletController(Backend):
 
     @property
     def floating_base(self) -> bool:
-        """True when the base floats on a ground plane (option ``floating_base``, else robot.yaml)."""
+        """True when the base floats on a ground plane.
+
+        Option ``floating_base``, else robot.yaml, else whether the model's root body has a free joint
+        (an MJCF ``<freejoint>``; ``floating_base: false`` welds it to the world).
+        """
         opt = self.options.floating_base
-        return bool(self.config.floating_base if opt is None else opt)
+        if opt is not None:
+            return bool(opt)
+        return bool(self.config.floating_base) or free_root(self.description) is not None
 
     # ------------------------------------------------------------ open/close
     async def _open(self) -> None:
@@ -223,7 +238,7 @@ class PybulletController(Backend):
         self._load_body()
         self._sensors = PybulletSensors(self.sensors, f"robot {self.description.name!r}")
         desc = self.description
-        world = (desc.root_link,) if self.floating_base and desc.base_link != desc.root_link else ()
+        world = (desc.root_link,) if self.floating_base and _float_link(desc) != desc.root_link else ()
         self._sensors.bind(cid, self._body, self._links, opts.gravity,
                            getattr(self, "_base_inertial", None), world)
         self._reset_state()
@@ -251,7 +266,7 @@ class PybulletController(Backend):
         if desc.format == "mjcf":
             unsupported = mjcf_unsupported_by_pybullet(desc)
             if unsupported:
-                raise BackendStartError(
+                raise UnsupportedModelError(
                     f"PyBullet cannot load {label}: the MJCF model uses {'; '.join(unsupported)}, which a URDF "
                     "cannot carry (PyBullet's own loadMJCF reads even less: no <include>, default classes or "
                     "meshdir). Use the mujoco backend for this model"
@@ -265,9 +280,14 @@ class PybulletController(Backend):
         if self.floating_base:
             # the base link floats (a massless root fixed to it is left out: PyBullet would hold a massless
             # base static); it starts where the root frame stands on the ground plane
-            if desc.base_link != desc.root_link:
+            if _float_link(desc) != desc.root_link:
                 skip = frozenset({desc.root_link})
-            height = standing_height(desc, collision) if desc.format == "urdf" else 0.0
+            if desc.format == "urdf":
+                height = standing_height(desc, collision)
+            else:  # the MJCF body at its free joint's place, its lowest shape on the ground at the start pose
+                start = dict(zip((j.name for j in self.joints), self.initial_positions.tolist(), strict=True))
+                shapes = {k: v for k, v in collision.shapes.items() if k not in skip}
+                height = standing_height(desc, replace(collision, shapes=shapes, start=start))
             pose = Pose((0.0, 0.0, height)) @ _base_offset(desc)
             base_pose = (pose.position.tolist(), pose.orientation.tolist())
         # PyBullet's state queries fail beyond MAX_LINKS links: leave out links that carry nothing
@@ -362,7 +382,7 @@ class PybulletController(Backend):
         # (a fixed base), else through the motors
         self._damping = np.array([float(info[6]) for info in dofs]) + opts.joint_damping
         friction = [float(info[7]) for info in dofs]
-        self._implicit = not self.floating_base
+        self._implicit = True  # a floating base falls back to the explicit law if its step cannot be built
         self._friction = np.array(friction)
         self._friction_any = any(friction) and self._implicit
         for link in range(-1, len(infos)):
@@ -390,6 +410,7 @@ class PybulletController(Backend):
             info = p.getDynamicsInfo(body, -1, physicsClientId=cid)
             # the base's inertial frame in its link frame (PyBullet reports the base by its inertial frame)
             self._base_inertial = Pose(info[3], info[4])
+            self._setup_floating_step(label, friction)
 
         # preallocated work arrays
         self._q_all = np.zeros(nd)
@@ -455,6 +476,8 @@ class PybulletController(Backend):
             p.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
         self._tau[:] = 0.0
         self._time = 0.0
+        if self._floating_step is not None:
+            self._floating_step.reset()
         if hasattr(self, "_sensors"):
             self._sensors.reset()
         self._sense()
@@ -477,10 +500,14 @@ class PybulletController(Backend):
         )
         self._gc_on = bool(self._gc_mask.any()) and any(self.options.gravity)
         self._gc_q = np.zeros(len(self.joints))
-        nd, nv = len(self._dofs), self._model.model.nv
-        # PyBullet dof k is the model's dof _perm[k]
-        self._perm = self._model.dofs(list(self._dof_row)) if not self.floating_base else np.zeros(0, dtype=np.intp)
-        self._mq = np.zeros(nv)
+        model = self._model.model
+        nd, nv = len(self._dofs), model.nv
+        # PyBullet dof k is the model's dof _perm[k], its position the model's qpos[_qadr[k]]
+        names = list(self._dof_row)
+        self._perm = self._model.dofs(names)
+        self._qadr = np.array([model.jnt_qposadr[model.joint(n).id] for n in names], dtype=np.intp)
+        self._floating_step: FloatingStep | None = None
+        self._mq = model.qpos0.copy()
         self._mv = np.zeros(nv)
         self._m_full = np.zeros((nv, nv))
         self._m_rows = np.zeros((nd, nv))
@@ -490,9 +517,28 @@ class PybulletController(Backend):
         self._a = np.zeros((nd, nd))
         # rotor inertia (MJCF ``armature``) per PyBullet dof: PyBullet has no such term, the implicit step adds it
         arm = self._model.model.dof_armature
-        self._armature = np.asarray(arm[self._perm], dtype=float) if self._implicit else np.zeros(nd)
+        self._armature = np.asarray(arm[self._perm], dtype=float)
         self._armature_any = bool(self._armature.any())
         self._rigid_mass = np.zeros((nd, nd))
+
+    def _setup_floating_step(self, label: str, friction: list[float]) -> None:
+        """The floating base's implicit step (:mod:`.floating`), else the explicit law with motor friction."""
+        try:
+            self._floating_step = FloatingStep(
+                self._model, self._perm, self._qadr, base_link=_float_link(self.description),
+                base_in_inertial=self._base_inertial.inverse(), timestep=self.options.timestep,
+                friction=self._friction,
+            )
+        except ValueError as exc:
+            log.warning("%s: %s; the floating base runs the explicit servo law (no armature, no implicit damping)",
+                        label, exc)
+            self._implicit = False
+            self._friction_any = False
+            if self._dofs:
+                p.setJointMotorControlArray(
+                    self._body, self._dofs, p.VELOCITY_CONTROL, targetVelocities=[0.0] * len(self._dofs),
+                    forces=friction, physicsClientId=self._cid,
+                )
 
     def _gravity_torque(self) -> np.ndarray:
         """g(q) at the latest sensed state into ``_tau_model`` (masked per joint)."""
@@ -508,7 +554,7 @@ class PybulletController(Backend):
         PyBullet's own ``calculateInverseDynamics`` is wrong with fixed joints (module docstring).
         """
         perm = self._perm
-        self._mq[perm] = self._q_all
+        self._mq[self._qadr] = self._q_all
         self._mv[perm] = self._v_all
         self._model.terms(self._mq, self._mv, self._m_full, self._m_bias)
         np.take(self._m_full, perm, axis=0, out=self._m_rows)
@@ -619,7 +665,9 @@ class PybulletController(Backend):
                 else:
                     np.copyto(d_all, damping)
                     d_all[sel] += kdm
-                if self._armature_any or self._friction_any or np.count_nonzero(d_all):
+                if self._floating_step is not None:
+                    f_all = self._floating_step(cid, body, q_all, v_all, f_all, d_all)
+                elif self._armature_any or self._friction_any or np.count_nonzero(d_all):
                     f_all = self._implicit_step(f_all, d_all, h)
             set_motors(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
             step(physicsClientId=cid)
@@ -674,11 +722,17 @@ def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
+def _float_link(desc: RobotDescription) -> str:
+    """The link PyBullet floats: the body of a root free joint (MJCF), else ``desc.base_link``."""
+    return free_root(desc) or desc.base_link
+
+
 def _base_offset(desc: RobotDescription) -> Pose:
-    """The floating base link (``desc.base_link``) in the root link's frame (identity when it is the root)."""
-    if desc.base_link == desc.root_link:
+    """The floating link (:func:`_float_link`) in the root link's frame (identity when it is the root)."""
+    link = _float_link(desc)
+    if link == desc.root_link:
         return Pose()
-    joint = desc.parent_joint(desc.base_link)
+    joint = desc.parent_joint(link)
     assert joint is not None
     w, x, y, z = quat_from_rpy(joint.rpy)
     return Pose(joint.xyz, (x, y, z, w))

@@ -22,9 +22,11 @@ integrated implicitly: with the joint-space mass matrix ``M`` and bias forces
 ``tau - b*v - dt*D*qacc`` with ``(M + dt*D) qacc = tau - b*v - c`` and
 ``D = kd + b``, so the explicit PyBullet step lands where an implicit-damping
 step would. This keeps stiff damping on light links stable (explicit damping
-diverges once ``kd*dt/I > 2``) and matches the MuJoCo backend closely. A
-floating base uses the plain explicit law (PyBullet's floating-base dynamics
-queries are not reliable enough to build the implicit step on).
+diverges once ``kd*dt/I > 2``) and matches the MuJoCo backend closely. ``M``
+includes the rotor inertia ``A`` (MJCF ``armature``) PyBullet does not simulate:
+the torque ``A qacc`` that accelerates the rotors is held back. A floating base
+solves the whole model, its free base included, and adds the constraint forces
+(ground contacts) PyBullet applied over the last substeps (:mod:`.floating`).
 
 Gravity compensation (``tau_model`` of the servo law, :mod:`agentsdk.dynamics`): once per
 control period ``g(q)`` at the measured position is added to the feed-forward of the law above
@@ -34,7 +36,8 @@ base at PyBullet's measured attitude), not from PyBullet's ``calculateInverseDyn
 mishandles URDF fixed joints (bullet3 #1379: on example-robot-data's double pendulum it gives
 0.074 N·m where 0.266 N·m hold the link) and floating bases (bullet3 #3149, #3264).
 
-Floating base (robot.yaml ``floating_base: true``): a ground plane is added; PyBullet multiplies
+Floating base (robot.yaml ``floating_base: true``, or an MJCF ``<freejoint>`` on the root body, which
+is written as the URDF's root): a ground plane is added; PyBullet multiplies
 the two friction coefficients of a contact, so the plane gets robot.yaml ``ground_friction`` and
 the robot's links 1.0 (the same contact friction as on MuJoCo); the robot starts standing on it
 (:func:`agentsdk.description.collision.standing_height`).
@@ -529,6 +532,7 @@ class PybulletController(Backend):
                 base_in_inertial=self._base_inertial.inverse(), timestep=self.options.timestep,
                 friction=self._friction,
             )
+            self._floating_step.bind(self._cid, self._body, self._dofs)
         except ValueError as exc:
             log.warning("%s: %s; the floating base runs the explicit servo law (no armature, no implicit damping)",
                         label, exc)

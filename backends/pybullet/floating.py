@@ -10,7 +10,11 @@ as what the model needs to explain the motion::
 
     F_ext = M(q) (v - v_prev) / h + c(q, v) + g(q) - f_prev
 
-(``f_prev``: the joint forces applied then, zero on the base's six dofs), and
+(``f_prev``: the joint forces applied then, zero on the base's six dofs), low-pass
+filtered (:data:`EXT_FILTER`: a touchdown's impulse is spread over a few substeps)
+and kept only on the base and on the joints that carry a link in contact (elsewhere
+the measurement holds nothing but model error, which fed back on a light finger
+would grow from substep to substep), and
 solves the whole model - the free base included, from PyBullet's base state -
 with the damping integrated implicitly and the rotors' inertia ``A`` (MJCF
 ``armature``) that PyBullet does not simulate::
@@ -35,7 +39,10 @@ import pybullet as p
 from agentsdk.dynamics import DynamicsModel
 from agentsdk.pose import Pose
 
-__all__ = ["FloatingStep", "free_body_name"]
+__all__ = ["EXT_FILTER", "FloatingStep", "free_body_name"]
+
+#: weight of the newest measurement in the low-pass filtered constraint force (per substep)
+EXT_FILTER = 0.3
 
 
 def free_body_name(model: mujoco.MjModel) -> str | None:
@@ -109,6 +116,7 @@ class FloatingStep:
         self._a = np.zeros((nv, nv))
         self._rhs = np.zeros(nv)
         self._ext = np.zeros(nv)
+        self._meas = np.zeros(nv)
         self._applied = np.zeros(nv)
         self._out = np.zeros(nv)
         self._diag = np.diag_indices(nv)
@@ -120,6 +128,33 @@ class FloatingStep:
         self._vec = np.zeros(3)
         self._vec2 = np.zeros(3)
         self._omega = np.zeros(3)
+
+    def _touching(self, cid: int, body: int) -> np.ndarray:
+        """Per joint dof: whether a link at or below it is in contact (with the ground or itself)."""
+        links = self._contact_links
+        links.fill(False)
+        for c in p.getContactPoints(bodyA=body, physicsClientId=cid):
+            links[c[3] + 1] = True
+            if c[2] == body:
+                links[c[4] + 1] = True
+        np.matmul(self._subtree, links, out=self._touch_count)
+        return self._touch_count > 0
+
+    def bind(self, cid: int, body: int, joints: list[int]) -> None:
+        """PyBullet's link tree: which links move with each joint dof (``joints``: PyBullet joint index per dof)."""
+        n = p.getNumJoints(body, physicsClientId=cid)
+        parent = [int(p.getJointInfo(body, j, physicsClientId=cid)[16]) for j in range(n)]
+        below = np.zeros((len(joints), n + 1), dtype=np.int64)  # column 0: the base (link -1)
+        for k, j in enumerate(joints):
+            for link in range(n):
+                x = link
+                while x >= 0 and x != j:
+                    x = parent[x]
+                if x == j:
+                    below[k, link + 1] = 1
+        self._subtree = below
+        self._contact_links = np.zeros(n + 1, dtype=np.int64)
+        self._touch_count = np.zeros(len(joints), dtype=np.int64)
 
     def reset(self) -> None:
         """Forget the previous substep (after the state was set from outside)."""
@@ -167,11 +202,20 @@ class FloatingStep:
         self._model.terms(qpos, qvel, mass, bias)
         ext = self._ext
         if self._have_prev:
-            np.subtract(qvel, self._qvel_prev, out=ext)
-            ext /= h
-            np.matmul(mass, ext, out=self._out)
-            np.add(self._out, bias, out=ext)
-            ext -= self._applied
+            meas = self._meas
+            np.subtract(qvel, self._qvel_prev, out=meas)
+            meas /= h
+            np.matmul(mass, meas, out=self._out)
+            self._out += bias
+            self._out -= self._applied
+            # low-pass: a standing robot's weight passes, a touchdown's impulse is spread over a few substeps
+            self._out -= ext
+            self._out *= EXT_FILTER
+            ext += self._out
+            # contacts act only on the joints that carry a touching link: elsewhere the measurement holds
+            # nothing but model error, which fed back on a light finger would grow from step to step
+            touching = self._touching(cid, body)
+            ext[dofs[~touching]] = 0.0
         else:
             ext.fill(0.0)
         a, rhs = self._a, self._rhs

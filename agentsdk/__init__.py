@@ -64,6 +64,7 @@ from .errors import (
     UnknownLinkError,
     UnreachablePoseError,
     UnsupportedModeError,
+    UnsupportedModelError,
 )
 from .feedback import FeedbackAgent, FeedbackState, LoopStats, run_feedback
 from .loop import HookHandle, Phase, Setpoint, StateView
@@ -140,6 +141,7 @@ __all__ = [
     "UnknownLinkError",
     "UnreachablePoseError",
     "UnsupportedModeError",
+    "UnsupportedModelError",
     "__version__",
     "available_backends",
     "connect",

@@ -167,6 +167,8 @@ class DynamicsModel:
                     self._free = tops[0].name
                 elif description.free_root is not None:  # an MJCF free joint at the root
                     self._free = description.free_root
+                elif len(tops) == 1 and [j.type for j in tops[0].joints] == [mujoco.mjtJoint.mjJNT_FREE]:
+                    self._free = tops[0].name  # an MJCF <freejoint>: the base floats already
             self.model = spec.compile()
         except Exception as exc:
             raise DescriptionError(f"could not build the dynamics model of {description.name!r}: {exc}") from exc

@@ -8,6 +8,7 @@ exception                       what the caller can do
 ``BackendUnavailableError``     install the backend or pick a known name
 ``BackendStartError``           the backend failed to open (hardware, sim)
 ``BusClaimedError``             (a ``BackendStartError``) another robot in this process drives those motors
+``UnsupportedModelError``       (a ``BackendStartError``) the backend cannot simulate part of the model: use another
 ``CommandRejected``             fix the command; the robot state is unchanged
 ``UnknownJointError``           (a ``CommandRejected``, ``KeyError``)
 ``UnknownLinkError``            (a ``CommandRejected``, ``KeyError``) no such link
@@ -52,6 +53,7 @@ __all__ = [
     "UnknownLinkError",
     "UnreachablePoseError",
     "UnsupportedModeError",
+    "UnsupportedModelError",
 ]
 
 
@@ -77,6 +79,10 @@ class BackendStartError(AgentSDKError):
 
 class BusClaimedError(BackendStartError):
     """The bus channel and motor ids are already driven by another open robot in this process."""
+
+
+class UnsupportedModelError(BackendStartError):
+    """The backend cannot simulate part of the robot model (e.g. MJCF tendons on PyBullet); the message names it."""
 
 
 class CommandRejected(AgentSDKError):

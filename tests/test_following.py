@@ -8,7 +8,6 @@ check's own behaviour (window, persistence, what is watched) is shown by feeding
 
 from __future__ import annotations
 
-import asyncio
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +15,7 @@ import pytest
 
 import agentsdk
 from agentsdk import ConfigurationError, JointCommand, ResultCode, SafetyState, Trajectory, TrajectoryPoint
-from agentsdk.loop import Phase, StateView
+from agentsdk.loop import StateView
 
 FIXTURES = Path(__file__).parent / "fixtures" / "following"
 SIMULATORS = ("mujoco", "pybullet")
@@ -52,38 +51,16 @@ async def test_healthy_tracking_holds_and_moves_without_a_following_error() -> N
         assert (following.peak < 0.2 * following.windows).all(), (following.peak, following.windows)
 
 
-async def test_a_motor_with_armature_on_pybullet_does_not_follow_and_latches() -> None:
-    """The wrist's rotor inertia (MJCF armature) is part of the model its gains come from; MuJoCo moves it,
-    PyBullet (no armature) does not follow the move: that latches a following error within 0.5 s, where
-    before the run went on and reported a goal tolerance at the end."""
-    async with agentsdk.connect("mujoco", robot=FIXTURES / "healthy.yaml") as robot:
+@pytest.mark.parametrize("backend", SIMULATORS)
+async def test_a_motor_with_armature_follows_on_both_simulators(backend: str) -> None:
+    """The wrist's rotor inertia (MJCF armature, 10 000 times the tool's) is part of the model its gains come
+    from; both simulators simulate it (PyBullet through its implicit step), so the wrist follows its move on
+    both, where PyBullet's wrist used to run away and latch."""
+    async with agentsdk.connect(backend, robot=FIXTURES / "healthy.yaml") as robot:
         result = await robot.move_to({"wrist": 2.0})
-        assert result.ok and not _following_events(robot)
-    async with agentsdk.connect("pybullet", robot=FIXTURES / "healthy.yaml") as robot:
-        following = robot.safety.following
-        assert following is not None
-        window = following.windows[1]
-        left: list[float] = []  # robot time the wrist's error first left its window
-
-        def watch(t: float, st: StateView, sp: agentsdk.backend.SetpointView) -> None:
-            if not left and abs(st.position[1] - sp.position[1]) > window:
-                left.append(t)
-
-        hook = robot.add_tick_hook(Phase.OBSERVE, watch)
-        move = asyncio.create_task(robot.move_to({"wrist": 2.0}))
-        await robot.clock.sleep(1.5)
-        hook.remove()
-        # the wrist runs away on PyBullet: either it leaves its window (a following error) or it moves
-        # faster in one tick than the plausibility gate allows (a sensor fault); both latch, naming it
-        sensor = [e for e in robot.safety.events if e.kind == "sensor"]
-        if sensor:
-            assert sensor[0].joint == "wrist" and sensor[0].time <= 0.5
-            assert robot.safety.state is SafetyState.FAULT
-        else:
-            (ev,) = _following_events(robot)
-            assert left and ev.joint == "wrist" and ev.time - left[0] <= 0.5
-            assert robot.safety.state is SafetyState.ESTOP
-        assert (await move).code is ResultCode.ABORTED  # the move ends with the stop
+        assert result.ok, result
+        assert robot.safety.state is SafetyState.OK and not _following_events(robot)
+        assert abs((await robot.read()).position[1] - 2.0) < 0.02
 
 
 @pytest.mark.parametrize("backend", SIMULATORS)

@@ -9,7 +9,10 @@ with the rules MoveIt's setup assistant applies (``compute_default_collisions``)
 * only links with collision geometry take part;
 * **adjacent** links never collide: connected by a joint, or through links
   that have no collision geometry (MoveIt connects the neighbours of a
-  geometry-less link to each other);
+  geometry-less link to each other), or rigidly attached to links so
+  connected (a camera fixed to a tilting head and the pan link the head
+  turns on: MoveIt connects a fixed child to its parent's neighbours, and
+  MuJoCo's parent filter works on bodies welded together);
 * **rigidly attached** links never collide: connected by fixed joints only
   (they cannot move relative to each other; MuJoCo cannot collide them at all);
 * links **touching at the start pose** (within :data:`TOUCH_DISTANCE`, on the
@@ -291,6 +294,38 @@ def _rigid_groups(description: RobotDescription) -> dict[str, str]:
 
 
 def _adjacent_pairs(description: RobotDescription, geometric: set[str]) -> set[Pair]:
+    """Pairs of geometric links joined directly, or through links without collision geometry.
+
+    Also the links of two rigid groups (links joined by fixed joints) joined that way: a link
+    fixed to a moving link is adjacent to the links its joint turns against.
+    """
+    out = _adjacent_links(description, geometric)
+    group = _rigid_groups(description)
+    members: dict[str, list[str]] = {}
+    for name in sorted(geometric):
+        members.setdefault(group[name], []).append(name)
+    neighbours: dict[str, set[str]] = {g: set() for g in set(group.values())}
+    for j in description.all_joints:
+        a, b = group[j.parent], group[j.child]
+        if a != b:
+            neighbours[a].add(b)
+            neighbours[b].add(a)
+    for start in members:
+        seen = {start}
+        stack = list(neighbours[start])
+        while stack:
+            other = stack.pop()
+            if other in seen:
+                continue
+            seen.add(other)
+            if other in members:
+                out.update(_pair(a, b) for a in members[start] for b in members[other])
+            else:
+                stack.extend(neighbours[other])
+    return out
+
+
+def _adjacent_links(description: RobotDescription, geometric: set[str]) -> set[Pair]:
     """Pairs of geometric links joined directly, or through links without collision geometry."""
     neighbours: dict[str, set[str]] = {name: set() for name in description.links}
     for j in description.all_joints:

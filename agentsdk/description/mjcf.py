@@ -54,7 +54,7 @@ from .model import (
 from .packages import Resolver
 from .xacro_expand import TRUST_HINT
 
-__all__ = ["START_STATE_NAMES", "colliding_body_pairs", "load_mjcf", "mjcf_unsupported_by_pybullet"]
+__all__ = ["START_STATE_NAMES", "colliding_body_pairs", "free_root", "load_mjcf", "mjcf_unsupported_by_pybullet"]
 
 #: names of a start pose, in order of preference: the first an MJCF keyframe (or, beside a URDF,
 #: an SRDF ``<group_state>``) has is the start pose when robot.yaml names none
@@ -433,15 +433,32 @@ def colliding_body_pairs(model: Any, *, world: bool = True) -> set[tuple[str, st
     return out
 
 
+def free_root(description: RobotDescription) -> str | None:
+    """The body a root free joint floats (an MJCF ``<freejoint>`` on the one body attached to the world), or None.
+
+    That body is the robot's floating base: a URDF's root link, which PyBullet floats unless the
+    base is fixed.
+    """
+    out = description.child_joints(description.root_link)
+    if len(out) == 1 and out[0].type == "floating":
+        return out[0].child
+    return None
+
+
 def mjcf_unsupported_by_pybullet(description: RobotDescription) -> list[str]:
-    """What of an MJCF model a URDF for PyBullet cannot carry (empty: it can be loaded as a URDF)."""
+    """What of an MJCF model a URDF for PyBullet cannot carry (empty: it can be loaded as a URDF).
+
+    A free joint on the one body attached to the world is a floating base (:func:`free_root`);
+    other free joints (several floating bodies, a free joint below another body) have no URDF form.
+    """
     import mujoco
 
     _, m = _compile(description.source)
     out: list[str] = []
+    free = [j for j in description.all_joints if j.type == "floating"]
+    if free and not (len(free) == 1 and free_root(description) is not None):
+        out.append(f"free joints other than one at the root ({', '.join(j.name for j in free)})")
     kinds = {j.type for j in description.all_joints}
-    if "floating" in kinds:
-        out.append("free joints (floating bodies)")
     if "ball" in kinds:
         out.append("ball joints")
     if m.ntendon:

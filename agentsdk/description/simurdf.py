@@ -7,7 +7,8 @@ parent), every link has an explicit ``<inertial>`` in its principal frame
 full tensors with its own tolerance), only the collision shapes of the
 self-collision model are written, with meshes pointing at the converted files
 both simulators share (:mod:`.meshes`), and a revolute joint without position
-limits is written as continuous.
+limits is written as continuous, and a floating joint as fixed (a simulator that floats the body
+leaves the joint's parent out).
 """
 
 from __future__ import annotations
@@ -126,7 +127,9 @@ def simulator_urdf(
         if joint is None or joint.parent in skip_links:
             continue
         jtype = joint.type
-        if jtype == "revolute" and not joint.limited:
+        if jtype == "floating":  # a simulator floats the body by leaving this joint out (skip_links)
+            jtype = "fixed"
+        elif jtype == "revolute" and not joint.limited:
             jtype = "continuous"
         elif jtype == "prismatic" and not joint.limited:
             jtype = "prismatic_unlimited"

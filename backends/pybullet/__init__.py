@@ -22,9 +22,11 @@ integrated implicitly: with the joint-space mass matrix ``M`` and bias forces
 ``tau - b*v - dt*D*qacc`` with ``(M + dt*D) qacc = tau - b*v - c`` and
 ``D = kd + b``, so the explicit PyBullet step lands where an implicit-damping
 step would. This keeps stiff damping on light links stable (explicit damping
-diverges once ``kd*dt/I > 2``) and matches the MuJoCo backend closely. A
-floating base uses the plain explicit law (PyBullet's floating-base dynamics
-queries are not reliable enough to build the implicit step on).
+diverges once ``kd*dt/I > 2``) and matches the MuJoCo backend closely. ``M``
+includes the rotor inertia ``A`` (MJCF ``armature``) PyBullet does not simulate:
+the torque ``A qacc`` that accelerates the rotors is held back. A floating base
+solves the whole model, its free base included, and adds the constraint forces
+(ground contacts) PyBullet applied over the last substeps (:mod:`.floating`).
 
 Gravity compensation (``tau_model`` of the servo law, :mod:`agentsdk.dynamics`): once per
 control period ``g(q)`` at the measured position is added to the feed-forward of the law above
@@ -34,7 +36,8 @@ base at PyBullet's measured attitude), not from PyBullet's ``calculateInverseDyn
 mishandles URDF fixed joints (bullet3 #1379: on example-robot-data's double pendulum it gives
 0.074 N·m where 0.266 N·m hold the link) and floating bases (bullet3 #3149, #3264).
 
-Floating base (robot.yaml ``floating_base: true``): a ground plane is added; PyBullet multiplies
+Floating base (robot.yaml ``floating_base: true``, or an MJCF ``<freejoint>`` on the root body, which
+is written as the URDF's root): a ground plane is added; PyBullet multiplies
 the two friction coefficients of a contact, so the plane gets robot.yaml ``ground_friction`` and
 the robot's links 1.0 (the same contact friction as on MuJoCo); the robot starts standing on it
 (:func:`agentsdk.description.collision.standing_height`).
@@ -56,6 +59,7 @@ import os
 import sys
 import tempfile
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -71,16 +75,24 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
 from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf, standing_height
-from agentsdk.description.mjcf import mjcf_unsupported_by_pybullet
+from agentsdk.description.mjcf import free_root, mjcf_unsupported_by_pybullet
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel
-from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.errors import (
+    AgentSDKError,
+    BackendFault,
+    BackendStartError,
+    ConfigurationError,
+    SimulationDiverged,
+    UnsupportedModelError,
+)
 from agentsdk.pose import BaseState, Pose
 from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
+from .floating import FloatingStep
 from .sensors import SERVED, PybulletSensors
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
@@ -182,9 +194,15 @@ class PybulletController(Backend):
 
     @property
     def floating_base(self) -> bool:
-        """True when the base floats on a ground plane (option ``floating_base``, else robot.yaml)."""
+        """True when the base floats on a ground plane.
+
+        Option ``floating_base``, else robot.yaml, else whether the model's root body has a free joint
+        (an MJCF ``<freejoint>``; ``floating_base: false`` welds it to the world).
+        """
         opt = self.options.floating_base
-        return bool(self.config.floating_base if opt is None else opt)
+        if opt is not None:
+            return bool(opt)
+        return bool(self.config.floating_base) or free_root(self.description) is not None
 
     # ------------------------------------------------------------ open/close
     async def _open(self) -> None:
@@ -223,7 +241,7 @@ class PybulletController(Backend):
         self._load_body()
         self._sensors = PybulletSensors(self.sensors, f"robot {self.description.name!r}")
         desc = self.description
-        world = (desc.root_link,) if self.floating_base and desc.base_link != desc.root_link else ()
+        world = (desc.root_link,) if self.floating_base and _float_link(desc) != desc.root_link else ()
         self._sensors.bind(cid, self._body, self._links, opts.gravity,
                            getattr(self, "_base_inertial", None), world)
         self._reset_state()
@@ -251,7 +269,7 @@ class PybulletController(Backend):
         if desc.format == "mjcf":
             unsupported = mjcf_unsupported_by_pybullet(desc)
             if unsupported:
-                raise BackendStartError(
+                raise UnsupportedModelError(
                     f"PyBullet cannot load {label}: the MJCF model uses {'; '.join(unsupported)}, which a URDF "
                     "cannot carry (PyBullet's own loadMJCF reads even less: no <include>, default classes or "
                     "meshdir). Use the mujoco backend for this model"
@@ -265,9 +283,14 @@ class PybulletController(Backend):
         if self.floating_base:
             # the base link floats (a massless root fixed to it is left out: PyBullet would hold a massless
             # base static); it starts where the root frame stands on the ground plane
-            if desc.base_link != desc.root_link:
+            if _float_link(desc) != desc.root_link:
                 skip = frozenset({desc.root_link})
-            height = standing_height(desc, collision) if desc.format == "urdf" else 0.0
+            if desc.format == "urdf":
+                height = standing_height(desc, collision)
+            else:  # the MJCF body at its free joint's place, its lowest shape on the ground at the start pose
+                start = dict(zip((j.name for j in self.joints), self.initial_positions.tolist(), strict=True))
+                shapes = {k: v for k, v in collision.shapes.items() if k not in skip}
+                height = standing_height(desc, replace(collision, shapes=shapes, start=start))
             pose = Pose((0.0, 0.0, height)) @ _base_offset(desc)
             base_pose = (pose.position.tolist(), pose.orientation.tolist())
         # PyBullet's state queries fail beyond MAX_LINKS links: leave out links that carry nothing
@@ -362,7 +385,7 @@ class PybulletController(Backend):
         # (a fixed base), else through the motors
         self._damping = np.array([float(info[6]) for info in dofs]) + opts.joint_damping
         friction = [float(info[7]) for info in dofs]
-        self._implicit = not self.floating_base
+        self._implicit = True  # a floating base falls back to the explicit law if its step cannot be built
         self._friction = np.array(friction)
         self._friction_any = any(friction) and self._implicit
         for link in range(-1, len(infos)):
@@ -390,6 +413,7 @@ class PybulletController(Backend):
             info = p.getDynamicsInfo(body, -1, physicsClientId=cid)
             # the base's inertial frame in its link frame (PyBullet reports the base by its inertial frame)
             self._base_inertial = Pose(info[3], info[4])
+            self._setup_floating_step(label, friction)
 
         # preallocated work arrays
         self._q_all = np.zeros(nd)
@@ -455,6 +479,8 @@ class PybulletController(Backend):
             p.resetBaseVelocity(body, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], physicsClientId=cid)
         self._tau[:] = 0.0
         self._time = 0.0
+        if self._floating_step is not None:
+            self._floating_step.reset()
         if hasattr(self, "_sensors"):
             self._sensors.reset()
         self._sense()
@@ -477,10 +503,14 @@ class PybulletController(Backend):
         )
         self._gc_on = bool(self._gc_mask.any()) and any(self.options.gravity)
         self._gc_q = np.zeros(len(self.joints))
-        nd, nv = len(self._dofs), self._model.model.nv
-        # PyBullet dof k is the model's dof _perm[k]
-        self._perm = self._model.dofs(list(self._dof_row)) if not self.floating_base else np.zeros(0, dtype=np.intp)
-        self._mq = np.zeros(nv)
+        model = self._model.model
+        nd, nv = len(self._dofs), model.nv
+        # PyBullet dof k is the model's dof _perm[k], its position the model's qpos[_qadr[k]]
+        names = list(self._dof_row)
+        self._perm = self._model.dofs(names)
+        self._qadr = np.array([model.jnt_qposadr[model.joint(n).id] for n in names], dtype=np.intp)
+        self._floating_step: FloatingStep | None = None
+        self._mq = model.qpos0.copy()
         self._mv = np.zeros(nv)
         self._m_full = np.zeros((nv, nv))
         self._m_rows = np.zeros((nd, nv))
@@ -488,6 +518,31 @@ class PybulletController(Backend):
         self._mass = np.zeros((nd, nd))
         self._bias = np.zeros(nd)
         self._a = np.zeros((nd, nd))
+        # rotor inertia (MJCF ``armature``) per PyBullet dof: PyBullet has no such term, the implicit step adds it
+        arm = self._model.model.dof_armature
+        self._armature = np.asarray(arm[self._perm], dtype=float)
+        self._armature_any = bool(self._armature.any())
+        self._rigid_mass = np.zeros((nd, nd))
+
+    def _setup_floating_step(self, label: str, friction: list[float]) -> None:
+        """The floating base's implicit step (:mod:`.floating`), else the explicit law with motor friction."""
+        try:
+            self._floating_step = FloatingStep(
+                self._model, self._perm, self._qadr, base_link=_float_link(self.description),
+                base_in_inertial=self._base_inertial.inverse(), timestep=self.options.timestep,
+                friction=self._friction,
+            )
+            self._floating_step.bind(self._cid, self._body, self._dofs)
+        except ValueError as exc:
+            log.warning("%s: %s; the floating base runs the explicit servo law (no armature, no implicit damping)",
+                        label, exc)
+            self._implicit = False
+            self._friction_any = False
+            if self._dofs:
+                p.setJointMotorControlArray(
+                    self._body, self._dofs, p.VELOCITY_CONTROL, targetVelocities=[0.0] * len(self._dofs),
+                    forces=friction, physicsClientId=self._cid,
+                )
 
     def _gravity_torque(self) -> np.ndarray:
         """g(q) at the latest sensed state into ``_tau_model`` (masked per joint)."""
@@ -503,7 +558,7 @@ class PybulletController(Backend):
         PyBullet's own ``calculateInverseDynamics`` is wrong with fixed joints (module docstring).
         """
         perm = self._perm
-        self._mq[perm] = self._q_all
+        self._mq[self._qadr] = self._q_all
         self._mv[perm] = self._v_all
         self._model.terms(self._mq, self._mv, self._m_full, self._m_bias)
         np.take(self._m_full, perm, axis=0, out=self._m_rows)
@@ -516,7 +571,9 @@ class PybulletController(Backend):
 
         ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction: per dof, the
         torque that would stop the joint this step, within +-its friction (one decoupled projection),
-        then ``f = c + g + M qacc`` (PyBullet's motors carry no friction here).
+        then ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
+        rotor inertia ``A`` (MJCF ``armature``, diagonal) that PyBullet does not simulate: the torque
+        ``A qacc`` that accelerates the rotors is held back, so PyBullet's rigid bodies take ``qacc``.
         """
         mass, bias = self._implicit_terms()
         a = self._a
@@ -529,6 +586,11 @@ class PybulletController(Backend):
             np.clip(stop, -self._friction, self._friction, out=stop)
             rhs += stop
             qacc = np.linalg.solve(a, rhs)
+        if self._armature_any:
+            rigid = self._rigid_mass
+            np.copyto(rigid, mass)
+            rigid[self._diag] -= self._armature
+            mass = rigid
         np.matmul(mass, qacc, out=f_all)
         f_all += bias
         return f_all
@@ -607,7 +669,9 @@ class PybulletController(Backend):
                 else:
                     np.copyto(d_all, damping)
                     d_all[sel] += kdm
-                if np.count_nonzero(d_all) or self._friction_any:
+                if self._floating_step is not None:
+                    f_all = self._floating_step(cid, body, q_all, v_all, f_all, d_all)
+                elif self._armature_any or self._friction_any or np.count_nonzero(d_all):
                     f_all = self._implicit_step(f_all, d_all, h)
             set_motors(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
             step(physicsClientId=cid)
@@ -662,11 +726,17 @@ def _has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
+def _float_link(desc: RobotDescription) -> str:
+    """The link PyBullet floats: the body of a root free joint (MJCF), else ``desc.base_link``."""
+    return free_root(desc) or desc.base_link
+
+
 def _base_offset(desc: RobotDescription) -> Pose:
-    """The floating base link (``desc.base_link``) in the root link's frame (identity when it is the root)."""
-    if desc.base_link == desc.root_link:
+    """The floating link (:func:`_float_link`) in the root link's frame (identity when it is the root)."""
+    link = _float_link(desc)
+    if link == desc.root_link:
         return Pose()
-    joint = desc.parent_joint(desc.base_link)
+    joint = desc.parent_joint(link)
     assert joint is not None
     w, x, y, z = quat_from_rpy(joint.rpy)
     return Pose(joint.xyz, (x, y, z, w))

@@ -1,0 +1,118 @@
+"""Issue 24.2 and 24.6: PyBullet loads what MuJoCo loads, and a camera fixed to a tilting head does not stop it.
+
+Fixtures (``tests/fixtures/mjcf_pybullet``): an arm whose light flange turns on a motor with a large
+rotor inertia (MJCF ``armature``, as Menagerie's UR10e wrist), a small quadruped floating on a root
+``<freejoint>`` without a floor, and models a URDF cannot carry (a tendon, two free bodies);
+``tests/fixtures/head_camera``: a pan-tilt head with a camera fixed in front of the tilt axis.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import agentsdk
+from agentsdk import JointCommand, ResultCode, SafetyState, UnsupportedModelError
+
+FIXTURES = Path(__file__).parent / "fixtures"
+MJCF = FIXTURES / "mjcf_pybullet"
+SIMULATORS = ("mujoco", "pybullet")
+
+
+async def _hold_and_move(robot: agentsdk.Robot, hold: float = 2.0, delta: float = 0.25) -> tuple[float, float]:
+    """Hold ``hold`` s, then ``move_to`` +``delta`` on every joint (inside the limits): (drift, goal error)."""
+    q0 = np.array((await robot.read()).position)
+    await robot.clock.sleep(hold)
+    drift = float(np.abs(np.array((await robot.read()).position) - q0).max())
+    lower = np.array([j.lower for j in robot.joints])
+    upper = np.array([j.upper for j in robot.joints])
+    goal = np.clip(q0 + delta, lower + 0.01, upper - 0.01)
+    result = await robot.move_to(dict(zip((j.name for j in robot.joints), goal.tolist(), strict=True)))
+    assert result.code is ResultCode.SUCCESSFUL, result
+    error = float(np.abs(np.array((await robot.read()).position) - goal).max())
+    return drift, error
+
+
+@pytest.mark.parametrize("backend", SIMULATORS)
+async def test_an_arm_with_armature_holds_and_moves(backend: str) -> None:
+    """The flange's gains are sized with its rotor inertia (500 times its own): PyBullet simulates it too."""
+    async with agentsdk.connect(backend, robot=MJCF / "armature_wrist.xml") as robot:
+        drift, error = await _hold_and_move(robot)
+        assert drift < 0.005 and error < 0.02
+        assert robot.safety.state is SafetyState.OK
+
+
+async def test_pybullet_accelerates_a_joint_with_its_rotor_inertia() -> None:
+    """A torque step on the flange: on both simulators it turns as ``(I + armature) qdd = tau`` says, not 500
+    times faster (PyBullet's rigid bodies alone would)."""
+    moved: dict[str, float] = {}
+    for backend in SIMULATORS:
+        async with agentsdk.connect(backend, robot=MJCF / "armature_wrist.xml") as robot:
+            q0 = (await robot.read()).position[2]
+            for _ in range(50):  # 0.1 s at 500 Hz; gravity compensation holds the other joints
+                await robot.command(JointCommand("effort", {"shoulder": 0.0, "elbow": 0.0, "wrist": 0.05}))
+                await robot.clock.sleep(robot.control_period)
+            moved[backend] = (await robot.read()).position[2] - q0
+    expected = 0.5 * 0.05 / (0.0002 + 0.1) * 0.1**2  # 2.5 mrad (damping takes a little)
+    for backend, angle in moved.items():
+        assert 0.8 * expected < angle <= 1.05 * expected, (backend, angle, expected)
+    assert moved["pybullet"] == pytest.approx(moved["mujoco"], rel=0.05)
+
+
+async def test_a_free_joint_root_floats_on_pybullet_and_stands() -> None:
+    """A root ``<freejoint>`` is the floating base: PyBullet floats the body on a ground plane (none in the
+    file), starts it standing at the keyframe pose, and ``base_state()`` reports it."""
+    async with agentsdk.connect("pybullet", robot=MJCF / "free_quad.xml") as robot:
+        assert robot.controller.floating_base
+        start = robot.base_state()
+        z0 = float(start.pose.position[2])
+        assert 0.2 < z0 < 0.3  # feet on the ground with the knees bent (keyframe "home")
+        heights = []
+        for _ in range(10):
+            await robot.clock.sleep(0.3)
+            heights.append(float(robot.base_state().pose.position[2]))
+        assert max(abs(h - z0) for h in heights) < 0.2 * z0, heights
+        assert robot.safety.state is SafetyState.OK
+        state = robot.base_state()
+        assert np.linalg.norm(state.linear_velocity) < 0.05
+        # upright: the torso's z axis still points up
+        assert state.pose.rotation[2, 2] > 0.99
+
+
+async def test_a_free_joint_root_can_be_welded_to_the_world() -> None:
+    """``floating_base=False`` welds the free body where the file puts it: a fixed-base robot."""
+    async with agentsdk.connect("pybullet", robot=MJCF / "free_quad.xml", floating_base=False) as robot:
+        assert not robot.controller.floating_base
+        assert robot.base_state().pose.position.tolist() == [0.0, 0.0, 0.0]
+        drift, error = await _hold_and_move(robot, hold=0.5, delta=0.1)
+        assert drift < 0.005 and error < 0.02
+
+
+@pytest.mark.parametrize(
+    ("model", "named"),
+    [("tendon_arm.xml", "tendons (1)"), ("two_free_bodies.xml", "free joints other than one at the root (a, b)")],
+)
+async def test_what_a_urdf_cannot_carry_is_refused_by_name(model: str, named: str) -> None:
+    with pytest.raises(UnsupportedModelError, match=r"PyBullet cannot load .*" + named.replace("(", r"\(")
+                       .replace(")", r"\)")):
+        async with agentsdk.connect("pybullet", robot=MJCF / model):
+            pass
+    async with agentsdk.connect("mujoco", robot=MJCF / model) as robot:  # MuJoCo simulates it
+        await robot.clock.sleep(0.05)
+
+
+@pytest.mark.parametrize("backend", SIMULATORS)
+async def test_a_camera_fixed_to_a_tilting_head_does_not_stop_the_tilt(backend: str) -> None:
+    """Issue 24.6 (Hello Robot Stretch's head): the camera is fixed to the tilt link, so it is adjacent to the
+    pan link the tilt turns against (MoveIt and MuJoCo's parent filter see it so); tilting 0.25 rad used to
+    stop at 0.14 where the camera's box met the pan plate's (GOAL_TOLERANCE_VIOLATED)."""
+    async with agentsdk.connect(backend, robot=FIXTURES / "head_camera" / "head.urdf") as robot:
+        collision = robot.controller.collision
+        assert collision is not None
+        assert collision.excluded[("camera", "pan")] == "adjacent"
+        assert ("camera", "neck") in collision.pairs  # not adjacent: it still collides
+        result = await robot.move_to({"joint_tilt": 0.25})
+        assert result.code is ResultCode.SUCCESSFUL, result
+        assert abs((await robot.read()).position[1] - 0.25) < 0.02

@@ -43,6 +43,7 @@ from agentsdk.description.mjspec import build_spec, mjcf_spec_without_actuators
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.dynamics import GravityTerm
 from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
+from agentsdk.feedforward import InverseDynamicsTerm
 from agentsdk.pose import BaseState, Pose
 from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
@@ -104,6 +105,8 @@ class MujocoOptions(BaseModel):
     floating_base: bool | None = None
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
     self_collision: Literal["auto"] | bool | None = None
+    #: override robot.yaml ``inverse_dynamics`` (the desired motion's inverse dynamics in the servo law)
+    inverse_dynamics: bool | None = None
 
 
 class MujocoController(Backend):
@@ -300,6 +303,9 @@ class MujocoController(Backend):
         self._gc_mask = mask
         on = mask.any() and bool(np.any(m.opt.gravity))
         self._gravity = GravityTerm(m, self.names) if on else None
+        # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from this model, armature included
+        self._inverse = InverseDynamicsTerm(m, self.names) if self.inverse_dynamics else None
+        self._tau_motion = np.zeros(len(self.joints))
 
     # ------------------------------------------------------------ floating base
     def _setup_base(self) -> None:
@@ -366,6 +372,8 @@ class MujocoController(Backend):
             tau = self._gravity.compute(self.data.qpos, self._tau_model)
             tau *= self._gc_mask
             ctrl += tau
+        if self._inverse is not None:  # the desired motion's inverse dynamics (0 at rest: not computed)
+            ctrl += self._inverse.compute(self.data.qpos, sp.velocity, sp.acceleration, self._tau_motion)
         en = sp.enabled
         if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0

@@ -76,6 +76,7 @@ from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel
 from agentsdk.errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, SimulationDiverged
+from agentsdk.feedforward import InverseDynamicsTerm
 from agentsdk.pose import BaseState, Pose
 from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
@@ -122,6 +123,8 @@ class PybulletOptions(BaseModel):
     floating_base: bool | None = None
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
     self_collision: Literal["auto"] | bool | None = None
+    #: override robot.yaml ``inverse_dynamics`` (the desired motion's inverse dynamics in the servo law)
+    inverse_dynamics: bool | None = None
     #: open the PyBullet GUI (needs a display; one GUI per process)
     gui: bool = False
 
@@ -477,6 +480,9 @@ class PybulletController(Backend):
         )
         self._gc_on = bool(self._gc_mask.any()) and any(self.options.gravity)
         self._gc_q = np.zeros(len(self.joints))
+        # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from the same host model
+        self._inverse = InverseDynamicsTerm(self._model.model, self.names) if self.inverse_dynamics else None
+        self._tau_motion = np.zeros(len(self.joints))
         nd, nv = len(self._dofs), self._model.model.nv
         # PyBullet dof k is the model's dof _perm[k]
         self._perm = self._model.dofs(list(self._dof_row)) if not self.floating_base else np.zeros(0, dtype=np.intp)
@@ -496,6 +502,13 @@ class PybulletController(Backend):
         tau = self._model.gravity(q, self._tau_model, base)
         tau *= self._gc_mask
         return tau
+
+    def _motion_torque(self, velocity: np.ndarray, acceleration: np.ndarray) -> np.ndarray:
+        """``M(q) a_des + C(q, v_des) v_des`` at the latest sensed state into ``_tau_motion``."""
+        assert self._inverse is not None
+        q = np.take(self._q_all, self._sel, out=self._gc_q)
+        base = self.base_state().pose if self.floating_base else None
+        return self._inverse.compute(self._model.qpos(q, base), velocity, acceleration, self._tau_motion)
 
     def _implicit_terms(self) -> tuple[np.ndarray, np.ndarray]:
         """``M(q)`` and ``c(q, v) + g(q)`` in PyBullet's dof order, from the description's model.
@@ -555,6 +568,8 @@ class PybulletController(Backend):
         np.copyto(self._ff, sp.effort)
         if self._gc_on:  # tau_model: g(q) at the measured position, added to the feed-forward
             self._ff += self._gravity_torque()
+        if self._inverse is not None and (sp.velocity.any() or sp.acceleration.any()):
+            self._ff += self._motion_torque(sp.velocity, sp.acceleration)
         np.copyto(self._kp, sp.kp)
         np.copyto(self._kd, sp.kd)
         np.copyto(self._en, sp.enabled)

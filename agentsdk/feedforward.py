@@ -8,18 +8,20 @@ their Coriolis and centrifugal forces, so the joints lag the reference by about
 controller feeds the desired motion's inverse dynamics forward instead
 (computed-torque feed-forward)::
 
-    tau_model = M(q) a_des + C(q, v_des) v_des + g(q)
+    tau_model = M(q) a_des + C(q, v_des) v_des + b v_des + friction(v_des, a_des) + g(q)
 
 with ``v_des`` and ``a_des`` the reference's velocity and acceleration (the setpoint's
-``velocity`` and ``acceleration``: the trajectory executor writes both every tick) and ``q``
-the measured position. :class:`InverseDynamicsTerm` computes the motion part,
-``M(q) a_des + C(q, v_des) v_des`` (``g(q)`` stays the gravity term, so robot.yaml
-``gravity_compensation`` keeps its meaning per joint), with MuJoCo's recursive Newton-Euler
-on a private ``MjData`` of the model the backend simulates (the MuJoCo backend's compiled
-model: its armature included) or the description's host model
-(:class:`agentsdk.dynamics.DynamicsModel`: PyBullet, whose ``calculateInverseDynamics`` is
-wrong with URDF fixed joints, and CAN). At rest (``v_des = a_des = 0``) the term is exactly 0
-and is not computed, so holds are unchanged.
+``velocity`` and ``acceleration``: the trajectory executor writes both every tick), ``q``
+the measured position, and the joints' damping ``b`` and dry friction, which the motion meets
+as well (on corpus arms with URDF ``<dynamics damping friction>`` they, not the inertia,
+dominate the lag). :class:`InverseDynamicsTerm` computes the motion part (``g(q)`` stays the
+gravity term, so robot.yaml ``gravity_compensation`` keeps its meaning per joint) with
+MuJoCo's inverse dynamics (``mj_inverse``) on a private copy of the model the backend
+simulates (the MuJoCo backend's compiled model: armature and soft ``frictionloss`` as it
+simulates them) or of the description's host model (:class:`agentsdk.dynamics.DynamicsModel`:
+PyBullet, whose ``calculateInverseDynamics`` is wrong with URDF fixed joints, and CAN; dry
+Coulomb friction). At rest (``v_des = a_des = 0``) the term is exactly 0 and is not
+computed, so holds are unchanged.
 
 Switched per robot by robot.yaml ``inverse_dynamics`` (default true) or the backend option of
 the same name (``connect("mujoco", robot, inverse_dynamics=False)``).
@@ -27,61 +29,98 @@ the same name (``connect("mujoco", robot, inverse_dynamics=False)``).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
+from typing import Literal
 
 import mujoco
 import numpy as np
 
 from .dynamics import coupling_matrix
 
-__all__ = ["InverseDynamicsTerm"]
+__all__ = ["FRICTION_VELOCITY", "InverseDynamicsTerm"]
+
+#: desired speed (rad/s or m/s) from which a joint's full Coulomb friction is fed forward (linear below)
+FRICTION_VELOCITY = 0.01
 
 
 class InverseDynamicsTerm:
-    """``M(q) a + C(q, v) v`` of the commanded joints from a compiled MuJoCo model, allocation-free per call.
+    """``M(q) a + C(q, v) v + b v + friction`` of the commanded joints from a MuJoCo model, allocation-free per call.
 
-    ``joints`` are the commanded joints (mimic followers move with their leader: the desired
-    velocity and acceleration are spread to them, their torque is carried by the leader, as in
-    :func:`~agentsdk.dynamics.coupling_matrix`). Holds a private ``MjData``: not thread-safe
-    (one caller, the control tick). A floating base's own velocity and acceleration are taken
-    as zero (its pose, in ``qpos``, is used).
+    ``b`` is the joints' viscous damping (``dof_damping``: URDF ``<dynamics damping>``, plus
+    ``extra_damping`` on the commanded joints: a simulator option the model does not hold),
+    ``M`` includes the rotor inertia (``dof_armature``). The joints' Coulomb friction
+    (``dof_frictionloss``: URDF ``<dynamics friction>``) is fed forward as the backend's plant
+    produces it: ``friction="coulomb"`` (PyBullet's and a motor's dry friction: ``F`` against the
+    desired velocity, in full from :data:`FRICTION_VELOCITY` on and linearly below, so a
+    reference at rest gets none) or ``friction="mujoco"`` (MuJoCo's soft ``frictionloss``
+    constraint, through MuJoCo's own inverse dynamics).
+
+    Computed with ``mj_inverse`` on a private copy of ``model`` without gravity (``g(q)`` is
+    the gravity term's), springs, contacts, joint limits and equality constraints (mimic
+    followers move with their leader: the desired velocity and acceleration are spread to
+    them, their torque is carried by the leader, as in :func:`~agentsdk.dynamics.coupling_matrix`).
+    A floating base's own velocity and acceleration are taken as zero (its pose, in ``qpos``,
+    is used). Not thread-safe (one caller, the control tick).
     """
 
-    def __init__(self, model: mujoco.MjModel, joints: Sequence[str]) -> None:
-        self.model = model
-        self._data = mujoco.MjData(model)
-        self._s = np.ascontiguousarray(coupling_matrix(model, joints))
-        self._st = np.ascontiguousarray(self._s.T)
-        self._armature = np.array(model.dof_armature, dtype=np.float64)
-        self._full = np.zeros(model.nv)
-        self._rest = np.zeros(model.nv)
-        self._tmp = np.zeros(model.nv)
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        joints: Sequence[str],
+        *,
+        extra_damping: float = 0.0,
+        friction: Literal["coulomb", "mujoco"] = "coulomb",
+    ) -> None:
+        s = coupling_matrix(model, joints)
+        m = self.model = copy.copy(model)
+        off = mujoco.mjtDisableBit
+        m.opt.disableflags |= int(off.mjDSBL_GRAVITY) | int(off.mjDSBL_SPRING)
+        if friction == "mujoco":
+            m.opt.disableflags |= int(off.mjDSBL_CONTACT) | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_EQUALITY)
+        else:
+            m.opt.disableflags |= int(off.mjDSBL_CONSTRAINT)
+        m.dof_damping[np.flatnonzero(s.any(axis=1))] += extra_damping
+        self._data = mujoco.MjData(m)
+        self._s = np.ascontiguousarray(s)
+        self._st = np.ascontiguousarray(s.T)
+        self._friction = np.array(m.dof_frictionloss, dtype=np.float64) if friction == "coulomb" else None
+        if self._friction is not None and not self._friction.any():
+            self._friction = None
+        self._tmp = np.zeros(m.nv)
+        self._sq = np.zeros(())
+
+    def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
+        """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
+        sq = self._sq
+        np.dot(velocity, velocity, out=sq)
+        if sq.item() != 0.0:
+            return True
+        np.dot(acceleration, acceleration, out=sq)
+        return sq.item() != 0.0
 
     def compute(self, qpos: np.ndarray, velocity: np.ndarray, acceleration: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """Write ``S.T (M(q) S a + C(q, S v) S v)`` (n,) into ``out`` and return it.
+        """Write the term (n,) for the desired ``velocity`` and ``acceleration`` (n,) at ``qpos`` into ``out``.
 
-        ``qpos`` is the model's full position vector (a floating base's pose included);
-        ``velocity`` and ``acceleration`` (n,) the desired ones of the commanded joints. 0 when
-        both are 0 (nothing computed).
+        ``qpos`` is the model's full position vector (a floating base's pose included). 0 when the
+        desired velocity and acceleration are both 0 (nothing computed).
         """
-        if not velocity.any() and not acceleration.any():
+        if not self.moving(velocity, acceleration):
             out.fill(0.0)
             return out
         m, d = self.model, self._data
         d.qpos[:] = qpos
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_comPos(m, d)
-        # the bias at rest (gravity only) at this q: subtracted below, g(q) is the gravity term's
-        d.qvel[:] = 0.0
-        mujoco.mj_comVel(m, d)
-        mujoco.mj_rne(m, d, 0, self._rest)
-        # the full inverse dynamics M qacc + c(q, qvel) + g(q), plus the rotor inertia (armature)
         np.dot(self._s, velocity, out=d.qvel)
         np.dot(self._s, acceleration, out=d.qacc)
-        mujoco.mj_comVel(m, d)
-        mujoco.mj_rne(m, d, 1, self._full)
-        np.multiply(self._armature, d.qacc, out=self._tmp)
-        self._full += self._tmp
-        self._full -= self._rest
-        np.dot(self._st, self._full, out=out)
+        mujoco.mj_inverse(m, d)
+        full = d.qfrc_inverse
+        friction = self._friction
+        if friction is not None:  # dry friction against the desired velocity, smoothed near 0
+            tmp = self._tmp
+            np.multiply(d.qvel, 1.0 / FRICTION_VELOCITY, out=tmp)
+            np.minimum(tmp, 1.0, out=tmp)
+            np.maximum(tmp, -1.0, out=tmp)
+            tmp *= friction
+            full += tmp
+        np.dot(self._st, full, out=out)
         return out

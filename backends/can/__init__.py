@@ -661,7 +661,7 @@ class CanController(Backend):
             gt *= self._gc_mask
             ff += gt
         inverse = self._inverse
-        if inverse is not None and (sp.velocity.any() or sp.acceleration.any()):
+        if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):
             # + the desired motion's inverse dynamics at the last measured position (host model)
             ff += inverse.compute(self.dynamics.qpos(self._q), sp.velocity, sp.acceleration, self._tau_motion)
         eff = ff.tolist()

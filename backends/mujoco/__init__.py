@@ -304,7 +304,7 @@ class MujocoController(Backend):
         on = mask.any() and bool(np.any(m.opt.gravity))
         self._gravity = GravityTerm(m, self.names) if on else None
         # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from this model, armature included
-        self._inverse = InverseDynamicsTerm(m, self.names) if self.inverse_dynamics else None
+        self._inverse = InverseDynamicsTerm(m, self.names, friction="mujoco") if self.inverse_dynamics else None
         self._tau_motion = np.zeros(len(self.joints))
 
     # ------------------------------------------------------------ floating base
@@ -372,8 +372,9 @@ class MujocoController(Backend):
             tau = self._gravity.compute(self.data.qpos, self._tau_model)
             tau *= self._gc_mask
             ctrl += tau
-        if self._inverse is not None:  # the desired motion's inverse dynamics (0 at rest: not computed)
-            ctrl += self._inverse.compute(self.data.qpos, sp.velocity, sp.acceleration, self._tau_motion)
+        inverse = self._inverse
+        if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics
+            ctrl += inverse.compute(self.data.qpos, sp.velocity, sp.acceleration, self._tau_motion)
         en = sp.enabled
         if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0

@@ -481,7 +481,8 @@ class PybulletController(Backend):
         self._gc_on = bool(self._gc_mask.any()) and any(self.options.gravity)
         self._gc_q = np.zeros(len(self.joints))
         # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from the same host model
-        self._inverse = InverseDynamicsTerm(self._model.model, self.names) if self.inverse_dynamics else None
+        self._inverse = (InverseDynamicsTerm(self._model.model, self.names, extra_damping=self.options.joint_damping)
+                         if self.inverse_dynamics else None)
         self._tau_motion = np.zeros(len(self.joints))
         nd, nv = len(self._dofs), self._model.model.nv
         # PyBullet dof k is the model's dof _perm[k]
@@ -568,7 +569,7 @@ class PybulletController(Backend):
         np.copyto(self._ff, sp.effort)
         if self._gc_on:  # tau_model: g(q) at the measured position, added to the feed-forward
             self._ff += self._gravity_torque()
-        if self._inverse is not None and (sp.velocity.any() or sp.acceleration.any()):
+        if self._inverse is not None and self._inverse.moving(sp.velocity, sp.acceleration):
             self._ff += self._motion_torque(sp.velocity, sp.acceleration)
         np.copyto(self._kp, sp.kp)
         np.copyto(self._kd, sp.kd)

@@ -36,9 +36,12 @@ from typing import Literal
 import mujoco
 import numpy as np
 
+from .backend import ModeCode
 from .dynamics import coupling_matrix
 
 __all__ = ["FRICTION_VELOCITY", "InverseDynamicsTerm"]
+
+_EFFORT = int(ModeCode.EFFORT)
 
 #: desired speed (rad/s or m/s) from which a joint's full Coulomb friction is fed forward (linear below)
 FRICTION_VELOCITY = 0.01
@@ -89,6 +92,7 @@ class InverseDynamicsTerm:
             self._friction = None
         self._tmp = np.zeros(m.nv)
         self._sq = np.zeros(())
+        self._effort = np.zeros(len(joints), dtype=bool)
 
     def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
         """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
@@ -99,11 +103,20 @@ class InverseDynamicsTerm:
         np.dot(acceleration, acceleration, out=sq)
         return sq.item() != 0.0
 
-    def compute(self, qpos: np.ndarray, velocity: np.ndarray, acceleration: np.ndarray, out: np.ndarray) -> np.ndarray:
+    def compute(
+        self,
+        qpos: np.ndarray,
+        velocity: np.ndarray,
+        acceleration: np.ndarray,
+        out: np.ndarray,
+        mode: np.ndarray | None = None,
+    ) -> np.ndarray:
         """Write the term (n,) for the desired ``velocity`` and ``acceleration`` (n,) at ``qpos`` into ``out``.
 
         ``qpos`` is the model's full position vector (a floating base's pose included). 0 when the
-        desired velocity and acceleration are both 0 (nothing computed).
+        desired velocity and acceleration are both 0 (nothing computed). ``mode`` (the setpoint's
+        :class:`~agentsdk.backend.ModeCode` per joint): an effort-mode joint gets none of it (its
+        torque is the one commanded, plus ``g(q)``), though its motion still counts for the others.
         """
         if not self.moving(velocity, acceleration):
             out.fill(0.0)
@@ -123,4 +136,9 @@ class InverseDynamicsTerm:
             tmp *= friction
             full += tmp
         np.dot(self._st, full, out=out)
+        if mode is not None:
+            effort = self._effort
+            np.equal(mode, _EFFORT, out=effort)
+            if np.count_nonzero(effort):
+                out[effort] = 0.0
         return out

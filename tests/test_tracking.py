@@ -21,6 +21,7 @@ import pytest
 
 import agentsdk
 from agentsdk import Pose, ResultCode, Robot
+from agentsdk.backend import ModeCode
 from agentsdk.feedforward import FRICTION_VELOCITY, InverseDynamicsTerm
 from agentsdk.loop import Phase
 from agentsdk.probe import TRACK, ProbePool
@@ -186,6 +187,16 @@ def test_the_term_is_the_rigid_body_inverse_dynamics_without_gravity(armature: f
     assert not term.compute(q, np.zeros(2), np.zeros(2), out).any()
 
 
+def test_an_effort_mode_joint_gets_none_of_the_term() -> None:
+    m = _chain()
+    term = InverseDynamicsTerm(m, ["a", "b", "c"])
+    q, v, a = _samples(3)[0]
+    full = term.compute(q, v, a, np.zeros(3)).copy()
+    mode = np.array([ModeCode.POSITION, ModeCode.EFFORT, ModeCode.VELOCITY], dtype=np.int8)
+    out = term.compute(q, v, a, np.zeros(3), mode)
+    assert out[1] == 0.0 and out[0] == full[0] and out[2] == full[2]
+
+
 def test_coulomb_mode_feeds_damping_and_dry_friction_against_the_desired_velocity() -> None:
     bare, rough = _chain(), _chain(damping=2.0, friction=0.7)
     names = ["a", "b", "c"]
@@ -246,6 +257,7 @@ def tracked() -> dict[tuple[str, str], dict[str, Any]]:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(900)  # the first one runs the module's 48 probes (about 1 min on 2 idle cores)
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("name", _corpus_arms())
 def test_corpus_arm_tracks_a_1s_trajectory(tracked: dict[tuple[str, str], dict[str, Any]], name: str,

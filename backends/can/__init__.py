@@ -663,7 +663,7 @@ class CanController(Backend):
         inverse = self._inverse
         if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):
             # + the desired motion's inverse dynamics at the last measured position (host model)
-            ff += inverse.compute(self.dynamics.qpos(self._q), sp.velocity, sp.acceleration, self._tau_motion)
+            ff += inverse.compute(self.dynamics.qpos(self._q), sp.velocity, sp.acceleration, self._tau_motion, sp.mode)
         eff = ff.tolist()
         kp, kd, en = sp.kp.tolist(), sp.kd.tolist(), sp.enabled.tolist()
         self._torque[...] = sp.enabled  # torque on per joint (set_zero needs it off)

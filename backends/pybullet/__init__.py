@@ -504,12 +504,13 @@ class PybulletController(Backend):
         tau *= self._gc_mask
         return tau
 
-    def _motion_torque(self, velocity: np.ndarray, acceleration: np.ndarray) -> np.ndarray:
+    def _motion_torque(self, sp: SetpointView) -> np.ndarray:
         """``M(q) a_des + C(q, v_des) v_des`` at the latest sensed state into ``_tau_motion``."""
         assert self._inverse is not None
         q = np.take(self._q_all, self._sel, out=self._gc_q)
         base = self.base_state().pose if self.floating_base else None
-        return self._inverse.compute(self._model.qpos(q, base), velocity, acceleration, self._tau_motion)
+        return self._inverse.compute(self._model.qpos(q, base), sp.velocity, sp.acceleration, self._tau_motion,
+                                     sp.mode)
 
     def _implicit_terms(self) -> tuple[np.ndarray, np.ndarray]:
         """``M(q)`` and ``c(q, v) + g(q)`` in PyBullet's dof order, from the description's model.
@@ -570,7 +571,7 @@ class PybulletController(Backend):
         if self._gc_on:  # tau_model: g(q) at the measured position, added to the feed-forward
             self._ff += self._gravity_torque()
         if self._inverse is not None and self._inverse.moving(sp.velocity, sp.acceleration):
-            self._ff += self._motion_torque(sp.velocity, sp.acceleration)
+            self._ff += self._motion_torque(sp)
         np.copyto(self._kp, sp.kp)
         np.copyto(self._kd, sp.kd)
         np.copyto(self._en, sp.enabled)

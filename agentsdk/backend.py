@@ -41,8 +41,9 @@ on by default), computed by the backend from its own model (see
 :mod:`agentsdk.dynamics`) once per control period, and 0 for the others; when
 :attr:`Backend.inverse_dynamics` is set (robot.yaml ``inverse_dynamics``, on by default)
 it also holds the inverse dynamics of the desired motion, ``M(q) a_des + C(q, v_des) v_des``
-with ``v_des``/``a_des`` the setpoint's ``velocity``/``acceleration``
-(:class:`agentsdk.feedforward.InverseDynamicsTerm`). A joint
+plus the joints' damping and friction at ``v_des``, with ``v_des``/``a_des`` the setpoint's
+``velocity``/``acceleration`` (:class:`agentsdk.feedforward.InverseDynamicsTerm`; none for an
+effort-mode joint). A joint
 whose ``enabled`` flag is False produces no torque (no gravity compensation either). Position,
 velocity and effort commands are all expressed in this law (velocity: kp = 0;
 effort: kp = kd = 0), so a backend needs one code path. The loop enforces the

@@ -141,6 +141,38 @@ async def test_a_trajectory_feeds_its_acceleration_forward_and_a_hold_none() -> 
         assert seen and all(a == 0.0 and v == 0.0 for a, v in seen)  # the hold after it: none
 
 
+async def test_can_sends_the_motions_inverse_dynamics_from_the_host_model(tmp_path: Path) -> None:
+    """CAN: the host model's term goes out in the MIT torque feed-forward while the leg moves, none at rest."""
+    pytest.importorskip("can")
+    from test_can_backend import can_robot, mit_leg_at
+
+    leg = mit_leg_at(tmp_path, 500.0, gravity_compensation=False)
+    async with can_robot(leg) as (robot, _, _):
+        ctl = robot.controller
+        assert ctl.inverse_dynamics
+        await robot.clock.sleep(0.1)
+        assert not ctl.motion_torque.any()  # holding: nothing to feed forward
+        peak = np.zeros(len(robot.joints))
+
+        async def watch() -> None:
+            while True:
+                np.maximum(peak, np.abs(ctl.motion_torque), out=peak)
+                await robot.clock.sleep(robot.control_period)
+
+        task = asyncio.create_task(watch())
+        try:
+            result = await robot.move_to({"hip_pitch": 0.0, "knee": 0.3}, duration=0.5)
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        assert result.code is ResultCode.SUCCESSFUL, result
+        assert peak[robot.joint_names.index("hip_pitch")] > 0.01, peak
+        await robot.clock.sleep(0.1)
+        assert not ctl.motion_torque.any()
+    async with can_robot(leg, inverse_dynamics=False) as (robot, _, _):
+        assert not robot.controller.inverse_dynamics
+
+
 def _chain(damping: float = 0.0, friction: float = 0.0, armature: float = 0.0, mimic: bool = False) -> mujoco.MjModel:
     dyn = f'damping="{damping}" frictionloss="{friction}" armature="{armature}"'
     equality = '<equality><joint joint1="c" joint2="b" polycoef="0 0.5 0 0 0"/></equality>' if mimic else ""

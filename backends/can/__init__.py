@@ -41,7 +41,9 @@ motors run the PD law in firmware, so the host computes ``g(q)`` at the last mea
 from the description's rigid-body model (:class:`agentsdk.dynamics.DynamicsModel`, a MuJoCo model
 compiled from the same description) once per cycle and adds it to the MIT torque feed-forward,
 which the encoder clamps to the motor's torque range. ``CanController.gravity_torque`` is the
-last value sent (joint side).
+last value sent (joint side). Likewise the inverse dynamics of the desired motion (robot.yaml
+``inverse_dynamics``, :mod:`agentsdk.feedforward`, from the same host model, the URDF friction
+as dry Coulomb friction): ``CanController.motion_torque``, 0 at rest.
 """
 
 from __future__ import annotations
@@ -302,7 +304,8 @@ class CanController(Backend):
         self._gc_mask = self.gravity_compensation.astype(float)
         self._gc_model = None
         self._inverse = None
-        self._tau_motion = np.zeros(len(self.joints))
+        #: the desired motion's inverse dynamics (joint side, N·m) added to the last command's feed-forward
+        self.motion_torque = np.zeros(len(self.joints))
         self._eff = np.zeros(len(self.joints))
         if self._gc_mask.any() or self.inverse_dynamics:  # compiling the model is blocking work: not on the loop
             model = await run_blocking(lambda: self.dynamics, name="agentsdk-can-dynamics")
@@ -661,9 +664,9 @@ class CanController(Backend):
             gt *= self._gc_mask
             ff += gt
         inverse = self._inverse
-        if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):
-            # + the desired motion's inverse dynamics at the last measured position (host model)
-            ff += inverse.compute(self.dynamics.qpos(self._q), sp.velocity, sp.acceleration, self._tau_motion, sp.mode)
+        if inverse is not None:  # + the desired motion's inverse dynamics at the last measured position (host model)
+            qpos = self.dynamics.qpos(self._q)
+            ff += inverse.compute(qpos, sp.velocity, sp.acceleration, self.motion_torque, sp.mode)
         eff = ff.tolist()
         kp, kd, en = sp.kp.tolist(), sp.kd.tolist(), sp.enabled.tolist()
         self._torque[...] = sp.enabled  # torque on per joint (set_zero needs it off)

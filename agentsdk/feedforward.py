@@ -84,7 +84,9 @@ class InverseDynamicsTerm:
         else:
             m.opt.disableflags |= int(off.mjDSBL_CONSTRAINT)
         m.dof_damping[np.flatnonzero(s.any(axis=1))] += extra_damping
-        self._data = mujoco.MjData(m)
+        d = self._data = mujoco.MjData(m)
+        # views made once (each MjData attribute access builds a new array object)
+        self._qpos, self._qvel, self._qacc, self._qfrc = d.qpos, d.qvel, d.qacc, d.qfrc_inverse
         self._s = np.ascontiguousarray(s)
         self._st = np.ascontiguousarray(s.T)
         self._friction = np.array(m.dof_frictionloss, dtype=np.float64) if friction == "coulomb" else None
@@ -121,16 +123,16 @@ class InverseDynamicsTerm:
         if not self.moving(velocity, acceleration):
             out.fill(0.0)
             return out
-        m, d = self.model, self._data
-        d.qpos[:] = qpos
-        np.dot(self._s, velocity, out=d.qvel)
-        np.dot(self._s, acceleration, out=d.qacc)
-        mujoco.mj_inverse(m, d)
-        full = d.qfrc_inverse
+        qvel = self._qvel
+        self._qpos[...] = qpos
+        np.dot(self._s, velocity, out=qvel)
+        np.dot(self._s, acceleration, out=self._qacc)
+        mujoco.mj_inverse(self.model, self._data)
+        full = self._qfrc
         friction = self._friction
         if friction is not None:  # dry friction against the desired velocity, smoothed near 0
             tmp = self._tmp
-            np.multiply(d.qvel, 1.0 / FRICTION_VELOCITY, out=tmp)
+            np.multiply(qvel, 1.0 / FRICTION_VELOCITY, out=tmp)
             np.minimum(tmp, 1.0, out=tmp)
             np.maximum(tmp, -1.0, out=tmp)
             tmp *= friction

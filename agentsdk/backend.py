@@ -38,7 +38,12 @@ model's gravity torque::
 where ``tau_model = g(q)`` at the measured position for the joints whose
 :attr:`Backend.gravity_compensation` flag is set (robot.yaml ``gravity_compensation``,
 on by default), computed by the backend from its own model (see
-:mod:`agentsdk.dynamics`) once per control period, and 0 for the others. A joint
+:mod:`agentsdk.dynamics`) once per control period, and 0 for the others; when
+:attr:`Backend.inverse_dynamics` is set (robot.yaml ``inverse_dynamics``, on by default)
+it also holds the inverse dynamics of the desired motion, ``M(q) a_des + C(q, v_des) v_des``
+plus the joints' damping and friction at ``v_des``, with ``v_des``/``a_des`` the setpoint's
+``velocity``/``acceleration`` (:class:`agentsdk.feedforward.InverseDynamicsTerm`; none for an
+effort-mode joint). A joint
 whose ``enabled`` flag is False produces no torque (no gravity compensation either). Position,
 velocity and effort commands are all expressed in this law (velocity: kp = 0;
 effort: kp = kd = 0), so a backend needs one code path. The loop enforces the
@@ -53,7 +58,8 @@ overrides), :attr:`~Backend.names`, :attr:`~Backend.index`,
 :attr:`~Backend.period`, :attr:`~Backend.realtime`, :attr:`~Backend.options`
 (validated by :attr:`~Backend.options_model`), :attr:`~Backend.initial_positions`
 (decided once for every backend, :mod:`agentsdk.description.start`; a simulator starts
-exactly there), :attr:`~Backend.gravity_compensation`, :attr:`~Backend.servo_gains`
+exactly there), :attr:`~Backend.gravity_compensation`, :attr:`~Backend.inverse_dynamics`,
+:attr:`~Backend.servo_gains`
 (robot.yaml gains, else from the model), :attr:`~Backend.dynamics` (the description's
 rigid-body model, for backends without a simulator), and the limit arrays
 :attr:`~Backend.lower`, :attr:`~Backend.upper`, :attr:`~Backend.max_velocity`,
@@ -145,10 +151,12 @@ class SetpointView:
     object every tick; copy what you keep): ``position``, ``velocity``,
     ``effort`` (feed-forward), ``kp``, ``kd``, ``enabled`` (bool) and ``mode``
     (int8 :class:`ModeCode` values, informational: the servo law covers every mode),
-    and ``target`` (the last commanded value per joint, informational).
+    ``target`` (the last commanded value per joint, informational) and ``acceleration``
+    (the reference's desired acceleration this tick, 0 where nothing feeds one forward: the
+    inverse-dynamics term of the servo law, :attr:`Backend.inverse_dynamics`).
     """
 
-    __slots__ = ("effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity")
+    __slots__ = ("acceleration", "effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity")
 
     position: FloatArray
     velocity: FloatArray
@@ -158,6 +166,7 @@ class SetpointView:
     enabled: np.ndarray
     mode: np.ndarray
     target: FloatArray
+    acceleration: FloatArray
 
     def __init__(self, **arrays: np.ndarray) -> None:
         for name in self.__slots__:
@@ -269,6 +278,9 @@ class Backend(ABC):
         gc.flags.writeable = False
         #: per joint: the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)
         self.gravity_compensation: np.ndarray = gc
+        id_override = getattr(self.options, "inverse_dynamics", None)  # connect(..., inverse_dynamics=...)
+        #: the servo law adds the inverse dynamics of the desired motion (robot.yaml ``inverse_dynamics``)
+        self.inverse_dynamics: bool = bool(config.inverse_dynamics if id_override is None else id_override)
         self._backend_open = False
         #: joints whose reading frame the backend is changing on purpose (see :meth:`frame_change`),
         #: and how many changes are in progress (one list item: the gate checks it every tick)

@@ -81,9 +81,12 @@ def _following_problem(r: dict[str, object]) -> str | None:
     return None
 
 
-def _following_peak(r: dict[str, object]) -> str:
-    """The largest following error of the trial and its joint, e.g. ``0.0021 rad or m, joint2``; "" if not measured."""
-    peak, names = r.get("following_peak"), r.get("joints")
+def _following_peak(r: dict[str, object], key: str = "following_peak") -> str:
+    """The largest following error of the trial and its joint, e.g. ``0.0021 rad or m, joint2``; "" if not measured.
+
+    ``key``: ``following_peak`` (the whole trial) or ``move_peak`` (while the move ran: the tracking error).
+    """
+    peak, names = r.get(key), r.get("joints")
     if not isinstance(peak, list) or not peak or not isinstance(names, list):
         return ""
     k = max(range(len(peak)), key=lambda i: float(peak[i]))
@@ -164,6 +167,8 @@ def check_robot(
     out.extend(report_lines(desc, config, pose))
     gc = [j.name for j in joints if not config.gravity_compensation_for(j.name)]
     out.append("gravity compensation: " + ("on for every joint" if not gc else f"off for {', '.join(gc)}"))
+    out.append("inverse-dynamics feed-forward of the motion: " + (
+        "on" if config.inverse_dynamics else "off (robot.yaml inverse_dynamics: false)"))
     out.append("")
 
     if collision is not None:
@@ -216,9 +221,9 @@ def check_robot(
                 report.problems.append(f"{backend}: {run_error}")
                 continue
             note = "loads, holds and moves"
-            peak = _following_peak(r)
+            peak, in_motion = _following_peak(r), _following_peak(r, "move_peak")
             if peak:
-                note += f" (following error ≤ {peak})"
+                note += f" (following error ≤ {peak}" + (f"; while moving ≤ {in_motion})" if in_motion else ")")
             out.append(f"  {backend:9s} ✓ {note} {size}")
         else:
             out.append(f"  {backend:9s} ✗ {r.get('error_type')}")

@@ -132,6 +132,10 @@ class RobotConfig(_Strict):
     #: add the model's gravity torque g(q) to every joint's servo law (``true``/``false``, or per joint
     #: ``{default: true, joint: false}``)
     gravity_compensation: bool | dict[str, bool] = True
+    #: add the inverse dynamics of the desired motion (``M(q) q̈* + C(q, q̇*) q̇*`` and the joints' damping
+    #: and friction at ``q̇*``) to the servo law (a backend option ``inverse_dynamics`` overrides it; see
+    #: :mod:`agentsdk.feedforward`)
+    inverse_dynamics: bool = True
     joint_limits: dict[str, JointLimitsOverride] = Field(default_factory=dict)
     initial_positions: dict[str, float] = Field(default_factory=dict)
     #: an SRDF ``<group_state>`` the joints start in (those not in ``initial_positions``)

@@ -127,29 +127,34 @@ class Setpoint:
     """The per-joint servo setpoint, in joint order; COMMAND and LIMIT hooks may write it.
 
     ``position``/``velocity``/``effort`` (feed-forward), ``kp``/``kd`` gains,
-    ``enabled`` (bool), ``mode`` (:class:`~agentsdk.backend.ModeCode` values) and
+    ``enabled`` (bool), ``mode`` (:class:`~agentsdk.backend.ModeCode` values),
     ``target`` (the last commanded value per joint, before any ramping: a
-    position, velocity or effort according to ``mode``). ``view`` is the
+    position, velocity or effort according to ``mode``) and ``acceleration`` (the
+    desired acceleration of this tick's reference, for the servo law's inverse-dynamics
+    term: the loop zeroes it before the COMMAND hooks, so only a writer that sets it
+    every tick, e.g. a trajectory, feeds it forward). ``view`` is the
     read-only :class:`~agentsdk.backend.SetpointView` backends and observers get.
 
-    The float fields are the rows of one array, :attr:`block` (shape ``(6, n)``,
+    The float fields are the rows of one array, :attr:`block` (shape ``(7, n)``,
     rows in :attr:`FIELDS` order), so that a hook can write several fields of the
     same joints in one numpy operation (e.g. ``sp.block[0:2, idx] = q_and_v``).
     """
 
-    __slots__ = ("block", "effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity", "view")
+    __slots__ = (
+        "acceleration", "block", "effort", "enabled", "kd", "kp", "mode", "position", "target", "velocity", "view",
+    )
 
     #: the rows of :attr:`block`
-    FIELDS = ("position", "velocity", "effort", "kp", "kd", "target")
+    FIELDS = ("position", "velocity", "effort", "kp", "kd", "target", "acceleration")
 
     def __init__(self, n: int) -> None:
-        self.block = np.zeros((6, n))
-        self.position, self.velocity, self.effort, self.kp, self.kd, self.target = self.block
+        self.block = np.zeros((7, n))
+        self.position, self.velocity, self.effort, self.kp, self.kd, self.target, self.acceleration = self.block
         self.enabled = np.ones(n, dtype=bool)
         self.mode = np.zeros(n, dtype=np.int8)
         self.view = SetpointView(
             position=self.position, velocity=self.velocity, effort=self.effort, kp=self.kp, kd=self.kd,
-            enabled=self.enabled, mode=self.mode, target=self.target,
+            enabled=self.enabled, mode=self.mode, target=self.target, acceleration=self.acceleration,
         )
 
 
@@ -464,6 +469,7 @@ class ControlLoop:
         """The tick up to the step: COMMAND hooks, LIMIT hooks, the torque-off rule, ``backend.write``."""
         sp, stv, t = self._sp, self._state.view, self.stamp
         command = self._command
+        sp.acceleration.fill(0.0)  # a per-tick feed-forward: only this tick's writers set it
         if command.fns:
             for fn in command.fns:
                 if fn(t, stv, sp) is False:
@@ -513,6 +519,7 @@ class ControlLoop:
         write, step, read = backend.write, backend.step, backend.read
         period = self.period
         sp, spv = self._sp, self._sp.view
+        acceleration = sp.acceleration
         st, stv = self._state, self._state.view
         position, velocity, effort = st.position, st.velocity, st.effort
         advance, now = clock.advance, clock.now
@@ -533,6 +540,7 @@ class ControlLoop:
                 while True:
                     # one tick: _before_step, step, advance, _after_tick (inlined: this is the hot path)
                     t = self.stamp
+                    acceleration.fill(0.0)  # a per-tick feed-forward: only this tick's writers set it
                     if command.fns:
                         for fn in command.fns:
                             if fn(t, stv, sp) is False:
@@ -618,6 +626,7 @@ class ControlLoop:
         idx: Any = slice(None) if joints is None else joints
         sp.position[idx] = st.position[idx]
         sp.velocity[idx] = 0.0
+        sp.acceleration[idx] = 0.0
         sp.effort[idx] = 0.0
         sp.kp[idx] = self.gain_p[idx]
         sp.kd[idx] = self.gain_d[idx]
@@ -630,6 +639,7 @@ class ControlLoop:
         sp = self._sp
         sp.position[joints] = positions
         sp.velocity[joints] = 0.0
+        sp.acceleration[joints] = 0.0
         sp.effort[joints] = 0.0
         sp.kp[joints] = self.gain_p[joints]
         sp.kd[joints] = self.gain_d[joints]
@@ -644,6 +654,7 @@ class ControlLoop:
         sp.kp[joints] = 0.0
         sp.kd[joints] = kd
         sp.velocity[joints] = 0.0
+        sp.acceleration[joints] = 0.0
         sp.effort[joints] = 0.0
         sp.target[joints] = 0.0
 
@@ -680,6 +691,7 @@ class ControlLoop:
         sp = self._sp
         sp.mode[idx] = ModeCode.of(mode)
         sp.enabled[idx] = True
+        sp.acceleration[idx] = 0.0
         sp.target[idx] = values
         if mode == "position":
             sp.position[idx] = values if position_now is None else position_now

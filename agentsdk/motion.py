@@ -501,7 +501,8 @@ class _TickBuffers:
         self.bound = (sp, st, origin)
         if isinstance(sel, slice):
             self.sp_views = (sp.mode[sel], sp.enabled[sel], sp.position[sel], sp.velocity[sel], sp.effort[sel],
-                             sp.kp[sel], sp.kd[sel], sp.target[sel], loop.gain_p[sel], loop.gain_d[sel])
+                             sp.kp[sel], sp.kd[sel], sp.target[sel], loop.gain_p[sel], loop.gain_d[sel],
+                             sp.acceleration[sel])
             self.st_views = (st.position[sel], st.velocity[sel], None if origin is None else origin[sel])
         else:
             self.sp_views = ()
@@ -1336,11 +1337,12 @@ class MotionManager:
             w.bind(idx, sp, st, self._step_origin, loop)
         sel = ex.sel = w.sel
         if w.sp_views:  # consecutive joints, through views made once (basic indexing makes a view per write)
-            mode, enabled, position, velocity, effort, kp, kd, target, gain_p, gain_d = w.sp_views
+            mode, enabled, position, velocity, effort, kp, kd, target, gain_p, gain_d, acceleration = w.sp_views
             mode.fill(_POS)
             enabled.fill(True)
             position[...] = qc
             velocity[...] = v
+            acceleration[...] = a  # the servo law's inverse-dynamics feed-forward
             effort.fill(0.0)
             kp[...] = gain_p
             kd[...] = gain_d
@@ -1350,6 +1352,7 @@ class MotionManager:
             sp.enabled[sel] = True
             sp.position[sel] = qc
             sp.velocity[sel] = v
+            sp.acceleration[sel] = a
             sp.effort[sel] = 0.0
             sp.kp[sel] = np.take(loop.gain_p, sel, out=w.gain, mode="clip")
             sp.kd[sel] = np.take(loop.gain_d, sel, out=w.gain, mode="clip")

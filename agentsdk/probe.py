@@ -45,10 +45,16 @@ __all__ = ["BEHAVIORS", "ProbePool", "probe", "probe_in_subprocess"]
 #:   height at the start and every 0.5 s).
 #: * ``"follow"``: ``agentsdk check``'s short trial: hold ``FOLLOW_HOLD`` s, ``move_to`` ±``FOLLOW_MOVE`` rad on
 #:   every joint, settle ``FOLLOW_SETTLE`` s (``following_peak``/``following_window``: the largest following
-#:   error per joint and its window; ``following_errors``: the following-error events).
-BEHAVIORS = ("hold_move", "stand", "follow")
+#:   error per joint and its window; ``following_errors``: the following-error events; ``move_peak``: the
+#:   largest error per joint while the move ran).
+#: * ``"track"``: tracking in motion: after ``TRACK_HOLD`` s, a joint-space trajectory of ``TRACK`` s to
+#:   +``MOVE`` rad on every joint (-``MOVE`` where + leaves the limits; ``move_code``), ``track_peak``: the
+#:   largest error per joint between the servo's position setpoint and the measured position, every tick
+#:   of the trajectory.
+BEHAVIORS = ("hold_move", "stand", "follow", "track")
 HOLD, MOVE, SETTLE, STAND = 2.0, 0.25, 0.5, 5.0
 FOLLOW_HOLD, FOLLOW_MOVE, FOLLOW_SETTLE = 0.5, 0.3, 0.3
+TRACK_HOLD, TRACK = 0.2, 1.0
 
 
 def _jsonable(value: Any) -> Any:
@@ -105,14 +111,40 @@ async def _follow(bot: Any, out: dict[str, Any]) -> None:
         await bot.clock.sleep(FOLLOW_HOLD)
         q0 = (await bot.read()).position
         goal = np.clip(q0 + np.where(q0 + FOLLOW_MOVE <= upper, FOLLOW_MOVE, -FOLLOW_MOVE), lower, upper)
+        if following is not None:
+            hold_peak = following.peak.copy()
+            following.reset_peak()
         result = await bot.move_to({j.name: float(g) for j, g in zip(joints, goal, strict=True)})
         out["move_code"] = result.code.name
+        if following is not None:
+            out["move_peak"] = following.peak.tolist()
+            np.fmax(following.peak, hold_peak, out=following.peak)
         await bot.clock.sleep(FOLLOW_SETTLE)
     finally:
         if following is not None:
             out["following_peak"] = following.peak.tolist()
             out["following_window"] = following.windows.tolist()
         out["following_errors"] = [e.detail for e in bot.safety.events if e.kind in ("following_error", "sensor")]
+
+
+async def _track(bot: Any, out: dict[str, Any]) -> None:
+    """Tracking in motion: the peak error per joint along a ``TRACK`` s joint-space trajectory."""
+    import numpy as np
+
+    following = bot.safety.following
+    if following is None:
+        raise ValueError("the track trial measures with the following-error check; it is off for this robot")
+    joints = bot.joints
+    lower = np.array([j.lower for j in joints])
+    upper = np.array([j.upper for j in joints])
+    await bot.clock.sleep(TRACK_HOLD)
+    q0 = (await bot.read()).position
+    goal = np.clip(q0 + np.where(q0 + MOVE <= upper, MOVE, -MOVE), lower, upper)
+    following.reset_peak()
+    result = await bot.move_to({j.name: float(g) for j, g in zip(joints, goal, strict=True)}, duration=TRACK)
+    out["move_code"] = result.code.name
+    out["track_peak"] = following.peak.tolist()
+    out["following_errors"] = [e.detail for e in bot.safety.events if e.kind in ("following_error", "sensor")]
 
 
 async def _stand(bot: Any, out: dict[str, Any]) -> None:
@@ -161,6 +193,8 @@ async def _probe_async(
                 await _stand(bot, out)
             elif behavior == "follow":
                 await _follow(bot, out)
+            elif behavior == "track":
+                await _track(bot, out)
             elif behavior is not None:
                 raise ValueError(f"unknown probe behavior {behavior!r}; known: {', '.join(BEHAVIORS)}")
         except AgentSDKError as exc:

@@ -111,6 +111,12 @@ def _planning(quick: bool) -> list[Section]:
     return [planning.run(quick)]
 
 
+def _tracking(quick: bool) -> list[Section]:
+    from agentsdk.bench import tracking
+
+    return [tracking.run(quick)]
+
+
 # --------------------------------------------------------------------------- other modules
 
 
@@ -501,6 +507,7 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "can_cycle": ("CAN cycle rates on vcan0 vs raw python-can and the wire limit", _can_cycle),
     "safety_latency": ("e-stop and stall latency", _safety_latency),
     "planning": ("trajectory planning time vs raw ruckig", _planning),
+    "tracking": ("hand off a 10 cm line: inverse-dynamics feed-forward vs g(q) only", _tracking),
     "ros2_serve": ("serving joint_states on ROS 2: lockstep cost and tick -> peer latency vs raw DDS", _ros2_serve),
     "recording": (
         "recording cost: arm3 lockstep recorded vs unrecorded, MB per robot-minute, read-back memory", _recording

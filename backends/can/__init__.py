@@ -41,7 +41,9 @@ motors run the PD law in firmware, so the host computes ``g(q)`` at the last mea
 from the description's rigid-body model (:class:`agentsdk.dynamics.DynamicsModel`, a MuJoCo model
 compiled from the same description) once per cycle and adds it to the MIT torque feed-forward,
 which the encoder clamps to the motor's torque range. ``CanController.gravity_torque`` is the
-last value sent (joint side).
+last value sent (joint side). Likewise the inverse dynamics of the desired motion (robot.yaml
+``inverse_dynamics``, :mod:`agentsdk.feedforward`, from the same host model, the URDF friction
+as dry Coulomb friction): ``CanController.motion_torque``, 0 at rest.
 """
 
 from __future__ import annotations
@@ -68,6 +70,7 @@ from agentsdk.errors import (
     ConfigurationError,
     UnknownJointError,
 )
+from agentsdk.feedforward import InverseDynamicsTerm
 from agentsdk.sensors import SensorChannel, SensorSpec
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
@@ -101,6 +104,8 @@ class CanOptions(CanBusConfig):
     #: override robot.yaml ``gravity_compensation`` for every joint (None: robot.yaml); off for a plant
     #: without gravity (the free-motor emulator)
     gravity_compensation: bool | None = None
+    #: override robot.yaml ``inverse_dynamics`` (the desired motion's inverse dynamics, from the host model)
+    inverse_dynamics: bool | None = None
     #: fraction of the control period to wait for replies each cycle
     reply_deadline: float = Field(default=0.8, gt=0.0, le=1.0)
     #: consecutive cycles without a reply before a motor is declared lost (-> FAULT)
@@ -162,6 +167,8 @@ class CanController(Backend):
     #: the motors' reported temperatures (when the vendor profile carries one); their torque estimate
     #: is every backend's ``joint_effort`` sensor
     sensor_kinds = frozenset({"temperature"})
+    #: the desired motion's inverse dynamics (robot.yaml ``inverse_dynamics``), built at open
+    _inverse: InverseDynamicsTerm | None = None
 
     def __init__(self, *args: Any, **kw: Any) -> None:
         super().__init__(*args, **kw)
@@ -296,8 +303,15 @@ class CanController(Backend):
         # tau_model: g(q) from the description's model, for the joints with gravity compensation
         self._gc_mask = self.gravity_compensation.astype(float)
         self._gc_model = None
-        if self._gc_mask.any():  # compiling the model is blocking work: not on the event loop
-            self._gc_model = await run_blocking(lambda: self.dynamics, name="agentsdk-can-dynamics")
+        self._inverse = None
+        #: the desired motion's inverse dynamics (joint side, N·m) added to the last command's feed-forward
+        self.motion_torque = np.zeros(len(self.joints))
+        self._eff = np.zeros(len(self.joints))
+        if self._gc_mask.any() or self.inverse_dynamics:  # compiling the model is blocking work: not on the loop
+            model = await run_blocking(lambda: self.dynamics, name="agentsdk-can-dynamics")
+            self._gc_model = model if self._gc_mask.any() else None
+            if self.inverse_dynamics:  # + M(q) a_des + C(q, v_des) v_des from the host model
+                self._inverse = InverseDynamicsTerm(model.model, self.names)
         #: the gravity torque (joint side, N·m) added to the last command's feed-forward
         self.gravity_torque = np.zeros(len(self.joints))
         try:
@@ -643,12 +657,17 @@ class CanController(Backend):
     def _write(self, sp: SetpointView) -> None:
         # encoded in place into the reused messages' data (no objects per frame)
         pos, vel = sp.position.tolist(), sp.velocity.tolist()
+        ff = self._eff
+        np.copyto(ff, sp.effort)
         if self._gc_model is not None:  # tau_model: g(q) at the last measured position (main's feedforward)
             gt = self._gc_model.gravity(self._q, self.gravity_torque)
             gt *= self._gc_mask
-            eff = (sp.effort + gt).tolist()
-        else:
-            eff = sp.effort.tolist()
+            ff += gt
+        inverse = self._inverse
+        if inverse is not None:  # + the desired motion's inverse dynamics at the last measured position (host model)
+            qpos = self.dynamics.qpos(self._q)
+            ff += inverse.compute(qpos, sp.velocity, sp.acceleration, self.motion_torque, sp.mode)
+        eff = ff.tolist()
         kp, kd, en = sp.kp.tolist(), sp.kd.tolist(), sp.enabled.tolist()
         self._torque[...] = sp.enabled  # torque on per joint (set_zero needs it off)
         for k, msg in enumerate(self._msgs):

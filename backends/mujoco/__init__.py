@@ -52,6 +52,7 @@ from agentsdk.description.mjspec import build_spec, mjcf_spec_without_actuators
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.dynamics import GravityTerm
 from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
+from agentsdk.feedforward import InverseDynamicsTerm
 from agentsdk.pose import BaseState, Pose
 from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
@@ -115,6 +116,8 @@ class MujocoOptions(BaseModel):
     floating_base: bool | None = None
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
     self_collision: Literal["auto"] | bool | None = None
+    #: override robot.yaml ``inverse_dynamics`` (the desired motion's inverse dynamics in the servo law)
+    inverse_dynamics: bool | None = None
 
 
 class MujocoController(Backend):
@@ -344,6 +347,9 @@ class MujocoController(Backend):
         self._gc_mask = mask
         on = mask.any() and bool(np.any(m.opt.gravity))
         self._gravity = GravityTerm(m, self.names) if on else None
+        # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from this model, armature included
+        self._inverse = InverseDynamicsTerm(m, self.names, friction="mujoco") if self.inverse_dynamics else None
+        self._tau_motion = np.zeros(len(self.joints))
 
     # ------------------------------------------------------------ floating base
     def _setup_base(self) -> None:
@@ -410,6 +416,9 @@ class MujocoController(Backend):
             tau = self._gravity.compute(self.data.qpos, self._tau_model)
             tau *= self._gc_mask
             ctrl += tau
+        inverse = self._inverse
+        if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics
+            ctrl += inverse.compute(self.data.qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode)
         en = sp.enabled
         if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0

@@ -87,6 +87,7 @@ from agentsdk.errors import (
     SimulationDiverged,
     UnsupportedModelError,
 )
+from agentsdk.feedforward import InverseDynamicsTerm
 from agentsdk.pose import BaseState, Pose
 from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
@@ -134,6 +135,8 @@ class PybulletOptions(BaseModel):
     floating_base: bool | None = None
     #: override robot.yaml ``self_collision`` (auto | true | false) for this backend
     self_collision: Literal["auto"] | bool | None = None
+    #: override robot.yaml ``inverse_dynamics`` (the desired motion's inverse dynamics in the servo law)
+    inverse_dynamics: bool | None = None
     #: open the PyBullet GUI (needs a display; one GUI per process)
     gui: bool = False
 
@@ -503,6 +506,10 @@ class PybulletController(Backend):
         )
         self._gc_on = bool(self._gc_mask.any()) and any(self.options.gravity)
         self._gc_q = np.zeros(len(self.joints))
+        # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from the same host model
+        self._inverse = (InverseDynamicsTerm(self._model.model, self.names, extra_damping=self.options.joint_damping)
+                         if self.inverse_dynamics else None)
+        self._tau_motion = np.zeros(len(self.joints))
         model = self._model.model
         nd, nv = len(self._dofs), model.nv
         # PyBullet dof k is the model's dof _perm[k], its position the model's qpos[_qadr[k]]
@@ -551,6 +558,14 @@ class PybulletController(Backend):
         tau = self._model.gravity(q, self._tau_model, base)
         tau *= self._gc_mask
         return tau
+
+    def _motion_torque(self, sp: SetpointView) -> np.ndarray:
+        """``M(q) a_des + C(q, v_des) v_des`` at the latest sensed state into ``_tau_motion``."""
+        assert self._inverse is not None
+        q = np.take(self._q_all, self._sel, out=self._gc_q)
+        base = self.base_state().pose if self.floating_base else None
+        return self._inverse.compute(self._model.qpos(q, base), sp.velocity, sp.acceleration, self._tau_motion,
+                                     sp.mode)
 
     def _implicit_terms(self) -> tuple[np.ndarray, np.ndarray]:
         """``M(q)`` and ``c(q, v) + g(q)`` in PyBullet's dof order, from the description's model.
@@ -617,6 +632,8 @@ class PybulletController(Backend):
         np.copyto(self._ff, sp.effort)
         if self._gc_on:  # tau_model: g(q) at the measured position, added to the feed-forward
             self._ff += self._gravity_torque()
+        if self._inverse is not None and self._inverse.moving(sp.velocity, sp.acceleration):
+            self._ff += self._motion_torque(sp)
         np.copyto(self._kp, sp.kp)
         np.copyto(self._kd, sp.kd)
         np.copyto(self._en, sp.enabled)

@@ -1,0 +1,146 @@
+"""The inverse-dynamics feed-forward of the servo law: the torque the desired motion needs.
+
+The servo law (:mod:`agentsdk.backend`) is ``effort = kp (q_des - q) + kd (v_des - v) + effort_ff +
+tau_model``. With gravity compensation alone, ``tau_model = g(q)``: a robot holds its pose, but
+while it moves the gains have to produce the torque that accelerates the links and carries
+their Coriolis and centrifugal forces, so the joints lag the reference by about
+``M q̈ / kp``; on an arm moving at its limits that is millimetres at the hand. A robot
+controller feeds the desired motion's inverse dynamics forward instead
+(computed-torque feed-forward)::
+
+    tau_model = M(q) a_des + C(q, v_des) v_des + b v_des + friction(v_des, a_des) + g(q)
+
+with ``v_des`` and ``a_des`` the reference's velocity and acceleration (the setpoint's
+``velocity`` and ``acceleration``: the trajectory executor writes both every tick), ``q``
+the measured position, and the joints' damping ``b`` and dry friction, which the motion meets
+as well (on corpus arms with URDF ``<dynamics damping friction>`` they, not the inertia,
+dominate the lag). :class:`InverseDynamicsTerm` computes the motion part (``g(q)`` stays the
+gravity term, so robot.yaml ``gravity_compensation`` keeps its meaning per joint) with
+MuJoCo's inverse dynamics (``mj_inverse``) on a private copy of the model the backend
+simulates (the MuJoCo backend's compiled model: armature and soft ``frictionloss`` as it
+simulates them) or of the description's host model (:class:`agentsdk.dynamics.DynamicsModel`:
+PyBullet, whose ``calculateInverseDynamics`` is wrong with URDF fixed joints, and CAN; dry
+Coulomb friction). At rest (``v_des = a_des = 0``) the term is exactly 0 and is not
+computed, so holds are unchanged.
+
+Switched per robot by robot.yaml ``inverse_dynamics`` (default true) or the backend option of
+the same name (``connect("mujoco", robot, inverse_dynamics=False)``).
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Sequence
+from typing import Literal
+
+import mujoco
+import numpy as np
+
+from .backend import ModeCode
+from .dynamics import coupling_matrix
+
+__all__ = ["FRICTION_VELOCITY", "InverseDynamicsTerm"]
+
+_EFFORT = int(ModeCode.EFFORT)
+
+#: desired speed (rad/s or m/s) from which a joint's full Coulomb friction is fed forward (linear below)
+FRICTION_VELOCITY = 0.01
+
+
+class InverseDynamicsTerm:
+    """``M(q) a + C(q, v) v + b v + friction`` of the commanded joints from a MuJoCo model, allocation-free per call.
+
+    ``b`` is the joints' viscous damping (``dof_damping``: URDF ``<dynamics damping>``, plus
+    ``extra_damping`` on the commanded joints: a simulator option the model does not hold),
+    ``M`` includes the rotor inertia (``dof_armature``). The joints' Coulomb friction
+    (``dof_frictionloss``: URDF ``<dynamics friction>``) is fed forward as the backend's plant
+    produces it: ``friction="coulomb"`` (PyBullet's and a motor's dry friction: ``F`` against the
+    desired velocity, in full from :data:`FRICTION_VELOCITY` on and linearly below, so a
+    reference at rest gets none) or ``friction="mujoco"`` (MuJoCo's soft ``frictionloss``
+    constraint, through MuJoCo's own inverse dynamics).
+
+    Computed with ``mj_inverse`` on a private copy of ``model`` without gravity (``g(q)`` is
+    the gravity term's), springs, contacts, joint limits and equality constraints (mimic
+    followers move with their leader: the desired velocity and acceleration are spread to
+    them, their torque is carried by the leader, as in :func:`~agentsdk.dynamics.coupling_matrix`).
+    A floating base's own velocity and acceleration are taken as zero (its pose, in ``qpos``,
+    is used). Not thread-safe (one caller, the control tick).
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        joints: Sequence[str],
+        *,
+        extra_damping: float = 0.0,
+        friction: Literal["coulomb", "mujoco"] = "coulomb",
+    ) -> None:
+        s = coupling_matrix(model, joints)
+        m = self.model = copy.copy(model)
+        off = mujoco.mjtDisableBit
+        m.opt.disableflags |= int(off.mjDSBL_GRAVITY) | int(off.mjDSBL_SPRING)
+        if friction == "mujoco":
+            m.opt.disableflags |= int(off.mjDSBL_CONTACT) | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_EQUALITY)
+        else:
+            m.opt.disableflags |= int(off.mjDSBL_CONSTRAINT)
+        m.dof_damping[np.flatnonzero(s.any(axis=1))] += extra_damping
+        d = self._data = mujoco.MjData(m)
+        # views made once (each MjData attribute access builds a new array object)
+        self._qpos, self._qvel, self._qacc, self._qfrc = d.qpos, d.qvel, d.qacc, d.qfrc_inverse
+        self._s = np.ascontiguousarray(s)
+        self._st = np.ascontiguousarray(s.T)
+        self._friction = np.array(m.dof_frictionloss, dtype=np.float64) if friction == "coulomb" else None
+        if self._friction is not None and not self._friction.any():
+            self._friction = None
+        self._tmp = np.zeros(m.nv)
+        self._sq = np.zeros(())
+        self._effort = np.zeros(len(joints), dtype=bool)
+
+    def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
+        """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
+        sq = self._sq
+        np.dot(velocity, velocity, out=sq)
+        if sq.item() != 0.0:
+            return True
+        np.dot(acceleration, acceleration, out=sq)
+        return sq.item() != 0.0
+
+    def compute(
+        self,
+        qpos: np.ndarray,
+        velocity: np.ndarray,
+        acceleration: np.ndarray,
+        out: np.ndarray,
+        mode: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Write the term (n,) for the desired ``velocity`` and ``acceleration`` (n,) at ``qpos`` into ``out``.
+
+        ``qpos`` is the model's full position vector (a floating base's pose included). 0 when the
+        desired velocity and acceleration are both 0 (nothing computed). ``mode`` (the setpoint's
+        :class:`~agentsdk.backend.ModeCode` per joint): an effort-mode joint gets none of it (its
+        torque is the one commanded, plus ``g(q)``), though its motion still counts for the others.
+        """
+        if not self.moving(velocity, acceleration):
+            out.fill(0.0)
+            return out
+        qvel = self._qvel
+        self._qpos[...] = qpos
+        np.dot(self._s, velocity, out=qvel)
+        np.dot(self._s, acceleration, out=self._qacc)
+        mujoco.mj_inverse(self.model, self._data)
+        full = self._qfrc
+        friction = self._friction
+        if friction is not None:  # dry friction against the desired velocity, smoothed near 0
+            tmp = self._tmp
+            np.multiply(qvel, 1.0 / FRICTION_VELOCITY, out=tmp)
+            np.minimum(tmp, 1.0, out=tmp)
+            np.maximum(tmp, -1.0, out=tmp)
+            tmp *= friction
+            full += tmp
+        np.dot(self._st, full, out=out)
+        if mode is not None:
+            effort = self._effort
+            np.equal(mode, _EFFORT, out=effort)
+            if np.count_nonzero(effort):
+                out[effort] = 0.0
+        return out

@@ -93,6 +93,7 @@ def leg_copy(directory: Path, **changes: Any) -> str:
     cfg["description"] = str(src.parent / cfg["description"])
     cfg["update_rate"] = VCAN_RATE
     cfg["backends"]["can"]["timeout"] = MOTOR_TIMEOUT
+    cfg["inverse_dynamics"] = False  # the free-rotor emulator has none of the leg's dynamics (the plant test sets it)
     cfg.update(changes)  # may set another update_rate
     dst = directory / "mit_leg" / "robot.yaml"
     dst.parent.mkdir(parents=True, exist_ok=True)
@@ -283,7 +284,7 @@ async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant_over_vcan0(
     traces: dict[bool, list[list[float]]] = {}
     for on in (True, False):
         # the MuJoCo plant in another process on UML's one vCPU: a slower cycle it can close, missed replies tolerated
-        robot_yaml = leg_copy(tmp_path / str(on), gravity_compensation=on, update_rate=PLANT_RATE)
+        robot_yaml = leg_copy(tmp_path / str(on), gravity_compensation=on, inverse_dynamics=on, update_rate=PLANT_RATE)
         proc = start_emulator(robot_yaml, "--plant", "mujoco", "--substep", "0.002", "--timeout", "0.25")
         try:
             await _wait_async(lambda p=proc: p.has(EMULATOR_READY) or p.popen.poll() is not None)

@@ -277,19 +277,19 @@ def test_keyboard_jog_through_the_page_moves_the_end_effector(browser: Any, tmp_
         start = _settled(out, 0, err)
         keys = ActionChains(browser)
 
-        keys.send_keys("i").perform()  # +x
-        moved = _settled(out, 1, err)
-        dx, dy, dz = (moved[k] - start[k] for k in range(3))
-        assert abs(dx - 0.01) < 1e-3 and abs(dy) < 1e-3 and abs(dz) < 1e-3, (dx, dy, dz)
-
         keys.send_keys("1").perform()  # joint1 +0.05 rad
-        j1 = _settled(out, 2, err)
-        assert abs(j1[3] - moved[3] - 0.05) < 2e-3, (moved, j1)
-        assert max(abs(j1[k] - moved[k]) for k in range(4, len(j1))) < 2e-3, (moved, j1)
+        j1 = _settled(out, 1, err)
+        assert abs(j1[3] - start[3] - 0.05) < 2e-3, (start, j1)
+        assert max(abs(j1[k] - start[k]) for k in range(4, len(j1))) < 2e-3, (start, j1)
 
         ActionChains(browser).key_down(Keys.SHIFT).send_keys("1").key_up(Keys.SHIFT).perform()  # joint1 back
-        back = _settled(out, 3, err)
-        assert abs(back[3] - moved[3]) < 2e-3, (moved, back)
+        back = _settled(out, 2, err)
+        assert abs(back[3] - start[3]) < 2e-3, (start, back)
+
+        keys.send_keys("i").perform()  # +x
+        moved = _settled(out, 3, err)
+        dx, dy, dz = (moved[k] - back[k] for k in range(3))
+        assert abs(dx - 0.01) < 1e-3 and abs(dy) < 1e-3 and abs(dz) < 1e-3, (dx, dy, dz)
 
         # one press is one step: nothing more moves afterwards (release = hold)
         time.sleep(1.0)

@@ -786,8 +786,7 @@ def _cmd_jog(args: argparse.Namespace) -> int:
 
         device = find_gamepad() if args.gamepad == "auto" else args.gamepad
         if device is None:
-            print("no gamepad found (no /dev/input/js*): plug one in, or jog with --keys", file=sys.stderr)
-            return EXIT_USER_ERROR
+            raise ConfigurationError("no gamepad found (no /dev/input/js*): plug one in, or jog with --keys")
     elif not os.isatty(sys.stdin.fileno()):
         raise ConfigurationError("--keys reads the keyboard of a terminal, but stdin is not one; run it in a "
                                  "terminal (over ssh: ssh -t), or jog from the web page (agentsdk run --web)")

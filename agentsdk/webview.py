@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .errors import BackendUnavailableError, ConfigurationError
-from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, JogAction, Jogger
+from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, SHIFTED_DIGITS, JogAction, Jogger
 
 if TYPE_CHECKING:
     from .robot import Robot
@@ -268,8 +268,9 @@ class WebView:
             cmd = gui.add_command(f"Jog {'+' if sign > 0 else '-'}{'xyz'[axis]}", hotkey=key)
             cmd.on_trigger(lambda _, a=axis, s=sign: self.jog_cartesian(a, s * JOG_STEP))
         for i, name in enumerate(self._names[:9]):
-            for modifier, sign in ((None, 1.0), ("shift", -1.0)):
-                cmd = gui.add_command(f"Jog {name} {'+' if sign > 0 else '-'}", hotkey=str(i + 1),
+            # Shift+digit: the page's hotkeys match the typed character, which Shift turns into !@#... (US layout)
+            for key, modifier, sign in ((str(i + 1), None, 1.0), (SHIFTED_DIGITS[i], "shift", -1.0)):
+                cmd = gui.add_command(f"Jog {name} {'+' if sign > 0 else '-'}", hotkey=key,
                                       modifier=modifier)
                 cmd.on_trigger(lambda _, n=name, s=sign: self.jog_joint(n, s * JOINT_STEP))
 

@@ -234,7 +234,8 @@ def test_no_gamepad_is_one_line(tmp_path: Path) -> None:
     out = subprocess.run([sys.executable, "-m", "agentsdk", "teleop", "--gamepad", "--backend", "mock"],
                          capture_output=True, text=True, cwd=ROOT, env=env, timeout=120, check=False)
     assert out.returncode != 0
-    assert out.stderr.strip().splitlines() == ["no gamepad found (no /dev/input/js*): plug one in, or jog with --keys"]
+    assert out.stderr.strip().splitlines() == [
+        "error: no gamepad found (no /dev/input/js*): plug one in, or jog with --keys"]
     missing = subprocess.run([sys.executable, "-m", "agentsdk", "teleop", "--gamepad", str(tmp_path / "js9"),
                               "--backend", "mock"], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120,
                              check=False)

@@ -259,7 +259,7 @@ class WebView:
             gui.add_markdown(f"Cartesian {JOG_STEP * 100:g} cm steps of `{self._jog_link}`: keys "
                              f"{keys[0, 1.0]}/{keys[0, -1.0]} (x), {keys[1, 1.0]}/{keys[1, -1.0]} (y), "
                              f"{keys[2, 1.0]}/{keys[2, -1.0]} (z); joints: 1-9, with Shift to go back "
-                             f"({JOINT_STEP:g} rad)")
+                             f"({JOINT_STEP:g} rad); Space stops a step")
             for axis, name in enumerate("xyz"):
                 for sign in (1.0, -1.0):
                     button = gui.add_button(f"{'+' if sign > 0 else '-'}{name}")
@@ -273,6 +273,14 @@ class WebView:
                 cmd = gui.add_command(f"Jog {name} {'+' if sign > 0 else '-'}", hotkey=key,
                                       modifier=modifier)
                 cmd.on_trigger(lambda _, n=name, s=sign: self.jog_joint(n, s * JOINT_STEP))
+        stop = gui.add_command("Stop the jog", hotkey="space")
+        stop.on_trigger(lambda _: self.stop_jog())
+
+    def stop_jog(self) -> None:
+        """Release = hold: cancel the running jog step; the arm decelerates within its limits and holds. Any thread."""
+        jogging = self._jogging
+        if jogging is not None and not jogging.done():
+            jogging.cancel()
 
     def jog_cartesian(self, axis: int, step: float) -> None:
         """Move the end effector ``step`` metres along root-frame axis ``axis`` (0, 1, 2) in a straight line.

@@ -710,6 +710,11 @@ def _cmd_emulate_can(args: argparse.Namespace, rest: list[str]) -> int:
 
 
 def _cmd_bench(rest: list[str]) -> int:
+    import ctypes.util
+
+    if not os.environ.get("DISPLAY") and "MUJOCO_GL" not in os.environ and ctypes.util.find_library("EGL"):
+        # headless: MuJoCo picks its GL when imported; left to itself it tries GLFW, whose warnings reach the user
+        os.environ["MUJOCO_GL"] = "egl"
     from agentsdk.bench.__main__ import main as bench_main
 
     return bench_main(rest)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import re
 import sys
 from collections.abc import Iterator
 from typing import TYPE_CHECKING, TextIO
@@ -25,10 +26,18 @@ if TYPE_CHECKING:
     from .motion import MotionResult
     from .robot import Robot
 
-__all__ = ["QUIT_KEYS", "jog_with_keys", "terminal_mode"]
+__all__ = ["QUIT_KEYS", "jog_with_keys", "split_keys", "terminal_mode"]
 
 #: keys that end the session: q, Esc, Ctrl-D
 QUIT_KEYS = frozenset({"q", "Q", "\x1b", "\x04"})
+
+
+_ESCAPE = re.compile(r"\x1b(\[[0-?]*[ -/]*[@-~]|O.)")
+
+
+def split_keys(text: str) -> list[str]:
+    """The key presses in what the terminal sent: escape sequences (arrows, function keys) dropped, a lone Esc kept."""
+    return list(_ESCAPE.sub("", text))
 
 
 @contextlib.contextmanager
@@ -81,11 +90,8 @@ async def jog_with_keys(robot: Robot, fd: int | None = None, out: TextIO | None 
             loop.remove_reader(fd)
             keys.put_nowait("\x04")
             return
-        text = data.decode("utf-8", "replace")
-        if text.startswith("\x1b") and len(text) > 1:  # an escape sequence (arrow keys...): not a jog key
-            return
-        for ch in text:
-            keys.put_nowait(ch)
+        for key in split_keys(data.decode("utf-8", "replace")):
+            keys.put_nowait(key)
 
     def _done(result: MotionResult | BaseException) -> None:
         nonlocal steps

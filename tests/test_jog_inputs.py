@@ -55,6 +55,15 @@ def test_key_mapping() -> None:
     assert JogAction("joint", 1, -1.0).describe(["a", "b"]) == "b -"
 
 
+def test_terminal_input_is_split_into_key_presses() -> None:
+    from agentsdk.keyjog import split_keys
+
+    # arrows and function keys are escape sequences, not Esc (quit) plus letters; keys read together stay apart
+    assert split_keys("\x1b[Au") == ["u"]
+    assert split_keys("ii\x1b[1;5C\x1bOPk") == ["i", "i", "k"]
+    assert split_keys("\x1b") == ["\x1b"] and split_keys("a\x1b") == ["a", "\x1b"]
+
+
 async def test_jogger_steps_one_at_a_time_and_release_holds() -> None:
     async with agentsdk.connect("mock", robot="arm3", safety=SAFETY) as robot:
         jogger = Jogger(robot)
@@ -123,8 +132,7 @@ def test_terminal_keys_through_a_pty(tmp_path: Path) -> None:
         start, moved = _where("".join(buf))[:2]
         d = moved - start
         assert abs(d[0] - JOG_STEP) < 1e-3 and np.linalg.norm(d[1:]) < 1e-3, d
-        os.write(master, b"\x1b[A")  # an arrow key: ignored, not a quit
-        os.write(master, b"u")  # +z
+        os.write(master, b"\x1b[Au")  # an arrow key (ignored, not a quit) read together with U (+z)
         _read_until(master, r"(at x=\S+ y=\S+ z=\S+ m[\s\S]*){3}", buf)
         up = _where("".join(buf))[2] - moved
         assert abs(up[2] - JOG_STEP) < 1e-3 and np.linalg.norm(up[:2]) < 1e-3, up

@@ -220,13 +220,14 @@ async def test_gamepad_jogs_while_the_deadman_is_held_and_holds_on_release(tmp_p
             await robot.clock.sleep(0.6)
             held = robot.kinematics.fk(link).position.copy()
             await robot.clock.sleep(0.5)
-            assert np.linalg.norm(robot.kinematics.fk(link).position - held) < 1e-4
+            # holds (0.5 mm: the measured pose of a PD-held MuJoCo arm still settles a little; a step is 10 mm)
+            assert np.linalg.norm(robot.kinematics.fk(link).position - held) < 5e-4, held
             moved = desired() - start
             # a release stops each joint within its limits: the last millimetres may leave the line
             assert moved[0] > 0.015 and np.linalg.norm(moved[1:]) < 6e-3, moved
             os.write(wfd, encode_event("axis", 1, 0.0) + encode_event("button", 4, 1))  # dead-man, stick centred
             await robot.clock.sleep(0.3)
-            assert np.linalg.norm(robot.kinematics.fk(link).position - held) < 1e-4
+            assert np.linalg.norm(robot.kinematics.fk(link).position - held) < 5e-4, held
         finally:
             os.close(wfd)  # the device goes away: the session ends, the robot holds
             steps = await asyncio.wait_for(session, 60)

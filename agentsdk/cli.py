@@ -720,6 +720,11 @@ def _cmd_emulate_can(args: argparse.Namespace, rest: list[str]) -> int:
 
 
 def _cmd_bench(rest: list[str]) -> int:
+    import ctypes.util
+
+    if not os.environ.get("DISPLAY") and "MUJOCO_GL" not in os.environ and ctypes.util.find_library("EGL"):
+        # headless: MuJoCo picks its GL when imported; left to itself it tries GLFW, whose warnings reach the user
+        os.environ["MUJOCO_GL"] = "egl"
     from agentsdk.bench.__main__ import main as bench_main
 
     return bench_main(rest)
@@ -745,10 +750,17 @@ _TRUST_HELP = (
 
 
 def _cmd_teleop(args: argparse.Namespace) -> int:
-    """``agentsdk teleop --leader B1:R1 --follower B2:R2``: the follower follows the leader (agentsdk.teleop)."""
+    """``agentsdk teleop --leader B1:R1 --follower B2:R2``: the follower follows the leader (agentsdk.teleop);
+    ``--keys`` / ``--gamepad``: jog one robot from the terminal's keyboard or a gamepad (agentsdk.jog).
+    """
     from .robot import connect
     from .teleop import follow_leader, parse_endpoint
 
+    if args.keys or args.gamepad:
+        return _cmd_jog(args)
+    if not (args.leader and args.follower):
+        raise ConfigurationError("teleop needs --leader BACKEND:ROBOT and --follower BACKEND:ROBOT, or --keys / "
+                                 "--gamepad with --robot NAME to jog one robot")
     lb, lr = parse_endpoint(args.leader, "leader")
     fb, fr = parse_endpoint(args.follower, "follower")
     driver = load_behavior(args.leader_behavior) if args.leader_behavior else None
@@ -772,6 +784,47 @@ def _cmd_teleop(args: argparse.Namespace) -> int:
         return EXIT_INTERRUPTED
     print(f"teleop ended ({report.ended}) after {report.commands} commands; largest tracking error "
           f"{report.max_tracking_error:.4f}; joints: {', '.join(f'{a}->{b}' for a, b in report.pairs)}")
+    return 0
+
+
+def _cmd_jog(args: argparse.Namespace) -> int:
+    """``agentsdk teleop --keys|--gamepad [DEVICE] --robot R [--backend B]``."""
+    from .robot import connect
+
+    if args.keys and args.gamepad:
+        raise ConfigurationError("choose one of --keys and --gamepad")
+    if args.leader or args.follower:
+        raise ConfigurationError("--keys / --gamepad jog one robot (--robot, --backend); leave out --leader/--follower")
+    device: Any = None
+    if args.gamepad:
+        from .gamepad import find_gamepad
+
+        device = find_gamepad() if args.gamepad == "auto" else args.gamepad
+        if device is None:
+            raise ConfigurationError("no gamepad found (no /dev/input/js*): plug one in, or jog with --keys")
+    elif not os.isatty(sys.stdin.fileno()):
+        raise ConfigurationError("--keys reads the keyboard of a terminal, but stdin is not one; run it in a "
+                                 "terminal (over ssh: ssh -t), or jog from the web page (agentsdk run --web)")
+    backend = args.backend or "mujoco"
+
+    async def session() -> int:
+        async with connect(backend, robot=args.robot or "arm3", realtime=True) as robot:
+            if args.gamepad:
+                from .gamepad import jog_with_gamepad
+
+                print(f"jog {robot.name} ({backend}) from {device}: hold LB and use the sticks; Ctrl-C ends",
+                      file=sys.stderr, flush=True)
+                return await jog_with_gamepad(robot, device)
+            from .keyjog import jog_with_keys
+
+            return await jog_with_keys(robot)
+
+    try:
+        steps = asyncio.run(session())
+    except KeyboardInterrupt:
+        print("jog interrupted; the robot held its position", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    print(f"jog ended after {steps} steps")
     return 0
 
 
@@ -842,9 +895,16 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--strict", action="store_true", help="treat every repair as an error")
     c.add_argument("--trusted", action="store_true", help=_TRUST_HELP)
     c.add_argument("--timeout", type=float, default=300.0, help="seconds allowed per simulator load")
-    t = sub.add_parser("teleop", help="leader-follower teleoperation: the follower robot follows the leader's joints")
-    t.add_argument("--leader", required=True, metavar="BACKEND:ROBOT", help="e.g. can:my_arm, mock:arm3")
-    t.add_argument("--follower", required=True, metavar="BACKEND:ROBOT", help="e.g. mujoco:arm3")
+    t = sub.add_parser("teleop", help="teleoperation: a follower robot follows a leader's joints, or jog one robot "
+                       "from the keyboard (--keys) or a gamepad (--gamepad)")
+    t.add_argument("--leader", metavar="BACKEND:ROBOT", help="e.g. can:my_arm, mock:arm3")
+    t.add_argument("--follower", metavar="BACKEND:ROBOT", help="e.g. mujoco:arm3")
+    t.add_argument("--keys", action="store_true",
+                   help="jog --robot from this terminal's keyboard (I/K J/L U/O: x y z; 1-9: joints; q quits)")
+    t.add_argument("--gamepad", nargs="?", const="auto", metavar="DEVICE",
+                   help="jog --robot from a gamepad (default: the first /dev/input/js*; hold LB, move the sticks)")
+    t.add_argument("--robot", default=None, help="with --keys/--gamepad: the robot to jog (default arm3)")
+    t.add_argument("--backend", default=None, help="with --keys/--gamepad: its backend (default mujoco)")
     t.add_argument("--scale", type=float, default=1.0, help="follower motion = scale x leader motion (default 1)")
     t.add_argument("--duration", type=float, default=None, help="end after this many seconds")
     t.add_argument("--leader-behavior", metavar="BEHAVIOR.py",

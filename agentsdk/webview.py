@@ -42,11 +42,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .errors import BackendUnavailableError, ConfigurationError
+from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, SHIFTED_DIGITS, JogAction, Jogger
 
 if TYPE_CHECKING:
     from .robot import Robot
 
-__all__ = ["HOST", "PLOT_RATE", "PLOT_WINDOW", "RATE", "Snapshot", "WebView"]
+__all__ = ["HOST", "JOG_STEP", "JOINT_STEP", "PLOT_RATE", "PLOT_WINDOW", "RATE", "Snapshot", "WebView"]
 
 log = logging.getLogger("agentsdk.webview")
 
@@ -57,9 +58,6 @@ RATE = 30.0
 #: plot redraws per second and the plotted window (s of robot time)
 PLOT_RATE = 5.0
 PLOT_WINDOW = 10.0
-#: one Cartesian jog step (m) and one joint jog step (rad or m)
-JOG_STEP = 0.01
-JOINT_STEP = 0.05
 
 
 @dataclass(frozen=True)
@@ -136,9 +134,8 @@ class WebView:
         self._urdf_names: tuple[str, ...] = ()
         self._urdf_xml = str(getattr(robot.description, "urdf_xml", "") or "")
         self._robot_name = robot.name
-        from .arm import end_effector
-
-        self._jog_link = end_effector(robot.kinematics)
+        self._jogger = Jogger(robot)
+        self._jog_link = self._jogger.link
         self._jogging: concurrent.futures.Future[None] | None = None
         self._start_poses = list(robot.kinematics.link_poses().values())
         from .statemachine import StateMachine
@@ -255,71 +252,63 @@ class WebView:
         self._history: deque[tuple[float, np.ndarray]] = deque()
 
     def _build_jog(self) -> None:
-        """Jog buttons and keyboard shortcuts: one step per press, the arm holds between presses."""
+        """Jog buttons and keyboard shortcuts (:mod:`agentsdk.jog`): one step per press, the arm holds between."""
         gui = self.server.gui
+        keys = {(axis, sign): key.upper() for key, (axis, sign) in CARTESIAN_KEYS.items()}
         with gui.add_folder("Jog", expand_by_default=False):
-            gui.add_markdown(f"Cartesian {JOG_STEP * 100:g} cm steps of `{self._jog_link}`: keys W/S (x), "
-                             f"A/D (y), R/F (z); joints: 1-9, with Shift to go back ({JOINT_STEP:g} rad)")
+            gui.add_markdown(f"Cartesian {JOG_STEP * 100:g} cm steps of `{self._jog_link}`: keys "
+                             f"{keys[0, 1.0]}/{keys[0, -1.0]} (x), {keys[1, 1.0]}/{keys[1, -1.0]} (y), "
+                             f"{keys[2, 1.0]}/{keys[2, -1.0]} (z); joints: 1-9, with Shift to go back "
+                             f"({JOINT_STEP:g} rad); Space stops a step")
             for axis, name in enumerate("xyz"):
                 for sign in (1.0, -1.0):
                     button = gui.add_button(f"{'+' if sign > 0 else '-'}{name}")
                     button.on_click(lambda _, a=axis, s=sign: self.jog_cartesian(a, s * JOG_STEP))
-        for axis, (plus, minus) in enumerate((("W", "S"), ("A", "D"), ("R", "F"))):
-            for key, sign in ((plus, 1.0), (minus, -1.0)):
-                cmd = gui.add_command(f"Jog {'+' if sign > 0 else '-'}{'xyz'[axis]}", hotkey=key)
-                cmd.on_trigger(lambda _, a=axis, s=sign: self.jog_cartesian(a, s * JOG_STEP))
+        for (axis, sign), key in keys.items():
+            cmd = gui.add_command(f"Jog {'+' if sign > 0 else '-'}{'xyz'[axis]}", hotkey=key)
+            cmd.on_trigger(lambda _, a=axis, s=sign: self.jog_cartesian(a, s * JOG_STEP))
         for i, name in enumerate(self._names[:9]):
-            for modifier, sign in ((None, 1.0), ("shift", -1.0)):
-                cmd = gui.add_command(f"Jog {name} {'+' if sign > 0 else '-'}", hotkey=str(i + 1),
+            # Shift+digit: the page's hotkeys match the typed character, which Shift turns into !@#... (US layout)
+            for key, modifier, sign in ((str(i + 1), None, 1.0), (SHIFTED_DIGITS[i], "shift", -1.0)):
+                cmd = gui.add_command(f"Jog {name} {'+' if sign > 0 else '-'}", hotkey=key,
                                       modifier=modifier)
                 cmd.on_trigger(lambda _, n=name, s=sign: self.jog_joint(n, s * JOINT_STEP))
+        stop = gui.add_command("Stop the jog", hotkey="space")
+        stop.on_trigger(lambda _: self.stop_jog())
+
+    def stop_jog(self) -> None:
+        """Release = hold: cancel the running jog step; the arm decelerates within its limits and holds. Any thread."""
+        jogging = self._jogging
+        if jogging is not None and not jogging.done():
+            jogging.cancel()
 
     def jog_cartesian(self, axis: int, step: float) -> None:
         """Move the end effector ``step`` metres along root-frame axis ``axis`` (0, 1, 2) in a straight line.
 
         From the desired (not measured) pose, so steps add up exactly; a press while a jog runs is
-        ignored (no queue: nothing moves after the key is released).
+        ignored (no queue: nothing moves after the key is released). Any thread.
         """
-        from .pose import Pose
-
-        async def _go() -> None:
-            robot = self.robot
-            kin = robot.kinematics
-            q = robot.desired_state()[0]
-            pose = kin.fk(self._jog_link, q)
-            target = pose.position.copy()
-            target[axis] += step
-            full = len(kin.chain(self._jog_link)) >= 6
-            result = await robot.move_to_pose(self._jog_link, Pose(target, pose.orientation), linear=True,
-                                              position_only=not full)
-            if not result.ok:
-                log.warning("web view: jog refused: %s", result.message)
-
-        self._jog(_go)
+        delta = np.zeros(3)
+        delta[axis] = step
+        self._jog(lambda: self._jogger.cartesian(delta), JogAction("cartesian", axis, float(np.sign(step))))
 
     def jog_joint(self, name: str, step: float) -> None:
-        """Move joint ``name`` by ``step`` (rad or m) from its desired position, within its limits."""
+        """Move joint ``name`` by ``step`` (rad or m) from its desired position, within its limits. Any thread."""
+        i = self._names.index(name)
+        self._jog(lambda: self._jogger.joint(i, step), JogAction("joint", i, float(np.sign(step))))
 
-        async def _go() -> None:
-            robot = self.robot
-            i = robot.joint_names.index(name)
-            j = robot.joints[i]
-            target = min(max(float(robot.desired_state()[0][i]) + step, j.lower), j.upper)
-            result = await robot.move_to({name: target})
-            if not result.ok:
-                log.warning("web view: jog refused: %s", result.message)
-
-        self._jog(_go)
-
-    def _jog(self, make: Any) -> None:
+    def _jog(self, make: Callable[[], Any], action: JogAction) -> None:
         if self._jogging is not None and not self._jogging.done():
             return
 
         async def _guarded() -> None:
             try:
-                await make()
+                result = await make()
             except Exception as exc:  # a refused jog (e-stop latched, out of reach) is logged, never raised
-                log.warning("web view: jog failed: %s", exc)
+                log.warning("web view: jog %s failed: %s", action.describe(self._names), exc)
+                return
+            if not result.ok:
+                log.warning("web view: jog %s refused: %s", action.describe(self._names), result.message)
 
         self._jogging = asyncio.run_coroutine_threadsafe(_guarded(), self._aloop)
 

@@ -198,3 +198,113 @@ def test_wave_live_in_a_browser_and_the_estop_button(browser: Any, tmp_path: Pat
         if proc.stderr is not None:
             proc.stderr.close()
     assert not any("Traceback" in line for line in err), "".join(err)
+
+
+# the behavior the keyboard test runs: to a ready pose, then a line "settled EE_X EE_Y EE_Z Q1 Q2 ..." each
+# time the arm comes to rest somewhere new (robot time; the test reads them from stdout)
+SETTLE_REPORTER = """
+import numpy as np
+
+from agentsdk.arm import end_effector, ready_configuration
+
+
+async def main(robot):
+    kin = robot.kinematics
+    link = end_effector(kin)
+    q = ready_configuration(kin, link, robot.latest_state().position, full=len(kin.chain(link)) >= 6)
+    await robot.move_to(dict(zip(robot.joint_names, q.tolist())))
+    last, still = None, 0
+    while True:
+        await robot.clock.sleep(0.05)
+        st = robot.latest_state()
+        still = still + 1 if float(np.max(np.abs(st.velocity))) < 1e-3 else 0
+        if still >= 10 and (last is None or float(np.max(np.abs(st.position - last))) > 1e-4):
+            last = np.array(st.position)
+            ee = kin.fk(link, last).position
+            print("settled", *(f"{v:.6f}" for v in [*ee, *last]), flush=True)
+"""
+
+
+def _settled(lines: list[str], after: int, err: list[str], timeout: float = 120.0) -> list[float]:
+    """The first "settled ..." line after the ``after`` first ones, as numbers."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        done = [x for x in list(lines) if x.startswith("settled ")]
+        if len(done) > after:
+            return [float(v) for v in done[after].split()[1:]]
+        time.sleep(0.05)
+    raise AssertionError(f"no new rest pose reported; the behavior printed:\n{''.join(lines)}\n{''.join(err)}")
+
+
+def test_keyboard_jog_through_the_page_moves_the_end_effector(browser: Any, tmp_path: Path) -> None:
+    """Acceptance 2: real key presses in the page (no handler called directly): I is +1 cm in x within 1 mm,
+    on MuJoCo (UR5); 1 and Shift+1 jog joint 1 by +-0.05 rad; each press is one step and the arm holds between."""
+    import yaml
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.keys import Keys
+
+    from agentsdk.description.catalog import find_robot
+
+    ur5 = find_robot("ur5")
+    if ur5 is None:
+        pytest.skip("needs example-robot-data's UR5 (the test extra)")
+    # a 6-joint arm jogs the full pose (the orientation held); wall-clock slack for a machine loaded by the browser
+    robot = tmp_path / "ur5.yaml"
+    robot.write_text(yaml.safe_dump({"description": str(ur5.path), "safety": {"stall_timeout": 5.0}}))
+    port = _free_port()
+    behavior = tmp_path / "reporter.py"
+    behavior.write_text(SETTLE_REPORTER)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "agentsdk", "run", str(behavior), "--backend", "mujoco", "--realtime",
+         "--robot", str(robot), "--web", "--port", str(port), "--quiet"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    out: list[str] = []
+    err: list[str] = []
+    readers = [threading.Thread(target=lambda: out.extend(iter(proc.stdout.readline, "")), daemon=True),  # type: ignore[union-attr]
+               threading.Thread(target=lambda: err.extend(iter(proc.stderr.readline, "")), daemon=True)]  # type: ignore[union-attr]
+    for r in readers:
+        r.start()
+    try:
+        deadline = time.monotonic() + 240
+        while not any(f"web view: http://127.0.0.1:{port}" in line for line in err):
+            assert proc.poll() is None, "".join(err)
+            assert time.monotonic() < deadline, "".join(err)
+            time.sleep(0.1)
+        browser.get(f"http://127.0.0.1:{port}")
+        _wait(browser, "the joint table", lambda t: "shoulder_pan_joint" in t and "safety: OK" in t)
+        start = _settled(out, 0, err)
+        keys = ActionChains(browser)
+
+        keys.send_keys("1").perform()  # joint1 +0.05 rad
+        j1 = _settled(out, 1, err)
+        assert abs(j1[3] - start[3] - 0.05) < 2e-3, (start, j1)
+        assert max(abs(j1[k] - start[k]) for k in range(4, len(j1))) < 2e-3, (start, j1)
+
+        ActionChains(browser).key_down(Keys.SHIFT).send_keys("1").key_up(Keys.SHIFT).perform()  # joint1 back
+        back = _settled(out, 2, err)
+        assert abs(back[3] - start[3]) < 2e-3, (start, back)
+
+        keys.send_keys("i").perform()  # +x
+        moved = _settled(out, 3, err)
+        dx, dy, dz = (moved[k] - back[k] for k in range(3))
+        assert abs(dx - 0.01) < 1e-3 and abs(dy) < 1e-3 and abs(dz) < 1e-3, (dx, dy, dz)
+
+        # one press is one step: nothing more moves afterwards (release = hold)
+        time.sleep(1.0)
+        assert len([x for x in out if x.startswith("settled ")]) == 4, "".join(out)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        for r in readers:
+            r.join(timeout=10)
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()
+    assert not any("Traceback" in line for line in err), "".join(err)

@@ -99,3 +99,32 @@ async def test_a_cartesian_jog_moves_the_end_effector_one_centimetre(robot_name:
             await asyncio.wrap_future(first)
         finally:
             view.close()
+
+
+async def test_stopping_a_jog_holds_the_arm() -> None:
+    """What Space does on the page: the running step is cancelled, the arm decelerates and holds short of it."""
+    import numpy as np
+
+    from agentsdk.webview import WebView
+
+    WebView.prepare()
+    async with agentsdk.connect("mock", robot="arm3", safety=SAFETY, realtime=True) as robot:
+        view = WebView.attach(robot, port=0)
+        try:
+            await _until(view.ready.is_set)
+            view.jog_joint("joint1", 1.0)  # a long step
+            await _until(lambda: abs(robot.latest_state().position[0]) > 0.05)
+            view.stop_jog()
+            await _until(lambda: view._jogging is not None and view._jogging.done())
+            stopped_at = robot.latest_state().position[0]
+            for _ in range(100):  # the stop ramp: within the joint's acceleration and jerk limits
+                await robot.clock.sleep(0.05)
+                if float(np.max(np.abs(robot.latest_state().velocity))) < 1e-3:
+                    break
+            st = robot.latest_state()
+            assert float(np.max(np.abs(st.velocity))) < 1e-3 and stopped_at <= st.position[0] < 0.9, (stopped_at, st)
+            await robot.clock.sleep(0.5)
+            assert abs(robot.latest_state().position[0] - st.position[0]) < 1e-4  # and holds
+            view.stop_jog()  # nothing running: nothing happens
+        finally:
+            view.close()

@@ -59,6 +59,9 @@ def _parser() -> argparse.ArgumentParser:
                    "command on its operator domain, viewers read on its viewer domain; nobody else sees the robot")
     p.add_argument("--no-deadman", action="store_true", help="turn the dead-man off (heartbeats are ignored)")
     p.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
+    p.add_argument("--web", action="store_true", help="also serve the live web view of the (first) robot on "
+                   "http://127.0.0.1:PORT: 3D, plots, safety state, an e-stop button (needs agentsdk[web])")
+    p.add_argument("--port", type=int, default=8080, help="port of the --web page (default 8080)")
     p.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
     return p
 
@@ -104,12 +107,23 @@ def main(argv: list[str]) -> int:
             os.environ["CYCLONEDDS_URI"] = network_config(
                 resolve_domain_id(args.domain_id), args.interface or "127.0.0.1", args.peer or [])
         lease = None if args.no_deadman else args.lease
+        if args.web:
+            from ..webview import WebView
+
+            WebView.prepare()  # seconds of imports: before the robot's loop and its stall watchdog run
 
         async def serve(first: Any) -> None:
             from ..robot import connect
 
             async with contextlib.AsyncExitStack() as stack:
                 served = [first]
+                if args.web:
+                    from ..webview import WebView
+
+                    view = WebView.attach(first, port=args.port, on_ready=lambda v: print(
+                        f"web view: {v.url}", file=sys.stderr, flush=True))
+                    stack.callback(view.close)
+                    await view.wait_ready()
                 for robot_spec, backend in zip(robots[1:], backends[1:], strict=True):
                     served.append(await stack.enter_async_context(
                         connect(backend, robot=robot_spec, realtime=realtime, **options)))

@@ -32,10 +32,10 @@ _HINTS = {
 # Fallback when the distribution metadata is not installed (e.g. running from a
 # source tree without `pip install -e .`): our own backends by module path.
 BUILTIN_BACKENDS = {
-    "mock": "agentsdk.backends.mock:MockController",
-    "mujoco": "agentsdk.backends.mujoco:MujocoController",
-    "pybullet": "agentsdk.backends.pybullet:PybulletController",
-    "can": "agentsdk.backends.can:CanController",
+    "mock": "agentsdk.backends.mock:MockBackend",
+    "mujoco": "agentsdk.backends.mujoco:MujocoBackend",
+    "pybullet": "agentsdk.backends.pybullet:PybulletBackend",
+    "can": "agentsdk.backends.can:CanBackend",
 }
 
 

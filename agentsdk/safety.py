@@ -36,10 +36,8 @@ from __future__ import annotations
 import asyncio
 import enum
 import logging
-import sys
 import threading
 import time
-import traceback
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -66,6 +64,7 @@ from .errors import (
 from .limits import PositionBounds, StepGuard, StepLimiter
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .plausibility import SensorGate
+from .stall import StallWatchdog
 from .types import MODES, AppliedCommand, CommandMode, JointCommand
 
 if TYPE_CHECKING:
@@ -346,13 +345,9 @@ class SafetyLayer:
         self._ramp_category = 2
         self._fault_waiters: set[asyncio.Future[BaseException]] = set()
         self._checks: list[SafetyCheck] = []
-        # stall watchdog
-        self._beat = time.monotonic()
-        self._beat_handle: asyncio.TimerHandle | None = None
-        self._thread: threading.Thread | None = None
-        self._thread_stop = threading.Event()
         self._aloop: asyncio.AbstractEventLoop | None = None
-        self._loop_thread_id = threading.get_ident()
+        #: the event-loop stall watchdog (None: not watched, see :attr:`stall_watchdog_active`)
+        self._stall: StallWatchdog | None = None
         #: wall-clock time (time.monotonic) the stall watchdog fired, and how long after the last heartbeat
         self.stall_detected_at: float | None = None
         self.stall_latency: float | None = None
@@ -400,43 +395,36 @@ class SafetyLayer:
     def start(self) -> None:
         """Start the heartbeat and the stall watchdog thread (called by connect once the loop runs)."""
         self._aloop = asyncio.get_running_loop()
-        self._loop_thread_id = threading.get_ident()
         np.copyto(self._written, self.loop.setpoint.position)
         self._goal = self._written.copy()
-        if self.stall_watchdog_active:
-            self._beat = time.monotonic()
-            self._schedule_beat()
-            self._thread = threading.Thread(
-                target=self._watch_stall, name=f"agentsdk-stall-watchdog-{self.loop.backend.name}", daemon=True
+        timeout = self.config.stall_timeout
+        if self.stall_watchdog_active and timeout is not None and self._stall is None:
+            loop = self.loop
+            self._stall = StallWatchdog(
+                timeout, f"agentsdk-stall-watchdog-{loop.backend.name}",
+                idle=lambda: loop.torque_off or loop.closed,
+                emergency_stop=lambda: loop.emergency_stop(0),
+                on_stall=self._on_stall,
             )
-            self._thread.start()
+            self._stall.start()
 
     async def shutdown(self) -> None:
         """Stop the watchdog thread and heartbeat, end stop tasks (awaited); called by Robot.close()."""
-        self._thread_stop.set()
-        if self._beat_handle is not None:
-            self._beat_handle.cancel()
-            self._beat_handle = None
-        thread, self._thread = self._thread, None
+        stall = self._stall
+        if stall is not None:
+            stall.stop_now()
         tasks = list(self._stop_tasks)
         for task in tasks:
             task.cancel()
         if tasks:
             await asyncio.gather(*tasks, return_exceptions=True)
-        if thread is not None and thread is not threading.current_thread():
-            # the thread polls its stop event every few ms; wait for it without blocking the event loop
-            deadline = time.monotonic() + 2.0
-            while thread.is_alive() and time.monotonic() < deadline:  # noqa: ASYNC110 - polling a thread
-                await asyncio.sleep(0.002)
-            if thread.is_alive():
-                log.error("the stall watchdog thread did not stop within 2 s")
+        if stall is not None:
+            await stall.stop()
 
     def shutdown_now(self) -> None:
         """Synchronous part of :meth:`shutdown` (no event loop): signal the watchdog thread to stop."""
-        self._thread_stop.set()
-        if self._beat_handle is not None:
-            self._beat_handle.cancel()
-            self._beat_handle = None
+        if self._stall is not None:
+            self._stall.stop_now()
 
     # --------------------------------------------------------------- state
     @property
@@ -1078,7 +1066,8 @@ class SafetyLayer:
         if self.sensor_gate is not None:
             self.sensor_gate.clear()  # a joint still reading nonsense is reported again
         self._state = SafetyState.DISABLED
-        self._beat = time.monotonic()
+        if self._stall is not None:
+            self._stall.beat()
         self.record("reset", "latch cleared; call enable() to allow motion")
 
     async def enable(self) -> None:
@@ -1098,66 +1087,18 @@ class SafetyLayer:
         self.record("enable", "motion enabled; holding current position")
 
     # ------------------------------------------------------ stall watchdog
-    def _schedule_beat(self) -> None:
-        aloop = self._aloop
-        if aloop is None or self._thread_stop.is_set():
-            return
-        interval = min(0.005, (self.config.stall_timeout or 1.0) / 10)
-
-        def _beat() -> None:
-            self._beat = time.monotonic()
-            self._schedule_beat()
-
-        self._beat_handle = aloop.call_later(interval, _beat)
-
-    def _watch_stall(self) -> None:
+    def _on_stall(self, last: float, stopped: float, stack: str, where: str) -> None:
+        """The stall watchdog's thread found the event loop stuck (torque is already off): latch and say where."""
         timeout = self.config.stall_timeout
-        assert timeout is not None
-        poll = min(0.002, timeout / 20)
-        wait = poll
-        # The thread sleeps until the heartbeat it last saw would be ``timeout`` old (not a poll
-        # every few ms: with several robots in a process, each thread's wake-ups cost the loop
-        # thread a GIL hand-off); it polls only while torque is off (nothing to watch then).
-        while not self._thread_stop.wait(wait):
-            last = self._beat
-            now = time.monotonic()
-            wait = poll
-            # watched as long as torque is on: a category 2 stop holds with torque on
-            if self.loop.torque_off or self.loop.closed:
-                continue
-            if now - last <= timeout:
-                # (at most 1 s: a huge stall_timeout would overflow the wait; a wake-up a second is free)
-                wait = min(max(last + timeout - now, 0.0) + 1e-4, 1.0)
-                continue
-            # the event loop is stuck: stop the actuators from this thread
-            try:
-                self.loop.emergency_stop(0)
-            except Exception:
-                log.exception("emergency stop hook failed in the stall watchdog")
-            stopped = time.monotonic()
-            self._latch(0)
-            self._latch_handled = False  # the loop side still has to abort motions
-            self.stall_latency = stopped - last
-            self.stall_detected_at = stopped
-            frame = sys._current_frames().get(self._loop_thread_id)
-            stack = "".join(traceback.format_stack(frame)) if frame is not None else "(loop thread not found)"
-            self.stall_traceback = stack
-            where = _innermost_user_frame(frame)
-            detail = (
-                f"event loop stalled for more than {timeout:g} s (last heartbeat {stopped - last:.3f} s ago); "
-                f"e-stop category 0 latched; loop was at {where}: a blocking call (time.sleep, blocking I/O, "
-                "a long computation) in a coroutine; use `await robot.clock.sleep()`, or `asyncio.to_thread()`"
-            )
-            self.record("stall", detail)
-            log.error("%s\n%s", detail, stack)
-
-
-def _innermost_user_frame(frame: Any) -> str:
-    if frame is None:
-        return "unknown"
-    summary = traceback.extract_stack(frame)
-    for fs in reversed(summary):
-        if "asyncio" not in fs.filename and "agentsdk/safety" not in fs.filename:
-            return f"{fs.filename}:{fs.lineno} in {fs.name}"
-    fs = summary[-1]
-    return f"{fs.filename}:{fs.lineno} in {fs.name}"
+        self._latch(0)
+        self._latch_handled = False  # the loop side still has to abort motions
+        self.stall_latency = stopped - last
+        self.stall_detected_at = stopped
+        self.stall_traceback = stack
+        detail = (
+            f"event loop stalled for more than {timeout:g} s (last heartbeat {stopped - last:.3f} s ago); "
+            f"e-stop category 0 latched; loop was at {where}: a blocking call (time.sleep, blocking I/O, "
+            "a long computation) in a coroutine; use `await robot.clock.sleep()`, or `asyncio.to_thread()`"
+        )
+        self.record("stall", detail)
+        log.error("%s\n%s", detail, stack)

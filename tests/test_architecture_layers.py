@@ -44,7 +44,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("agentsdk.errors", "agentsdk.types"),
     ("agentsdk.backend",),
     ("agentsdk.loop",),
-    ("agentsdk.limits", "agentsdk.commands", "agentsdk.checks"),
+    ("agentsdk.limits", "agentsdk.commands", "agentsdk.checks", "agentsdk.stall"),
     ("agentsdk.safety", "agentsdk.following"),
     ("agentsdk.motion",),
     ("agentsdk.robot",),

@@ -76,7 +76,7 @@ from .safety import SafetyCheck, SafetyConfig, SafetyEvent, SafetyState, SafetyV
 from .trajectory import Trajectory, TrajectoryPoint
 from .types import MODES, AppliedCommand, CommandMode, JointCommand, JointInfo, JointState
 
-#: former name of :class:`Backend` (the base class backends subclass)
+#: deprecated former name of :class:`Backend` (the base class backends subclass): use ``Backend``
 Controller = Backend
 
 __version__ = "0.1.0"

@@ -99,7 +99,8 @@ if TYPE_CHECKING:
     from .description import RobotDescription
     from .description.start import StartPose
     from .dynamics import DynamicsModel, GainReport
-    from .sensors import SensorChannel, SensorSpec
+    from .sensors._channel import SensorChannel
+    from .sensors._spec import SensorSpec
 
 log = logging.getLogger("agentsdk")
 

@@ -41,9 +41,9 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from .backend import ModeCode
+from .checks import SafetyViolation
 from .errors import ConfigurationError
 from .loop import ControlLoop, StateView
-from .safety import SafetyViolation
 from .types import FloatArray, JointInfo
 
 __all__ = ["FollowingErrorCheck", "following_windows"]

@@ -31,7 +31,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -43,11 +43,9 @@ from .errors import (
     BackendStartError,
     InvalidValueError,
     RobotClosedError,
-    UnknownJointError,
-    UnsupportedModeError,
 )
 from .plausibility import SensorGate
-from .types import CommandMode, FloatArray, JointCommand, JointState
+from .types import CommandMode, FloatArray, JointState
 
 __all__ = [
     "CommandHook",
@@ -711,59 +709,6 @@ class ControlLoop:
             sp.effort[idx] = values
             sp.kp[idx] = 0.0
             sp.kd[idx] = 0.0
-
-    # ------------------------------------------------------------ commands in
-    def resolve(self, cmd: JointCommand) -> tuple[np.ndarray, FloatArray, FloatArray | None, FloatArray | None]:
-        """Map a command onto joint indices; validate mode, names, length, finiteness.
-
-        Returns ``(indices, values, velocity_ff, effort_ff)``. Raises a
-        :class:`~agentsdk.errors.CommandRejected` subclass; nothing is modified.
-        """
-        if not isinstance(cmd, JointCommand):
-            raise InvalidValueError(f"expected a JointCommand, got {type(cmd).__name__}")
-        modes = self.backend.capabilities.modes
-        if cmd.mode not in modes:
-            raise UnsupportedModeError(
-                f"backend {self.backend.name!r} does not support {cmd.mode!r} commands "
-                f"(supported: {', '.join(sorted(modes))})"
-            )
-        idx, values = self.map_values(cmd.values, "values")
-        vel = eff = None
-        if cmd.velocity is not None:
-            vidx, vel = self.map_values(cmd.velocity, "velocity")
-            if not np.array_equal(vidx, idx):
-                raise InvalidValueError("velocity feed-forward must name the same joints as values")
-        if cmd.effort is not None:
-            eidx, eff = self.map_values(cmd.effort, "effort")
-            if not np.array_equal(eidx, idx):
-                raise InvalidValueError("effort feed-forward must name the same joints as values")
-        return idx, values, vel, eff
-
-    def map_values(self, values: Mapping[str, float] | tuple[float, ...], what: str) -> tuple[np.ndarray, FloatArray]:
-        """``(indices, values)`` of a mapping by joint name or a full-length sequence; checks finiteness."""
-        if isinstance(values, Mapping):
-            if not values:
-                raise InvalidValueError(f"{what}: empty command")
-            try:
-                idx = np.fromiter((self.index[k] for k in values), dtype=np.intp, count=len(values))
-            except KeyError as exc:
-                raise UnknownJointError(
-                    f"unknown joint {exc.args[0]!r}; this robot's joints are: {', '.join(self.names)}"
-                ) from None
-            arr = np.fromiter(values.values(), dtype=np.float64, count=len(values))
-        else:
-            if len(values) != len(self.names):
-                raise InvalidValueError(
-                    f"{what}: expected {len(self.names)} values (one per joint: {', '.join(self.names)}), "
-                    f"got {len(values)}"
-                )
-            idx = np.arange(len(self.names))
-            arr = np.asarray(values, dtype=np.float64)
-        bad = ~np.isfinite(arr)
-        if bad.any():
-            j = int(idx[int(np.argmax(bad))])
-            raise InvalidValueError(f"{what}: non-finite value {float(arr[bad][0])} for joint {self.names[j]!r}")
-        return idx, arr
 
     def snapshot(self) -> JointState:
         """The latest measured state as an immutable :class:`JointState` (private copies)."""

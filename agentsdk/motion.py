@@ -51,6 +51,8 @@ from . import scope
 from .backend import ModeCode
 from .config import format_value
 from .errors import CommandRejected, ConfigurationError, InvalidValueError, LimitViolation, UnknownJointError
+from .limits import STEP_RTOL as _STEP_RTOL
+from .limits import PositionBounds, StepGuard, StepLimiter
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .trajectory import (
     MAX_TIME_FROM_START,
@@ -65,7 +67,6 @@ from .trajectory import (
 if TYPE_CHECKING:
     from .kinematics import Kinematics
     from .pose import Pose
-    from .safety import PositionBounds
 
 __all__ = ["TRACKING_BAND", "Feedback", "Motion", "MotionResult", "ResultCode", "Tolerances"]
 
@@ -76,8 +77,6 @@ _TWO_PI = 2.0 * math.pi
 #: setpoint (plus the servo's lag ``kd/kp * |v|`` at speed) is tracking it; an abort then starts its
 #: stop from the setpoint (the same state up to servo accuracy, no jump), else from the measured state
 TRACKING_BAND = (0.02, 0.2)
-#: relative slack of the per-tick step check (float noise of trajectories planned at the limits)
-_STEP_RTOL = 1e-5
 #: fraction of max_acceleration the speed-scaling ramp may add to a trajectory's own acceleration
 _SCALE_ACC_MARGIN = 0.95
 _MAX_STRETCH_ITERATIONS = 12
@@ -292,6 +291,31 @@ class Motion:
             self._fb = snap.feedback(self.joint_names)
             self._fb_seq = snap.seq
         return self._fb
+
+    # the executor's side: it resolves and publishes only through these ----------
+    def _settle(self, result: MotionResult | None) -> None:
+        """End with ``result`` (the first result wins; later ones are ignored); freeze the feedback."""
+        if self._snap is not None:
+            self._snap.freeze()
+        if result is not None and not self._future.done():
+            self._future.set_result(result)
+
+    def _fail(self, exc: BaseException) -> None:
+        """End with the backend's failure ``exc`` (re-raised where the motion is awaited)."""
+        if not self._future.done():
+            self._future.set_exception(exc)
+            self._future.exception()  # mark retrieved: the awaiting side re-raises it
+
+    def _publish(self) -> _FeedbackSnapshot:
+        """The snapshot the executor fills each tick (made on the first tick, reused after)."""
+        snap = self._snap
+        if snap is None:
+            snap = self._snap = _FeedbackSnapshot()
+        return snap
+
+    def _keep_measured(self, position: np.ndarray) -> None:
+        """Keep the measured positions of this tick while a feedback stream wants link poses."""
+        self._feedback_q = position.copy() if self._pose_streams else None
 
     # awaitable ------------------------------------------------------------
     def __await__(self) -> Generator[Any, None, MotionResult]:
@@ -554,8 +578,8 @@ class _Exec:
     #: the trajectory ends moving (allow_nonzero_velocity_at_end): decelerate after the end
     end_moving: bool = False
     reported_clip: bool = False
-    #: (lower, upper, max step) of its joints, cached on the first tick
-    limits: tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None] | None = None
+    #: the safety limiter of its joints (:meth:`StepLimiter.select`), made on the first tick
+    limits: StepLimiter | None = None
     #: its joints as a slice when they are consecutive (basic indexing: ~4x cheaper than ``idx`` per write)
     sel: Any = None
     #: the tick path's preallocated arrays (made on the first tick)
@@ -565,7 +589,9 @@ class _Exec:
 class MotionManager:
     """Owns the running motions of one robot; one executor per motion, run in the control tick."""
 
-    def __init__(self, loop: ControlLoop, bounds: PositionBounds, decel_scale: float = 1.0) -> None:
+    def __init__(
+        self, loop: ControlLoop, bounds: PositionBounds, decel_scale: float = 1.0, guard: StepGuard | None = None
+    ) -> None:
         self.loop = loop
         #: position bounds every trajectory point must respect (URDF limits minus the safety margin)
         self.bounds = bounds
@@ -588,34 +614,17 @@ class MotionManager:
         stiff = kp > 1e-12
         self._lag_per_speed = np.divide(kd, kp, out=np.zeros(len(kp)), where=stiff)
         self._speed = 1.0
-        # the position-step limiter the setpoints pass through (attach_limiter), so that a
-        # planned step it would clip is caught here and reported, never clipped silently
-        self._step_origin: np.ndarray | None = None
-        self._step: np.ndarray | None = None
-        self._rebase: Callable[[np.ndarray, np.ndarray], None] | None = None
-        self._report: Callable[[str, str, str | None], Any] | None = None
+        #: the safety layer's limiter the setpoints pass through (None: none), so that a planned step
+        #: it would clip is caught here and reported, never clipped silently
+        self._guard = guard
+        #: the limiter the executor applies: the safety layer's, else (no guard) the position bounds alone
+        self._limiter = guard.limiter if guard is not None else StepLimiter(
+            bounds.lo, bounds.hi, None, np.full(n, np.inf), np.full(n, np.inf))
+        self._origin = None if guard is None else guard.origin
         #: the robot's kinematics (set by the Robot), for link poses in motion feedback
         self.kinematics_source: Callable[[], Kinematics] | None = None
         #: the robot's sensors (set by the Robot), for ``motion.feedback(sensors=...)``
         self.sensors_source: Callable[[], Any] | None = None
-
-    # ------------------------------------------------------------ wiring
-    def attach_limiter(
-        self,
-        origin: np.ndarray,
-        step: np.ndarray | None,
-        rebase: Callable[[np.ndarray, np.ndarray], None],
-        report: Callable[[str, str, str | None], Any],
-    ) -> None:
-        """Called by the safety layer: where its position-step limiter measures steps from (a live
-        read-only array), the step per tick (None: off), ``rebase(idx, q)`` to tell it that the
-        reference of joints ``idx`` was reset to their measured position ``q`` (an abort), and
-        ``report(kind, detail, joint)`` to record a safety event.
-        """
-        self._step_origin = origin
-        self._step = step
-        self._rebase = rebase
-        self._report = report
 
     def kinematics(self) -> Kinematics:
         """The robot's :class:`~agentsdk.kinematics.Kinematics` (raises if it has none)."""
@@ -976,8 +985,8 @@ class MotionManager:
         """
         if ex.phase in (MotionPhase.STOPPING, MotionPhase.DEAD):
             return
-        if measured is not None and measured.any() and self._rebase is not None:
-            self._rebase(ex.idx[measured], q[measured])
+        if measured is not None and measured.any() and self._guard is not None:
+            self._guard.rebase(ex.idx[measured], q[measured])
         ex.sampler = self._plan_stop_sampler(ex.idx, q, v, a, t0)
         ex.t0 = ex.tau = ex.t_last = t0
         ex.s, ex.sdot = 1.0, 0.0
@@ -1038,8 +1047,8 @@ class MotionManager:
             for ex in [*set(self._owner), *self._pending]:
                 if ex is not None:
                     self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
-            if meas.any() and self._rebase is not None:
-                self._rebase(idx[meas], q0[meas])
+            if meas.any() and self._guard is not None:
+                self._guard.rebase(idx[meas], q0[meas])
             self._start_ramp(idx, q0, v0, a0, None, "", on_done=lambda: None if done.done() else done.set_result(None))
         try:
             await done
@@ -1068,9 +1077,8 @@ class MotionManager:
             if ex is None:
                 continue
             self._release(ex)
-            if ex.motion is not None and not ex.motion._future.done():
-                ex.motion._future.set_exception(exc)
-                ex.motion._future.exception()  # mark retrieved: the awaiting side re-raises it
+            if ex.motion is not None:
+                ex.motion._fail(exc)
             ex.phase = MotionPhase.DEAD
 
     def limiter_clipped(self, idx: np.ndarray, detail: str) -> None:
@@ -1084,8 +1092,8 @@ class MotionManager:
             if ex is None or ex.reported_clip:
                 continue
             ex.reported_clip = True
-            if self._report is not None:
-                self._report("clip", detail, self.loop.names[j])
+            if self._guard is not None:
+                self._guard.report("clip", detail, self.loop.names[j])
             if ex.phase in (MotionPhase.FOLLOW, MotionPhase.SETTLE):
                 q, v, a = ex.des_q, ex.des_v, ex.des_a
                 self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", self.loop.stamp, q, v, a, None)
@@ -1099,15 +1107,17 @@ class MotionManager:
 
     def _resolve(self, ex: _Exec, code: ResultCode | None, msg: str) -> None:
         """Set the motion's result (once): ``code``, the goal error per joint, the robot time."""
-        if ex.motion is not None and ex.motion._snap is not None:
-            ex.motion._snap.freeze()
-        if ex.motion is not None and code is not None and not ex.motion._future.done():
-            st = self.loop.state
-            err = ex.goal - st.position[ex.idx]
-            if ex.wrap is not None:
-                err = np.where(ex.wrap, _wrap_angle(err), err)
-            res = MotionResult(code, dict(zip(ex.motion.joint_names, err.tolist(), strict=True)), msg, self.loop.stamp)
-            ex.motion._future.set_result(res)
+        m = ex.motion
+        if m is None:
+            return
+        if code is None or m.done():
+            m._settle(None)  # no result to set: only the feedback stops moving
+            return
+        st = self.loop.state
+        err = ex.goal - st.position[ex.idx]
+        if ex.wrap is not None:
+            err = np.where(ex.wrap, _wrap_angle(err), err)
+        m._settle(MotionResult(code, dict(zip(m.joint_names, err.tolist(), strict=True)), msg, self.loop.stamp))
 
     # --------------------------------------------------------- every tick
     def _advance(self, ex: _Exec, t: float) -> tuple[float, float, float]:
@@ -1182,8 +1192,8 @@ class MotionManager:
             np.add(a, w.tmp, out=a)
         ex.vt, ex.at = vt, at
         bound = w.bound
-        if bound is None or bound[0] is not sp or bound[1] is not st or bound[2] is not self._step_origin:
-            w.bind(idx, sp, st, self._step_origin, self.loop)
+        if bound is None or bound[0] is not sp or bound[1] is not st or bound[2] is not self._origin:
+            w.bind(idx, sp, st, self._origin, self.loop)
         pos_view = w.st_views[0]
         actual = pos_view if pos_view is not None else np.take(st.position, idx, out=w.actual, mode="clip")
         err = np.subtract(q, actual, out=w.err)
@@ -1255,24 +1265,27 @@ class MotionManager:
         return True
 
     def _limited(self, ex: _Exec, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray | None:
-        """``q`` inside the position bounds and the limiter's step window, computed exactly as the limiter does.
+        """``q`` through the safety layer's :class:`~agentsdk.limits.StepLimiter` (the same calls its filter makes).
 
         For a validated motion this only removes float noise (a plan exactly at the limits), so the
-        limiter never clips what a motion writes. A planned step beyond it (e.g. a first point at
+        filter never clips what a motion writes. A planned step beyond it (e.g. a first point at
         time 0 away from the robot) aborts the motion before anything is written (None is returned:
         the caller writes the stop instead); a stop ramp limited by more than noise (stopping a
         joint that moves towards its limit) is reported once. Never silent.
         """
-        lo, hi, step, step_tol = ex.limits if ex.limits is not None else self._exec_limits(ex)
+        guard = self._guard
+        lim = ex.limits
+        if lim is None:
+            lim = ex.limits = self._limiter.select(ex.idx)
         w = ex.work
         if w is None:
             w = ex.work = _TickBuffers(len(ex.idx))
-        out: np.ndarray = np.maximum(q, lo, out=w.out)
-        np.minimum(out, hi, out=out)
+        out = lim.clamp_bounds(q, w.out)
         what = ""
         if np.count_nonzero(np.not_equal(out, q, out=w.mask)) and float(np.max(np.abs(out - q))) > _BOUND_TOL:
             what = "bounds"
-        origin = self._step_origin
+        step, step_tol = lim.step, lim.step_tol
+        origin = self._origin
         if step is not None and step_tol is not None and origin is not None:
             o = w.st_views[2]
             if o is None or w.bound is None or w.bound[2] is not origin:
@@ -1282,10 +1295,10 @@ class MotionManager:
             if np.count_nonzero(np.greater(dev, step, out=w.mask)):
                 if not what and (dev > step_tol).any():
                     what = "step"
-                np.maximum(out, o - step, out=out)
-                np.minimum(out, o + step, out=out)
+                lim.clamp_step(out, o, out)
         if not what:
             return out
+        lo, hi = lim.lo, lim.hi
         idx = ex.idx
         k = int(np.argmax(np.abs(out - q)))
         name = self.loop.names[int(idx[k])]
@@ -1299,29 +1312,20 @@ class MotionManager:
             else:
                 detail = (f"the planned setpoint of joint {name!r} ({q[k]:.6g}) leaves its bounds "
                           f"[{lo[k]:.6g}, {hi[k]:.6g}]; aborted, not clipped")
-            if self._report is not None:
-                self._report(what, detail, name)
+            if guard is not None:
+                guard.report(what, detail, name)
             bad = np.abs(out - q) > 0.0
             # the joints that would step stop from their measured state, the others from this sample
             self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", ex.t_last, q, v, a, bad)
             return None
         if not ex.reported_clip:
             ex.reported_clip = True
-            if self._report is not None:
+            if guard is not None:
                 kind = "stop ramp" if ex.phase is MotionPhase.STOPPING else "motion"
-                self._report("clip", f"the {kind} of joint {name!r} "
+                guard.report("clip", f"the {kind} of joint {name!r} "
                              f"was limited by {abs(out[k] - q[k]):.4g} ({what}: position bounds or "
                              "max_position_step)", name)
         return out
-
-    def _exec_limits(
-        self, ex: _Exec
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
-        idx = ex.idx
-        step = None if self._step is None else self._step[idx]
-        step_tol = None if step is None else step * (1.0 + _STEP_RTOL) + 1e-12
-        ex.limits = (self.bounds.lo[idx], self.bounds.hi[idx], step, step_tol)
-        return ex.limits
 
     def _write(self, ex: _Exec, t: float, st: StateView, sp: Setpoint, qc: np.ndarray, v: np.ndarray,
                a: np.ndarray, err: np.ndarray) -> None:
@@ -1334,7 +1338,7 @@ class MotionManager:
             w = ex.work = _TickBuffers(len(idx))
         bound = w.bound
         if bound is None or bound[0] is not sp or bound[1] is not st:
-            w.bind(idx, sp, st, self._step_origin, loop)
+            w.bind(idx, sp, st, self._origin, loop)
         sel = ex.sel = w.sel
         if w.sp_views:  # consecutive joints, through views made once (basic indexing makes a view per write)
             mode, enabled, position, velocity, effort, kp, kd, target, gain_p, gain_d, acceleration = w.sp_views
@@ -1360,9 +1364,7 @@ class MotionManager:
         m = ex.motion
         if m is not None:
             # the feedback of this tick, by reference (a Feedback is built only when someone reads it)
-            snap = m._snap
-            if snap is None:
-                snap = m._snap = _FeedbackSnapshot()
+            snap = m._publish()
             if ex.phase != MotionPhase.STOPPING:  # a stop ramp is no progress along the trajectory: keep the last
                 dur = ex.sampler.duration
                 snap.progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
@@ -1377,7 +1379,7 @@ class MotionManager:
                 np.take(st.velocity, idx, out=w.actual_v, mode="clip")
             snap.actual_q, snap.actual_v = w.act, w.actual_v
             snap.seq += 1
-            m._feedback_q = st.position.copy() if m._pose_streams else None
+            m._keep_measured(st.position)
 
     def _activate(self, ex: _Exec, t: float) -> bool:
         """A scheduled motion's start time has come: take over its joints from whatever drives them."""
@@ -1394,8 +1396,8 @@ class MotionManager:
             traj, sampler = self._prepare(ex, traj, q0, v0, a0, t)
         except CommandRejected as exc:
             ex.phase = MotionPhase.DEAD
-            if ex.motion is not None and not ex.motion._future.done():
-                ex.motion._future.set_result(
+            if ex.motion is not None:
+                ex.motion._settle(
                     MotionResult(ResultCode.INVALID_GOAL, {n: 0.0 for n in ex.motion.joint_names},
                                  f"invalid at its scheduled start: {exc}", t))
             return False

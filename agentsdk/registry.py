@@ -33,11 +33,11 @@ _HINTS = {
 # Fallback when the distribution metadata is not installed (e.g. running from a
 # source tree without `pip install -e .`): our own backends by module path.
 BUILTIN_BACKENDS = {
-    "mock": "agentsdk.backends.mock:MockController",
-    "mujoco": "agentsdk.backends.mujoco:MujocoController",
-    "pybullet": "agentsdk.backends.pybullet:PybulletController",
-    "can": "agentsdk.backends.can:CanController",
-    "ros2": "agentsdk.backends.ros2:Ros2Controller",
+    "mock": "agentsdk.backends.mock:MockBackend",
+    "mujoco": "agentsdk.backends.mujoco:MujocoBackend",
+    "pybullet": "agentsdk.backends.pybullet:PybulletBackend",
+    "can": "agentsdk.backends.can:CanBackend",
+    "ros2": "agentsdk.backends.ros2:Ros2Backend",
 }
 
 

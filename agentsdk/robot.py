@@ -24,10 +24,11 @@ from .backend import Backend, Capabilities, SetpointView
 from .clock import Clock
 from .config import Gains
 from .description import apply_overrides, resolve_robot
-from .errors import AgentSDKError, BackendStartError, CommandRejected
+from .errors import AgentSDKError, BackendStartError
+from .limits import PositionBounds
 from .loop import ControlLoop, HookHandle, Phase
 from .registry import load_backend
-from .safety import PositionBounds, SafetyConfig, SafetyLayer
+from .safety import SafetyConfig, SafetyLayer
 from .threads import run_blocking
 from .types import AppliedCommand, FloatArray, JointCommand, JointInfo, JointState
 
@@ -281,25 +282,7 @@ class Robot:
             cmd = cmd.as_command()
         async with loop.lock:
             loop.check_open()
-            self.safety.check_motion_allowed()
-            idx, values, vel, eff = loop.resolve(cmd)
-            owner = self._motions.owner_of(idx)
-            if owner is not None:
-                raise CommandRejected(
-                    f"joint {loop.names[owner[0]]!r} is driven by a running trajectory (or reserved by a "
-                    "scheduled one); cancel it (motion.cancel()) before sending direct commands"
-                )
-            values = self.safety.limit_command(cmd.mode, idx, values)
-            vel, eff = self.safety.limit_feedforward(idx, vel, eff)
-            loop.apply(cmd.mode, idx, values, vel, eff, position_now=self.safety.ramp_start(cmd.mode, idx))
-            self.safety.feed(cmd.mode, idx, values)
-            names = [loop.names[i] for i in idx.tolist()]
-            return AppliedCommand(
-                cmd.mode,
-                MappingProxyType(dict(zip(names, values.tolist(), strict=True))),
-                None if vel is None else MappingProxyType(dict(zip(names, vel.tolist(), strict=True))),
-                None if eff is None else MappingProxyType(dict(zip(names, eff.tolist(), strict=True))),
-            )
+            return self.safety.admit(cmd)
 
     # ---------------------------------------------------------- trajectory
     def follow(
@@ -502,8 +485,9 @@ async def _open_robot(
 
     backend_obj, safety_cfg, bounds, kin = await run_blocking(prepare, name=f"agentsdk-connect-{backend}")
     loop = ControlLoop(backend_obj)
-    motions = MotionManager(loop, bounds, safety_cfg.stop_deceleration_scale)
-    layer = SafetyLayer(loop, safety_cfg, bounds, motions)
+    layer = SafetyLayer(loop, safety_cfg, bounds)
+    motions = MotionManager(loop, bounds, safety_cfg.stop_deceleration_scale, layer.step_guard)
+    layer.attach_motions(motions)
     try:
         await loop.start()
     except AgentSDKError:

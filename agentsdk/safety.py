@@ -36,21 +36,23 @@ from __future__ import annotations
 import asyncio
 import enum
 import logging
-import sys
 import threading
 import time
-import traceback
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from types import MappingProxyType
+from typing import TYPE_CHECKING, Annotated, Any, Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from .backend import ModeCode, SetpointView
+from .checks import MeasuredPositionCheck, SafetyCheck, SafetyViolation
+from .commands import resolve_command
 from .config import MAX_GAIN
 from .errors import (
+    CommandRejected,
     ConfigurationError,
     EStopActive,
     InvalidValueError,
@@ -59,13 +61,14 @@ from .errors import (
     SafetyFault,
     SensorFault,
 )
+from .limits import PositionBounds, StepGuard, StepLimiter
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
 from .plausibility import SensorGate
-from .types import MODES, CommandMode, JointInfo
+from .stall import StallWatchdog
+from .types import MODES, AppliedCommand, CommandMode, JointCommand
 
 if TYPE_CHECKING:
     from .following import FollowingErrorCheck
-    from .motion import MotionManager
 
 __all__ = [
     "SAFETY_OBSERVE_ORDER",
@@ -77,6 +80,7 @@ __all__ = [
     "SafetyLayer",
     "SafetyState",
     "SafetyViolation",
+    "StopPort",
 ]
 
 log = logging.getLogger("agentsdk.safety")
@@ -218,116 +222,73 @@ _POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.
 SAFETY_OBSERVE_ORDER = 1000
 
 
+class StopPort(Protocol):
+    """What the safety layer needs from whoever runs planned motions (the motion manager).
 
-#: a pluggable safety check: ``check(t, state) -> SafetyViolation | None``, run every tick while motion is allowed
-SafetyCheck = Callable[[float, StateView], "SafetyViolation | None"]
-
-
-@dataclass(frozen=True, slots=True)
-class SafetyViolation:
-    """What a :data:`SafetyCheck` returns to stop the robot: a latched e-stop of ``category``."""
-
-    kind: str
-    detail: str
-    joint: str | None = None
-    #: IEC 60204-1 stop category of the e-stop it triggers
-    category: int = 2
-
-
-class PositionBounds:
-    """Joint position bounds the safety layer enforces: the URDF limits minus ``position_margin``."""
-
-    __slots__ = ("hi", "lo", "names")
-
-    def __init__(self, joints: tuple[JointInfo, ...], margin: float) -> None:
-        lower = np.array([j.lower for j in joints])
-        upper = np.array([j.upper for j in joints])
-        self.names = tuple(j.name for j in joints)
-        self.lo = np.where(np.isfinite(lower), lower + margin, -np.inf)
-        self.hi = np.where(np.isfinite(upper), upper - margin, np.inf)
-        bad = self.lo > self.hi
-        if bad.any():
-            name = self.names[int(np.argmax(bad))]
-            raise ConfigurationError(
-                f"safety position_margin {margin:g} is larger than half of joint {name!r}'s range"
-            )
-        self.lo.flags.writeable = False
-        self.hi.flags.writeable = False
-
-    def check(self, positions: np.ndarray, idx: np.ndarray) -> None:
-        """Raise :class:`LimitViolation` if a position of joints ``idx`` is outside the bounds."""
-        bad = (positions < self.lo[idx]) | (positions > self.hi[idx])
-        if bad.any():
-            k = int(np.argmax(bad))
-            j = int(idx[k])
-            raise LimitViolation(
-                f"trajectory position {positions[k]:.4g} for joint {self.names[j]!r} is outside "
-                f"[{self.lo[j]:.4g}, {self.hi[j]:.4g}]"
-            )
-
-
-class MeasuredPositionCheck:
-    """Built-in :data:`SafetyCheck`: a measured position beyond a joint's limits by more than ``tolerance``.
-
-    Simulated joint limits are soft and a real joint can be pushed past its limit
-    (a collision, a wrong effort command): that is a protective stop, not something
-    to keep driving. A joint is watched once it has been measured inside its limits
-    (+ tolerance): a robot switched on outside them can still be moved back in.
+    The safety layer defines this port and the motion layer implements it, so the safety layer
+    imports nothing above it: it stops, aborts and fails motions only through these calls.
     """
 
-    def __init__(self, joints: tuple[JointInfo, ...], tolerance: float, category: int) -> None:
-        self._lo = np.array([j.lower for j in joints]) - tolerance
-        self._hi = np.array([j.upper for j in joints]) + tolerance
-        self._names = tuple(j.name for j in joints)
-        self._tol = tolerance
-        self._category = category
-        self._armed = np.zeros(len(joints), dtype=bool)
-        self._all_armed = False
-        n = len(joints)
-        # allocation-free per tick: [q, -q] >= [lo, -hi] in one comparison (NaN compares False: outside)
-        self._bounds = np.vstack([self._lo, -self._hi])
-        self._pm_q = np.zeros((2, n))
-        self._pm_rows = (self._pm_q[0], self._pm_q[1])  # views made once (a broadcast ufunc allocates an iterator)
-        self._ok = np.zeros((2, n), dtype=bool)
-        #: ``ok.tobytes()`` when every comparison holds (a bytes compare is ~5x cheaper than np.count_nonzero)
-        self._all_ok = np.ones((2, n), dtype=bool).tobytes()
+    #: joints currently driven by a motion or a stop ramp (read-only)
+    owned_mask: np.ndarray
 
-    def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
-        """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""
-        q = state.position
-        plus, minus = self._pm_rows
-        plus[...] = q
-        np.negative(q, out=minus)
-        ok = self._ok
-        np.greater_equal(self._pm_q, self._bounds, out=ok)
-        if self._all_armed and ok.tobytes() == self._all_ok:
-            return None
-        inside = ok[0] & ok[1]
-        if not self._all_armed:
-            self._armed |= inside
-            self._all_armed = bool(self._armed.all())
-        bad = self._armed & ~inside
-        if not bad.any():
-            return None
-        j = int(np.argmax(bad))
-        return SafetyViolation(
-            "limit",
-            f"measured position {float(q[j]):.4g} of joint {self._names[j]!r} is more than {self._tol:g} outside "
-            f"its limits [{self._lo[j] + self._tol:.4g}, {self._hi[j] - self._tol:.4g}]",
-            self._names[j],
-            self._category,
-        )
+    def owner_of(self, idx: np.ndarray) -> tuple[int, Any] | None:
+        """The first of joints ``idx`` a motion drives or reserves, with that motion; None if none."""
+
+    def limiter_clipped(self, idx: np.ndarray, detail: str) -> None:
+        """The filter clipped the planned reference of joints ``idx``: abort what drives them."""
+
+    def fail_all(self, exc: BaseException) -> None:
+        """The backend failed: every motion ends with ``exc``."""
+
+    def abort_all(self, reason: str = ...) -> None:
+        """End every motion ABORTED now (torque already off or going off)."""
+
+    def end_all(self, reason: str) -> None:
+        """Forget every motion and stop ramp (a reset)."""
+
+    async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0, *,
+                            from_reference: bool = False) -> None:
+        """Decelerate every joint to rest within its limits; returns when at rest."""
+
+
+class _NoMotions:
+    """The stop port of a safety layer no motion manager is attached to (yet)."""
+
+    def __init__(self, n: int) -> None:
+        self.owned_mask = np.zeros(n, dtype=bool)
+
+    def owner_of(self, idx: np.ndarray) -> tuple[int, Any] | None:
+        """Nothing runs: no joint is owned."""
+        return None
+
+    def limiter_clipped(self, idx: np.ndarray, detail: str) -> None:
+        """Nothing runs: nothing to abort."""
+
+    def fail_all(self, exc: BaseException) -> None:
+        """Nothing runs: nothing to fail."""
+
+    def abort_all(self, reason: str = "") -> None:
+        """Nothing runs: nothing to abort."""
+
+    def end_all(self, reason: str) -> None:
+        """Nothing runs: nothing to end."""
+
+    async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0, *,
+                            from_reference: bool = False) -> None:
+        """Nothing runs: at rest already."""
 
 
 class SafetyLayer:
     """Wraps one control loop. Created by :func:`agentsdk.connect`; reach it as ``robot.safety``."""
 
     def __init__(
-        self, loop: ControlLoop, config: SafetyConfig, bounds: PositionBounds, motions: MotionManager
+        self, loop: ControlLoop, config: SafetyConfig, bounds: PositionBounds, motions: StopPort | None = None
     ) -> None:
         self.loop = loop
         self.config = config
-        self.motions = motions
+        #: the stop port of the motion manager (see :meth:`attach_motions`)
+        self.motions: StopPort = _NoMotions(len(loop.joints)) if motions is None else motions
         self._events: deque[SafetyEvent] = deque(maxlen=10_000)
         self._event_count = 0
         self._events_lock = threading.Lock()
@@ -342,14 +303,10 @@ class SafetyLayer:
         #: stack of the event-loop thread when the stall watchdog fired
         self.stall_traceback: str | None = None
         n = len(loop.joints)
-        self._lo, self._hi = bounds.lo, bounds.hi
-        step = config.max_position_step
-        if step == "auto":
-            self._step: np.ndarray | None = np.array([j.max_velocity for j in loop.joints]) * loop.period
-        elif step is None:
-            self._step = None
-        else:
-            self._step = np.full(n, float(step))
+        #: the one limiting rule (position bounds, step per period, velocity and effort limits)
+        self.limiter = limiter = StepLimiter.for_joints(loop.joints, bounds, config.max_position_step, loop.period)
+        self._lo, self._hi = limiter.lo, limiter.hi
+        self._step = limiter.step
         #: watched[mode code] -> True if the command watchdog applies to that mode
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
         self._watch_position = "position" in config.watchdog_modes
@@ -361,21 +318,10 @@ class SafetyLayer:
         self._ramping = np.zeros(n, dtype=bool)
         #: joints put on hold by the command watchdog (not watched again until commanded)
         self._held = np.zeros(n, dtype=bool)
-        vmax = np.array([j.max_velocity for j in loop.joints])
-        emax = np.array([j.max_effort for j in loop.joints])
-        self._vmax = np.where(np.isnan(vmax), np.inf, vmax)
-        self._emax = np.where(np.isnan(emax), np.inf, emax)
-        self._vmin = -self._vmax
-        self._emin = -self._emax
-        #: the limits of the setpoint's velocity and effort rows (``Setpoint.block[1:3]``)
-        self._ff_min = np.vstack([self._vmin, self._emin])
-        self._ff_max = np.vstack([self._vmax, self._emax])
-        #: ... and with the position row (``Setpoint.block[0:3]``)
-        self._rows_min = np.vstack([self._lo, self._vmin, self._emin])
-        self._rows_max = np.vstack([self._hi, self._vmax, self._emax])
-        #: scratch of the per-tick filter: the step window [written - step, written + step]
-        self._window_lo = np.zeros(n)
-        self._window_hi = np.zeros(n)
+        self._vmax, self._emax = limiter.vmax, limiter.emax
+        #: scratch of the per-tick filter's slow path (a joint ramping or outside position mode)
+        self._target = np.zeros(n)
+        self._limited = np.zeros(n)
         #: scratch masks of the per-tick paths (joints in position mode with torque on; streamed joints;
         #: stale streams) and the command age per joint: no arrays allocated per tick
         self._n = n
@@ -399,13 +345,9 @@ class SafetyLayer:
         self._ramp_category = 2
         self._fault_waiters: set[asyncio.Future[BaseException]] = set()
         self._checks: list[SafetyCheck] = []
-        # stall watchdog
-        self._beat = time.monotonic()
-        self._beat_handle: asyncio.TimerHandle | None = None
-        self._thread: threading.Thread | None = None
-        self._thread_stop = threading.Event()
         self._aloop: asyncio.AbstractEventLoop | None = None
-        self._loop_thread_id = threading.get_ident()
+        #: the event-loop stall watchdog (None: not watched, see :attr:`stall_watchdog_active`)
+        self._stall: StallWatchdog | None = None
         #: wall-clock time (time.monotonic) the stall watchdog fired, and how long after the last heartbeat
         self.stall_detected_at: float | None = None
         self.stall_latency: float | None = None
@@ -416,9 +358,9 @@ class SafetyLayer:
         ]
         origin = self._written.view()
         origin.flags.writeable = False
-        # trajectories check their steps against this limiter before writing: a planned motion is
-        # never clipped silently; an abort that resets a reference to the measured state says so
-        motions.attach_limiter(origin, self._step, self._rebase_reference, self.record)
+        #: what the motion manager checks its planned steps against before writing (a planned motion
+        #: is never clipped silently; an abort that resets a reference to the measured state says so)
+        self.step_guard = StepGuard(limiter, origin, self._rebase_reference, self.record)
         #: the plausibility gate of every reading (None: sensor_check off)
         self.sensor_gate = (
             loop.install_sensor_gate(
@@ -445,47 +387,44 @@ class SafetyLayer:
                                                  config.following_error_stop)
             self.add_check(self.following)
 
+    def attach_motions(self, motions: StopPort) -> None:
+        """Connect the motion manager (through the :class:`StopPort` this layer defines)."""
+        self.motions = motions
+
     # ---------------------------------------------------------- lifecycle
     def start(self) -> None:
         """Start the heartbeat and the stall watchdog thread (called by connect once the loop runs)."""
         self._aloop = asyncio.get_running_loop()
-        self._loop_thread_id = threading.get_ident()
         np.copyto(self._written, self.loop.setpoint.position)
         self._goal = self._written.copy()
-        if self.stall_watchdog_active:
-            self._beat = time.monotonic()
-            self._schedule_beat()
-            self._thread = threading.Thread(
-                target=self._watch_stall, name=f"agentsdk-stall-watchdog-{self.loop.backend.name}", daemon=True
+        timeout = self.config.stall_timeout
+        if self.stall_watchdog_active and timeout is not None and self._stall is None:
+            loop = self.loop
+            self._stall = StallWatchdog(
+                timeout, f"agentsdk-stall-watchdog-{loop.backend.name}",
+                idle=lambda: loop.torque_off or loop.closed,
+                emergency_stop=lambda: loop.emergency_stop(0),
+                on_stall=self._on_stall,
             )
-            self._thread.start()
+            self._stall.start()
 
     async def shutdown(self) -> None:
         """Stop the watchdog thread and heartbeat, end stop tasks (awaited); called by Robot.close()."""
-        self._thread_stop.set()
-        if self._beat_handle is not None:
-            self._beat_handle.cancel()
-            self._beat_handle = None
-        thread, self._thread = self._thread, None
+        stall = self._stall
+        if stall is not None:
+            stall.stop_now()
         tasks = list(self._stop_tasks)
         for task in tasks:
             task.cancel()
         if tasks:
             await asyncio.gather(*tasks, return_exceptions=True)
-        if thread is not None and thread is not threading.current_thread():
-            # the thread polls its stop event every few ms; wait for it without blocking the event loop
-            deadline = time.monotonic() + 2.0
-            while thread.is_alive() and time.monotonic() < deadline:  # noqa: ASYNC110 - polling a thread
-                await asyncio.sleep(0.002)
-            if thread.is_alive():
-                log.error("the stall watchdog thread did not stop within 2 s")
+        if stall is not None:
+            await stall.stop()
 
     def shutdown_now(self) -> None:
         """Synchronous part of :meth:`shutdown` (no event loop): signal the watchdog thread to stop."""
-        self._thread_stop.set()
-        if self._beat_handle is not None:
-            self._beat_handle.cancel()
-            self._beat_handle = None
+        if self._stall is not None:
+            self._stall.stop_now()
 
     # --------------------------------------------------------------- state
     @property
@@ -562,6 +501,40 @@ class SafetyLayer:
         raise EStopActive(f"e-stop is latched{f' ({cause})' if cause else ''}; "
                           "call `await robot.reset()` then `await robot.enable()`")
 
+    # ---------------------------------------------------------- the command gate
+    def admit(self, cmd: JointCommand) -> AppliedCommand:
+        """The one way a direct command reaches the setpoint; returns the command actually applied.
+
+        In order: motion must be allowed (no latched e-stop, no fault), the command is validated
+        (:func:`~agentsdk.commands.resolve_command`), its joints must not be driven by a motion, its
+        values are limited (clamped and recorded, or rejected under ``limit_policy: reject``), it
+        is written into the setpoint (a position command starts its ramp where the limiter is),
+        and the command watchdog is fed. Raises a :class:`CommandRejected` subclass or
+        :class:`EStopActive` with the setpoint unchanged. The caller holds the loop's lock.
+        """
+        loop = self.loop
+        backend = loop.backend
+        self.check_motion_allowed()
+        idx, values, vel, eff = resolve_command(cmd, loop.names, loop.index, backend.capabilities.modes, backend.name)
+        assert isinstance(cmd, JointCommand)  # resolve_command checked it
+        owner = self.motions.owner_of(idx)
+        if owner is not None:
+            raise CommandRejected(
+                f"joint {loop.names[owner[0]]!r} is driven by a running trajectory (or reserved by a "
+                "scheduled one); cancel it (motion.cancel()) before sending direct commands"
+            )
+        values = self._limit_command(cmd.mode, idx, values)
+        vel, eff = self._limit_feedforward(idx, vel, eff)
+        loop.apply(cmd.mode, idx, values, vel, eff, position_now=self._ramp_start(cmd.mode, idx))
+        self._feed(cmd.mode, idx, values)
+        names = [loop.names[i] for i in idx.tolist()]
+        return AppliedCommand(
+            cmd.mode,
+            MappingProxyType(dict(zip(names, values.tolist(), strict=True))),
+            None if vel is None else MappingProxyType(dict(zip(names, vel.tolist(), strict=True))),
+            None if eff is None else MappingProxyType(dict(zip(names, eff.tolist(), strict=True))),
+        )
+
     def latch_cause(self) -> str:
         """The detail of the event that latched the e-stop (the first stopping event since the last reset)."""
         with self._events_lock:
@@ -591,20 +564,11 @@ class SafetyLayer:
             self._last_warn[key] = now
             log.warning(msg)
 
-    def limit_command(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
+    def _limit_command(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
         """Check a validated command against limits: returns the (possibly clamped) values or raises."""
-        if mode == "position":
-            lo, hi = self._lo[idx], self._hi[idx]
-            what, unit = "position", "rad"
-        elif mode == "velocity":
-            hi = self._vmax[idx]
-            lo = -hi
-            what, unit = "velocity", "rad/s"
-        else:
-            hi = self._emax[idx]
-            lo = -hi
-            what, unit = "effort", "N·m"
-        out: np.ndarray = np.minimum(np.maximum(values, lo), hi)
+        limiter = self.limiter
+        lo, hi, what, unit = limiter.command_range(mode, idx)
+        out = limiter.clamp_command(mode, idx, values)
         bad = out != values
         reject = self.config.limit_policy == "reject"
         names = self.loop.names
@@ -614,9 +578,10 @@ class SafetyLayer:
                 f"{what} command {values[k]:.4g} {unit} for joint {names[int(idx[k])]!r} is outside "
                 f"[{lo[k]:.4g}, {hi[k]:.4g}]"
             )
-        if mode == "position" and self._step is not None and reject:
-            jump = np.abs(values - self._written[idx]) > self._step[idx] + 1e-12
-            if jump.any():
+        if mode == "position" and reject:
+            jump = limiter.step_exceeded(values, self._written, idx)
+            if jump is not None:
+                assert self._step is not None
                 k = int(np.argmax(jump))
                 j = int(idx[k])
                 raise LimitViolation(
@@ -641,12 +606,12 @@ class SafetyLayer:
             self.record("clamp", f"{msg}; clamped to {out[k]:.4g}", name)
             self._warn(f"clamp {what}", j, msg + "; clamped")
 
-    def limit_feedforward(
+    def _limit_feedforward(
         self, idx: np.ndarray, velocity: np.ndarray | None, effort: np.ndarray | None
     ) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Check position-mode feed-forward terms against the velocity and effort limits.
 
-        Same policy as :meth:`limit_command`: clamp (and record) or raise :class:`LimitViolation`.
+        Same policy as :meth:`_limit_command`: clamp (and record) or raise :class:`LimitViolation`.
         """
         out: list[np.ndarray | None] = []
         for what, unit, arr, lim in (
@@ -678,16 +643,16 @@ class SafetyLayer:
         """
         self._written[idx] = positions
 
-    def ramp_start(self, mode: CommandMode, idx: np.ndarray) -> np.ndarray | None:
+    def _ramp_start(self, mode: CommandMode, idx: np.ndarray) -> np.ndarray | None:
         """Where a direct position command's setpoint starts this tick (the ramp's current position)."""
         return self._written[idx] if mode == "position" else None
 
-    def feed(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> None:
+    def _feed(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> None:
         """A command was applied to these joints: refresh the command watchdog, start position ramps.
 
         A direct position command becomes the *goal* of a ramp limited to
         ``max_position_step`` per cycle; the setpoint keeps showing where the
-        ramp is (:meth:`ramp_start`), so a stop started before the next tick starts from there.
+        ramp is (:meth:`_ramp_start`), so a stop started before the next tick starts from there.
         """
         self._fed[idx] = self.loop.stamp
         self._held[idx] = False
@@ -704,7 +669,7 @@ class SafetyLayer:
     def _filter(self, t: float, st: StateView, sp: Setpoint) -> None:
         """LIMIT phase, every tick: keep position setpoints in limits and ramp their steps.
 
-        A joint with a direct position command ramps towards its goal (see :meth:`feed`);
+        A joint with a direct position command ramps towards its goal (see :meth:`_feed`);
         every other position-mode joint (trajectory, stop ramp, hold) is limited to what
         its writer put in the setpoint for this cycle. Feed-forward terms are clipped to
         the velocity and effort limits as a backstop.
@@ -726,15 +691,11 @@ class SafetyLayer:
             if self._rows_of is not sp or rows is None:
                 self._rows_of, self._rows = sp, sp.block[0:3]
                 rows = self._rows
-            np.maximum(rows, self._rows_min, out=rows)
-            np.minimum(rows, self._rows_max, out=rows)
-            pos, written, step = sp.position, self._written, self._step
-            if step is not None:
-                lo, hi = self._window_lo, self._window_hi
-                np.subtract(written, step, out=lo)
-                np.add(written, step, out=hi)
-                np.maximum(pos, lo, out=pos)
-                np.minimum(pos, hi, out=pos)
+            limiter = self.limiter
+            limiter.clamp_rows(rows)
+            pos, written = sp.position, self._written
+            if limiter.step is not None:
+                limiter.clamp_step(pos, written, pos)
             written[...] = pos
             return
         pos_mode = (sp.mode == _POS) & sp.enabled
@@ -742,14 +703,12 @@ class SafetyLayer:
         # joints not in position mode track the measured position (bumpless switch)
         np.copyto(written, st.position, where=~pos_mode)
         ramping &= pos_mode
-        target = np.where(ramping, self._goal, sp.position)
-        np.maximum(target, self._lo, out=target)
-        np.minimum(target, self._hi, out=target)
-        if self._step is not None:
-            out = np.maximum(target, written - self._step)
-            np.minimum(out, written + self._step, out=out)
-        else:
-            out = target
+        limiter = self.limiter
+        target = self._target
+        np.copyto(target, sp.position)
+        np.copyto(target, self._goal, where=ramping)
+        limiter.clamp_bounds(target, target)
+        out = limiter.clamp_step(target, written, self._limited)
         owned = self.motions.owned_mask
         if owned.any():
             # a planned motion is never clipped silently (the motions check their steps first, so
@@ -766,8 +725,7 @@ class SafetyLayer:
         ramping &= out != target
         np.copyto(written, out, where=pos_mode)
         ff = sp.block[1:3]
-        np.maximum(ff, self._ff_min, out=ff)
-        np.minimum(ff, self._ff_max, out=ff)
+        limiter.clamp_feedforward(ff)
         streamed = sp.enabled & (sp.mode != _POS)
         if streamed.any():
             self._limit_streams(st.position, sp, streamed)
@@ -1108,7 +1066,8 @@ class SafetyLayer:
         if self.sensor_gate is not None:
             self.sensor_gate.clear()  # a joint still reading nonsense is reported again
         self._state = SafetyState.DISABLED
-        self._beat = time.monotonic()
+        if self._stall is not None:
+            self._stall.beat()
         self.record("reset", "latch cleared; call enable() to allow motion")
 
     async def enable(self) -> None:
@@ -1128,66 +1087,18 @@ class SafetyLayer:
         self.record("enable", "motion enabled; holding current position")
 
     # ------------------------------------------------------ stall watchdog
-    def _schedule_beat(self) -> None:
-        aloop = self._aloop
-        if aloop is None or self._thread_stop.is_set():
-            return
-        interval = min(0.005, (self.config.stall_timeout or 1.0) / 10)
-
-        def _beat() -> None:
-            self._beat = time.monotonic()
-            self._schedule_beat()
-
-        self._beat_handle = aloop.call_later(interval, _beat)
-
-    def _watch_stall(self) -> None:
+    def _on_stall(self, last: float, stopped: float, stack: str, where: str) -> None:
+        """The stall watchdog's thread found the event loop stuck (torque is already off): latch and say where."""
         timeout = self.config.stall_timeout
-        assert timeout is not None
-        poll = min(0.002, timeout / 20)
-        wait = poll
-        # The thread sleeps until the heartbeat it last saw would be ``timeout`` old (not a poll
-        # every few ms: with several robots in a process, each thread's wake-ups cost the loop
-        # thread a GIL hand-off); it polls only while torque is off (nothing to watch then).
-        while not self._thread_stop.wait(wait):
-            last = self._beat
-            now = time.monotonic()
-            wait = poll
-            # watched as long as torque is on: a category 2 stop holds with torque on
-            if self.loop.torque_off or self.loop.closed:
-                continue
-            if now - last <= timeout:
-                # (at most 1 s: a huge stall_timeout would overflow the wait; a wake-up a second is free)
-                wait = min(max(last + timeout - now, 0.0) + 1e-4, 1.0)
-                continue
-            # the event loop is stuck: stop the actuators from this thread
-            try:
-                self.loop.emergency_stop(0)
-            except Exception:
-                log.exception("emergency stop hook failed in the stall watchdog")
-            stopped = time.monotonic()
-            self._latch(0)
-            self._latch_handled = False  # the loop side still has to abort motions
-            self.stall_latency = stopped - last
-            self.stall_detected_at = stopped
-            frame = sys._current_frames().get(self._loop_thread_id)
-            stack = "".join(traceback.format_stack(frame)) if frame is not None else "(loop thread not found)"
-            self.stall_traceback = stack
-            where = _innermost_user_frame(frame)
-            detail = (
-                f"event loop stalled for more than {timeout:g} s (last heartbeat {stopped - last:.3f} s ago); "
-                f"e-stop category 0 latched; loop was at {where}: a blocking call (time.sleep, blocking I/O, "
-                "a long computation) in a coroutine; use `await robot.clock.sleep()`, or `asyncio.to_thread()`"
-            )
-            self.record("stall", detail)
-            log.error("%s\n%s", detail, stack)
-
-
-def _innermost_user_frame(frame: Any) -> str:
-    if frame is None:
-        return "unknown"
-    summary = traceback.extract_stack(frame)
-    for fs in reversed(summary):
-        if "asyncio" not in fs.filename and "agentsdk/safety" not in fs.filename:
-            return f"{fs.filename}:{fs.lineno} in {fs.name}"
-    fs = summary[-1]
-    return f"{fs.filename}:{fs.lineno} in {fs.name}"
+        self._latch(0)
+        self._latch_handled = False  # the loop side still has to abort motions
+        self.stall_latency = stopped - last
+        self.stall_detected_at = stopped
+        self.stall_traceback = stack
+        detail = (
+            f"event loop stalled for more than {timeout:g} s (last heartbeat {stopped - last:.3f} s ago); "
+            f"e-stop category 0 latched; loop was at {where}: a blocking call (time.sleep, blocking I/O, "
+            "a long computation) in a coroutine; use `await robot.clock.sleep()`, or `asyncio.to_thread()`"
+        )
+        self.record("stall", detail)
+        log.error("%s\n%s", detail, stack)

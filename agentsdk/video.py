@@ -329,7 +329,7 @@ class VideoRecorder:
         self._description = ctl.description
         self.backend = robot.backend
         # on MuJoCo, frames are the backend's own qpos (a floating base and passive joints included),
-        # drawn with its own model: MujocoController's public ``model`` and ``data``
+        # drawn with its own model: MujocoBackend's public ``model`` and ``data``
         self._mj_model = getattr(ctl, "model", None) if robot.backend == "mujoco" else None
         self._mj_data: Any = getattr(ctl, "data", None) if self._mj_model is not None else None
         self.frames: list[np.ndarray] = []

@@ -1,15 +1,40 @@
-"""Shared fixtures: every test fails on leaked asyncio tasks or threads."""
+"""Shared fixtures: every test fails on leaked asyncio tasks or threads; backends from the registry."""
 
 from __future__ import annotations
 
 import asyncio
 import threading
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Iterable, Iterator
+from typing import Any
 
 import pytest
 import pytest_asyncio
 
 import agentsdk
+
+
+def lockstep_backends(*, deterministic: bool = False, modes: Iterable[str] = ()) -> list[Any]:
+    """Every registered backend that runs in lockstep (simulated time), as pytest params.
+
+    Chosen from the registry and gated on declared capabilities (``deterministic``: bit-identical
+    reruns; ``modes``: command modes it must accept), never on names, so a new backend is tested
+    without editing a list. One that cannot load here (a missing extra, a broken plugin) is a
+    skipped param that says why.
+    """
+    need = frozenset(modes)
+    params: list[Any] = []
+    for name in agentsdk.available_backends():
+        try:
+            cls = agentsdk.load_backend(name)
+        except Exception as exc:  # a missing extra or a broken third-party plugin: skipped, named
+            reason = f"backend {name!r} unavailable: {type(exc).__name__}: {exc}"
+            params.append(pytest.param(name, id=name, marks=pytest.mark.skip(reason=reason)))
+            continue
+        caps = cls.capabilities
+        if not caps.lockstep or (deterministic and not caps.deterministic) or not need <= caps.modes:
+            continue
+        params.append(pytest.param(name, id=name))
+    return params
 
 
 @pytest.fixture(autouse=True)

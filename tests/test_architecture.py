@@ -30,7 +30,7 @@ ALLOWED = {
     # asyncio exposes no public "is any task ready?": lockstep time needs it (documented in loop._settle)
     ("agentsdk/loop.py", "_ready"),
     # sys._current_frames is documented in the Python library reference (the stall watchdog's stack dump)
-    ("agentsdk/safety.py", "_current_frames"),
+    ("agentsdk/stall.py", "_current_frames"),
 }
 
 

@@ -13,6 +13,7 @@ from collections.abc import AsyncIterator
 
 import numpy as np
 import pytest
+from conftest import lockstep_backends
 
 import agentsdk
 from agentsdk import ConfigurationError, EStopActive, InvalidValueError, JointCommand, JointState
@@ -70,7 +71,7 @@ def _check_structure(stats: LoopStats) -> None:
     assert str(stats.count) in stats.summary()
 
 
-@pytest.mark.parametrize("backend", ["mock", "mujoco"])
+@pytest.mark.parametrize("backend", lockstep_backends(deterministic=True))
 async def test_lockstep_is_deterministic(backend: str) -> None:
     runs = []
     for _ in range(2):

@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator, Sequence
 
 import numpy as np
 import pytest
+from conftest import lockstep_backends
 
 import agentsdk
 from agentsdk import (
@@ -30,19 +31,8 @@ from agentsdk import (
     UnknownJointError,
 )
 
-
-def _unavailable(backend: str) -> str | None:
-    try:
-        agentsdk.load_backend(backend)
-    except agentsdk.BackendUnavailableError as exc:
-        return str(exc)
-    return None
-
-
-BACKENDS = [
-    pytest.param(b, marks=pytest.mark.skipif(_unavailable(b) is not None, reason=f"{b}: {_unavailable(b)}"))
-    for b in ("mock", "mujoco", "pybullet")
-]
+#: every lockstep backend in the registry (gated on capabilities, see conftest)
+BACKENDS = lockstep_backends()
 
 #: the event-loop stall watchdog measures wall time; on a loaded test machine a lockstep run can be
 #: starved for its default 0.25 s without anything being wrong, so it gets more slack here

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import lockstep_backends
 
 import agentsdk
 from agentsdk import (
@@ -42,8 +43,8 @@ from agentsdk import (
 )
 from agentsdk.cli import run_behavior
 
-#: every backend the safety layer wraps (the CAN backend is added by its own suite)
-BACKENDS = ("mock", "mujoco", "pybullet")
+#: every lockstep backend in the registry (the realtime-only CAN backend has its own suite)
+BACKENDS = lockstep_backends()
 #: backends with physics (gravity acts on a joint without torque)
 SIMULATORS = ("mujoco", "pybullet")
 
@@ -60,7 +61,7 @@ def _backend_params(names: tuple[str, ...]) -> list[Any]:
     return params
 
 
-@pytest.fixture(params=_backend_params(BACKENDS))
+@pytest.fixture(params=BACKENDS)
 def backend(request: pytest.FixtureRequest) -> str:
     return str(request.param)
 

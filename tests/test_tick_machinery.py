@@ -20,13 +20,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+from conftest import lockstep_backends
 
 import agentsdk
 from agentsdk import JointCommand, Phase, Trajectory, TrajectoryPoint
 from agentsdk.errors import BackendUnavailableError
 from agentsdk.registry import load_backend
 
-BACKENDS = ["mujoco", "mock", "pybullet"]
+#: every lockstep backend in the registry (gated on capabilities, see conftest)
+BACKENDS = lockstep_backends()
 
 
 def _available(backend: str) -> bool:

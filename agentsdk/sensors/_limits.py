@@ -15,8 +15,8 @@ from ..errors import InvalidValueError
 from ._spec import SensorLimits, SensorSpec
 
 if TYPE_CHECKING:
+    from ..checks import SafetyViolation
     from ..loop import StateView
-    from ..safety import SafetyViolation
     from ._hub import Sensors
 
 __all__ = ["SensorLimitCheck", "check_limits", "tilt"]
@@ -87,7 +87,7 @@ class SensorLimitCheck:
         return None
 
     def _violation(self, what: str) -> SafetyViolation:
-        from ..safety import SafetyViolation
+        from ..checks import SafetyViolation
 
         return SafetyViolation(
             "sensor_limit", f"sensor {self.spec.name!r} ({self.spec.kind} on {self.spec.link}): {what}",

@@ -6,11 +6,11 @@ receive side is python-can's :class:`can.Notifier` on the running event loop
 (``loop.add_reader`` on socketcan's file descriptor; a reader thread on buses
 without one, e.g. ``virtual``); only the latest reply per motor is kept (no
 unbounded queue). Missing or late replies are counted per motor
-(:attr:`CanController.stats`); ``max_missed_replies`` consecutive misses or a
+(:attr:`CanBackend.stats`); ``max_missed_replies`` consecutive misses or a
 motor error code (over-temperature...) end in a :class:`BackendFault` naming the
 motor, which the safety layer turns into FAULT with every motor disabled.
 Replies naming a motor id we never addressed are counted
-(:attr:`CanController.unexpected_replies`) and named in the fault of the motor
+(:attr:`CanBackend.unexpected_replies`) and named in the fault of the motor
 that went missing meanwhile (a wrong CAN id shows up that way).
 
 MIT replies carry no sequence number, so a reply belongs to the current cycle
@@ -40,10 +40,10 @@ Gravity compensation (``tau_model`` of the servo law, robot.yaml ``gravity_compe
 motors run the PD law in firmware, so the host computes ``g(q)`` at the last measured position
 from the description's rigid-body model (:class:`agentsdk.dynamics.DynamicsModel`, a MuJoCo model
 compiled from the same description) once per cycle and adds it to the MIT torque feed-forward,
-which the encoder clamps to the motor's torque range. ``CanController.gravity_torque`` is the
+which the encoder clamps to the motor's torque range. ``CanBackend.gravity_torque`` is the
 last value sent (joint side). Likewise the inverse dynamics of the desired motion (robot.yaml
 ``inverse_dynamics``, :mod:`agentsdk.feedforward`, from the same host model, the URDF friction
-as dry Coulomb friction): ``CanController.motion_torque``, 0 at rest.
+as dry Coulomb friction): ``CanBackend.motion_torque``, 0 at rest.
 """
 
 from __future__ import annotations
@@ -79,7 +79,7 @@ from .claims import Claim, claim
 from .config import CanBusConfig
 from .mit import DISABLE, ENABLE, ZERO, encode_command_into, is_special, reply_error_code, reply_state
 
-__all__ = ["CanController", "CanOptions", "MotorStats"]
+__all__ = ["CanBackend", "CanController", "CanOptions", "MotorStats"]
 
 log = logging.getLogger("agentsdk.can")
 
@@ -155,7 +155,7 @@ class MotorStats:
     surplus_replies: int = 0
 
 
-class CanController(Backend):
+class CanBackend(Backend):
     """Motors on a CAN bus speaking the MIT mini-cheetah protocol (python-can).
 
     One request and one reply per motor per control tick.
@@ -820,3 +820,6 @@ class CanController(Backend):
     def _emergency_stop(self, category: int) -> None:
         self._torque[:] = False
         self._disable_all()
+
+#: the former name of :class:`CanBackend` (deprecated: import CanBackend)
+CanController = CanBackend

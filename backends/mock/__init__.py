@@ -27,7 +27,7 @@ from agentsdk.backend import Backend, Capabilities, JointReading, ModeCode, Setp
 from agentsdk.errors import BackendFault, ConfigurationError
 from agentsdk.types import MODES, CommandMode
 
-__all__ = ["MockController", "MockOptions"]
+__all__ = ["MockBackend", "MockController", "MockOptions"]
 
 #: mode codes as plain ints (numpy compares arrays with an IntEnum member slowly, through enum attribute lookups)
 _POS, _VEL, _EFF = int(ModeCode.POSITION), int(ModeCode.VELOCITY), int(ModeCode.EFFORT)
@@ -53,7 +53,7 @@ class MockOptions(BaseModel):
     modes: tuple[CommandMode, ...] = MODES
 
 
-class MockController(Backend):
+class MockBackend(Backend):
     """A kinematic stand-in for fast tests.
 
     Ideal or first-order tracking, effort integrated on a fixed inertia, fault injection.
@@ -152,3 +152,6 @@ class MockController(Backend):
     async def _recover(self) -> None:
         with self._lock:
             self._v[:] = 0.0
+
+#: the former name of :class:`MockBackend` (deprecated: import MockBackend)
+MockController = MockBackend

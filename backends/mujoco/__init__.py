@@ -60,7 +60,7 @@ from agentsdk.types import MODES
 
 from .sensors import SERVED, MujocoSensors
 
-__all__ = ["MujocoController", "MujocoOptions"]
+__all__ = ["MujocoBackend", "MujocoController", "MujocoOptions"]
 
 #: smallest accepted physics timestep (s)
 MIN_TIMESTEP = 1e-6
@@ -120,7 +120,7 @@ class MujocoOptions(BaseModel):
     inverse_dynamics: bool | None = None
 
 
-class MujocoController(Backend):
+class MujocoBackend(Backend):
     """MuJoCo simulation of the description, servo law applied as joint torques.
 
     The model is built from the URDF/MJCF records with ``build_spec``.
@@ -527,3 +527,6 @@ def _gather_view(arr: np.ndarray, idx: np.ndarray) -> np.ndarray | None:
 
 def _one_line(exc: BaseException) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
+
+#: the former name of :class:`MujocoBackend` (deprecated: import MujocoBackend)
+MujocoController = MujocoBackend

@@ -96,7 +96,7 @@ from agentsdk.types import MODES
 from .floating import FloatingStep
 from .sensors import SERVED, PybulletSensors
 
-__all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
+__all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletBackend", "PybulletController", "PybulletOptions"]
 
 log = logging.getLogger("agentsdk.backends.pybullet")
 
@@ -141,7 +141,7 @@ class PybulletOptions(BaseModel):
     gui: bool = False
 
 
-class PybulletController(Backend):
+class PybulletBackend(Backend):
     """PyBullet simulation of the description (DIRECT mode, headless), servo law applied as joint torques."""
 
     name = "pybullet"
@@ -761,3 +761,6 @@ def _base_offset(desc: RobotDescription) -> Pose:
 
 def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)[:40]
+
+#: the former name of :class:`PybulletBackend` (deprecated: import PybulletBackend)
+PybulletController = PybulletBackend

@@ -96,7 +96,7 @@ if TYPE_CHECKING:
     from agentsdk.description import RobotDescription
     from agentsdk.types import JointInfo
 
-__all__ = ["Ros2Controller", "Ros2Options"]
+__all__ = ["Ros2Backend", "Ros2Options"]
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +134,7 @@ class Ros2Options(BaseModel):
     command_joints: tuple[str, ...] | None = None
 
 
-class Ros2Controller(Backend):
+class Ros2Backend(Backend):
     """A robot on the ROS 2 graph: state from ``joint_states``, setpoints to its controller."""
 
     name = "ros2"

@@ -1,0 +1,137 @@
+"""The event-loop stall watchdog: a heartbeat on the event loop and an OS thread that watches it.
+
+If the event loop stops beating for ``timeout`` seconds of wall time (a blocking call in a
+coroutine), the thread calls ``on_stall`` itself, from the watchdog thread, with the time of the
+last heartbeat and where the loop thread was; the safety layer removes torque and latches its
+e-stop there (:mod:`agentsdk.safety`). While ``idle()`` is true (torque off, robot closed) there
+is nothing to protect and the thread only polls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from typing import Any
+
+__all__ = ["StallWatchdog"]
+
+log = logging.getLogger("agentsdk.safety")
+
+
+class StallWatchdog:
+    """Heartbeat plus watcher thread of one robot's event loop (see the module documentation).
+
+    ``on_stall(last_beat, stopped_at, stack, where)`` runs in the watchdog thread: ``last_beat``
+    is the monotonic time of the last heartbeat, ``stack`` the loop thread's formatted stack and
+    ``where`` its innermost frame outside asyncio and the safety layer.
+    """
+
+    def __init__(
+        self,
+        timeout: float,
+        name: str,
+        idle: Callable[[], bool],
+        emergency_stop: Callable[[], None],
+        on_stall: Callable[[float, float, str, str], None],
+    ) -> None:
+        self.timeout = timeout
+        self._name = name
+        self._idle = idle
+        self._emergency_stop = emergency_stop
+        self._on_stall = on_stall
+        self._beat = time.monotonic()
+        self._beat_handle: asyncio.TimerHandle | None = None
+        self._thread: threading.Thread | None = None
+        self._thread_stop = threading.Event()
+        self._aloop: asyncio.AbstractEventLoop | None = None
+        self._loop_thread_id = threading.get_ident()
+
+    def start(self) -> None:
+        """Start the heartbeat on the running event loop and the watcher thread."""
+        self._aloop = asyncio.get_running_loop()
+        self._loop_thread_id = threading.get_ident()
+        self._beat = time.monotonic()
+        self._schedule_beat()
+        self._thread = threading.Thread(target=self._watch, name=self._name, daemon=True)
+        self._thread.start()
+
+    def beat(self) -> None:
+        """Count now as a heartbeat (after a reset: the stall that latched is over)."""
+        self._beat = time.monotonic()
+
+    def stop_now(self) -> threading.Thread | None:
+        """Signal the thread to stop and cancel the heartbeat (no event loop needed); returns the thread."""
+        self._thread_stop.set()
+        if self._beat_handle is not None:
+            self._beat_handle.cancel()
+            self._beat_handle = None
+        thread, self._thread = self._thread, None
+        return thread
+
+    async def stop(self) -> None:
+        """:meth:`stop_now`, then wait (without blocking the event loop) until the thread has ended."""
+        thread = self.stop_now()
+        if thread is not None and thread is not threading.current_thread():
+            # the thread polls its stop event every few ms; wait for it without blocking the event loop
+            deadline = time.monotonic() + 2.0
+            while thread.is_alive() and time.monotonic() < deadline:  # noqa: ASYNC110 - polling a thread
+                await asyncio.sleep(0.002)
+            if thread.is_alive():
+                log.error("the stall watchdog thread did not stop within 2 s")
+
+    def _schedule_beat(self) -> None:
+        aloop = self._aloop
+        if aloop is None or self._thread_stop.is_set():
+            return
+        interval = min(0.005, self.timeout / 10)
+
+        def _beat() -> None:
+            self._beat = time.monotonic()
+            self._schedule_beat()
+
+        self._beat_handle = aloop.call_later(interval, _beat)
+
+    def _watch(self) -> None:
+        timeout = self.timeout
+        poll = min(0.002, timeout / 20)
+        wait = poll
+        # The thread sleeps until the heartbeat it last saw would be ``timeout`` old (not a poll
+        # every few ms: with several robots in a process, each thread's wake-ups cost the loop
+        # thread a GIL hand-off); it polls only while idle (nothing to watch then).
+        while not self._thread_stop.wait(wait):
+            last = self._beat
+            now = time.monotonic()
+            wait = poll
+            # watched as long as torque is on: a category 2 stop holds with torque on
+            if self._idle():
+                continue
+            if now - last <= timeout:
+                # (at most 1 s: a huge stall_timeout would overflow the wait; a wake-up a second is free)
+                wait = min(max(last + timeout - now, 0.0) + 1e-4, 1.0)
+                continue
+            # the event loop is stuck: stop the actuators from this thread
+            try:
+                self._emergency_stop()
+            except Exception:
+                log.exception("emergency stop hook failed in the stall watchdog")
+            stopped = time.monotonic()
+            frame = sys._current_frames().get(self._loop_thread_id)
+            stack = "".join(traceback.format_stack(frame)) if frame is not None else "(loop thread not found)"
+            self._on_stall(last, stopped, stack, _innermost_user_frame(frame))
+
+
+def _innermost_user_frame(frame: Any) -> str:
+    if frame is None:
+        return "unknown"
+    summary = traceback.extract_stack(frame)
+    ours = ("asyncio", "agentsdk/safety", "agentsdk/stall")
+    for fs in reversed(summary):
+        if not any(part in fs.filename for part in ours):
+            return f"{fs.filename}:{fs.lineno} in {fs.name}"
+    fs = summary[-1]
+    return f"{fs.filename}:{fs.lineno} in {fs.name}"

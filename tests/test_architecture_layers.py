@@ -1,0 +1,241 @@
+"""Architecture guards (issue 21): the import direction of agentsdk/ and the one limiter.
+
+* No import cycle between the modules of ``agentsdk/``: module-level imports, the ones under
+  ``if TYPE_CHECKING:`` included (a type-only circle hides real two-way calls), apart from a
+  short allowlist, each with its reason.
+* The core layers (see docs/architecture.md) import only downward, lazy imports inside
+  functions included.
+* A module over ~600 lines is named, with its reason, in docs/architecture.md.
+* The position limiting math exists once: the safety filter and the trajectory executor call
+  the same :class:`agentsdk.limits.StepLimiter` methods.
+"""
+
+from __future__ import annotations
+
+import ast
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import agentsdk
+from agentsdk.limits import StepLimiter
+from agentsdk.trajectory import Trajectory, TrajectoryPoint
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "agentsdk"
+
+#: type-only import edges allowed inside a cycle, and why
+TYPE_ONLY_ALLOWED = {
+    # the state machine's private helpers annotate their parameters with the StateMachine class that
+    # imports them (one package, one class): the helpers never call back into _machine at import time
+    ("agentsdk.statemachine._declaration", "agentsdk.statemachine._machine"),
+    ("agentsdk.statemachine._mermaid", "agentsdk.statemachine._machine"),
+    ("agentsdk.statemachine._runtime", "agentsdk.statemachine._machine"),
+    ("agentsdk.statemachine._validation", "agentsdk.statemachine._machine"),
+}
+
+#: the core layers, lowest first: a module may import (at any level, lazily too) only from its own
+#: layer or a lower one. The diagram and the reasons are in docs/architecture.md.
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("agentsdk.errors", "agentsdk.types"),
+    ("agentsdk.backend",),
+    ("agentsdk.loop",),
+    ("agentsdk.limits", "agentsdk.commands", "agentsdk.checks", "agentsdk.stall"),
+    ("agentsdk.safety", "agentsdk.following"),
+    ("agentsdk.motion",),
+    ("agentsdk.robot",),
+)
+
+#: longest module without a reason in docs/architecture.md (lines)
+MAX_LINES = 600
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for p in PACKAGE.rglob("*.py"):
+        if "__pycache__" in p.parts:
+            continue
+        parts = list(p.relative_to(ROOT).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = p
+    return out
+
+
+MODULES = _modules()
+
+
+def _target(name: str) -> str | None:
+    while name and name not in MODULES:
+        name = name.rpartition(".")[0]
+    return name or None
+
+
+def _imports(module: str, path: Path) -> Iterator[tuple[str, str]]:
+    """``(imported module, kind)`` of every project import of ``module``: kind is "runtime",
+    "type" (under ``if TYPE_CHECKING:``) or "lazy" (inside a function)."""
+    is_pkg = path.name == "__init__.py"
+    tree = ast.parse(path.read_text(), filename=str(path))
+
+    def visit(node: ast.AST, kind: str) -> Iterator[tuple[str, str]]:
+        for child in ast.iter_child_nodes(node):
+            k = kind
+            if isinstance(child, ast.FunctionDef | ast.AsyncFunctionDef):
+                k = "lazy"
+            elif isinstance(child, ast.If) and "TYPE_CHECKING" in ast.unparse(child.test) and kind == "runtime":
+                k = "type"
+            if isinstance(child, ast.Import):
+                for alias in child.names:
+                    t = _target(alias.name)
+                    if t is not None and t != module:
+                        yield t, k
+            elif isinstance(child, ast.ImportFrom):
+                if child.level:
+                    base = module.split(".") if is_pkg else module.split(".")[:-1]
+                    base = base[: len(base) - (child.level - 1)]
+                    name = ".".join([*base, child.module] if child.module else base)
+                else:
+                    name = child.module or ""
+                if not name.startswith("agentsdk"):
+                    continue
+                subs = [f"{name}.{a.name}" for a in child.names if f"{name}.{a.name}" in MODULES]
+                for t in subs if len(subs) == len(child.names) else [name, *subs]:
+                    tt = _target(t)
+                    if tt is not None and tt != module:
+                        yield tt, k
+            yield from visit(child, k)
+
+    yield from visit(tree, "runtime")
+
+
+EDGES: dict[str, set[tuple[str, str]]] = {m: set(_imports(m, p)) for m, p in MODULES.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on: set[str] = set()
+    out: list[list[str]] = []
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+
+    def strong(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                strong(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in graph:
+        if v not in index:
+            strong(v)
+    return out
+
+
+def test_no_import_cycles() -> None:
+    graph = {
+        m: {t for t, kind in edges if kind == "runtime" or (kind == "type" and (m, t) not in TYPE_ONLY_ALLOWED)}
+        for m, edges in EDGES.items()
+    }
+    cycles = _cycles(graph)
+    detail = [" <-> ".join(c) + ": " + "; ".join(f"{m} -> {sorted(graph[m] & set(c))}" for m in c) for c in cycles]
+    assert not cycles, "import cycles in agentsdk/:\n" + "\n".join(detail)
+
+
+def test_the_guard_finds_a_cycle() -> None:
+    """The cycle finder is not vacuous."""
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_core_layers_import_downward() -> None:
+    layer_of = {m: i for i, layer in enumerate(LAYERS) for m in layer}
+    assert set(layer_of) <= set(MODULES), "a layer names a module that does not exist"
+    bad = []
+    for m, i in layer_of.items():
+        for t, kind in sorted(EDGES[m]):
+            j = layer_of.get(t)
+            if j is not None and j > i:
+                bad.append(f"{m} (layer {i}) imports {t} (layer {j}, {kind})")
+    assert not bad, "imports that point upward:\n" + "\n".join(bad)
+
+
+def test_long_modules_say_why() -> None:
+    doc = (ROOT / "docs" / "architecture.md").read_text()
+    long = {
+        m: n
+        for m, p in MODULES.items()
+        if (n := len(p.read_text().splitlines())) > MAX_LINES and f"`{p.relative_to(ROOT).as_posix()}`" not in doc
+    }
+    assert not long, f"modules over {MAX_LINES} lines that docs/architecture.md does not explain: {long}"
+
+
+def _function(path: Path, cls: str, name: str) -> ast.FunctionDef:
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ClassDef) and node.name == cls:
+            for item in node.body:
+                if isinstance(item, ast.FunctionDef) and item.name == name:
+                    return item
+    raise AssertionError(f"{cls}.{name} not found in {path}")
+
+
+@pytest.mark.parametrize(
+    ("path", "cls", "name"),
+    [("agentsdk/safety.py", "SafetyLayer", "_filter"), ("agentsdk/motion.py", "MotionManager", "_limited")],
+)
+def test_filter_and_executor_do_not_clip_themselves(path: str, cls: str, name: str) -> None:
+    """Neither the safety filter nor the executor's limiter check does clipping arithmetic of its own."""
+    fn = _function(ROOT / path, cls, name)
+    clipping = [
+        f"line {node.lineno}: {ast.unparse(node.func)}"
+        for node in ast.walk(fn)
+        if isinstance(node, ast.Call)
+        and isinstance(node.func, ast.Attribute)
+        and node.func.attr in ("maximum", "minimum", "clip", "fmax", "fmin")
+    ]
+    assert not clipping, f"{cls}.{name} clips by itself (use agentsdk.limits.StepLimiter): {clipping}"
+
+
+async def test_filter_and_executor_limit_through_the_same_limiter(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The safety filter and the trajectory executor both call StepLimiter (no second copy of the math)."""
+    callers: set[tuple[str, str]] = set()
+    for name in ("clamp_bounds", "clamp_step"):
+        original = getattr(StepLimiter, name)
+
+        def spy(self: StepLimiter, *args: Any, _original: Any = original) -> np.ndarray:
+            frame = sys._getframe(1)
+            callers.add((frame.f_globals["__name__"], frame.f_code.co_name))
+            result: np.ndarray = _original(self, *args)
+            return result
+
+        monkeypatch.setattr(StepLimiter, name, spy)
+    async with agentsdk.connect("mock", "arm3") as robot:
+        names = robot.joint_names
+        start = (await robot.read()).position
+        goal = [float(q) + 0.05 for q in start]
+        result = await robot.follow(Trajectory(names, [TrajectoryPoint(0.2, goal)]))
+        assert result.ok, result
+        await robot.command(agentsdk.JointCommand("position", [float(q) + 0.02 for q in goal]))
+        await robot.clock.sleep(0.05)
+    assert ("agentsdk.motion", "_limited") in callers, callers
+    assert ("agentsdk.safety", "_filter") in callers, callers

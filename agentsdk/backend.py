@@ -143,6 +143,9 @@ class Capabilities:
     realtime: bool
     #: True when the same inputs always give bit-identical states (lockstep simulators)
     deterministic: bool = False
+    #: False when the backend drives something outside this process that a test must provide (a robot on
+    #: another host, a bus with motors): generic "every backend" tests then leave it to its own fixtures
+    standalone: bool = True
 
 
 class SetpointView:

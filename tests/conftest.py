@@ -31,7 +31,9 @@ def lockstep_backends(*, deterministic: bool = False, modes: Iterable[str] = ())
             params.append(pytest.param(name, id=name, marks=pytest.mark.skip(reason=reason)))
             continue
         caps = cls.capabilities
-        if not caps.lockstep or (deterministic and not caps.deterministic) or not need <= caps.modes:
+        # (a backend that drives a robot elsewhere, e.g. ros2, needs the fixtures of its own tests)
+        if (not caps.lockstep or not caps.standalone or (deterministic and not caps.deterministic)
+                or not need <= caps.modes):
             continue
         params.append(pytest.param(name, id=name))
     return params

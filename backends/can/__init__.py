@@ -162,7 +162,7 @@ class CanBackend(Backend):
     """
 
     name = "can"
-    capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True)
+    capabilities = Capabilities(modes=frozenset(MODES), lockstep=False, realtime=True, standalone=False)
     options_model = CanOptions
     #: the motors' reported temperatures (when the vendor profile carries one); their torque estimate
     #: is every backend's ``joint_effort`` sensor

@@ -138,7 +138,8 @@ class Ros2Backend(Backend):
     """A robot on the ROS 2 graph: state from ``joint_states``, setpoints to its controller."""
 
     name = "ros2"
-    capabilities = Capabilities(modes=frozenset({"position"}), lockstep=True, realtime=True, deterministic=False)
+    capabilities = Capabilities(modes=frozenset({"position"}), lockstep=True, realtime=True, deterministic=False,
+                                standalone=False)
     options_model = Ros2Options
 
     def __init__(self, config: RobotConfig, description: RobotDescription, joints: tuple[JointInfo, ...],

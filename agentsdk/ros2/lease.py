@@ -9,7 +9,8 @@ leaves on purpose. :class:`Heartbeat` does all of that.
 
 The serving side (:class:`Deadman`, created by :func:`agentsdk.ros2.expose`):
 
-* binds a command (a trajectory on the JTC topic or a FollowJointTrajectory goal) to every
+* binds a command (a trajectory on the JTC topic, a FollowJointTrajectory goal, or a direct
+  command of the ``ros2`` backend's ``agentsdk/command`` stream) to every
   client whose lease is alive when the command is accepted;
 * when a bound client's lease lapses -- no heartbeat received within ``lease`` seconds of wall
   time, or DDS reports its heartbeat writer not alive (its participant's lease expired or the

@@ -125,11 +125,15 @@ class CommandStream:
                 names = list(msg.name)
                 vel = list(msg.velocity) if len(msg.velocity) else None
                 eff = list(msg.effort) if len(msg.effort) else None
+                if face.deadman is not None:
+                    face.deadman.admit()
                 await robot.command(JointCommand(
                     "position", dict(zip(names, msg.position, strict=True)),
                     velocity=None if vel is None else dict(zip(names, vel, strict=True)),
                     effort=None if eff is None else dict(zip(names, eff, strict=True))))
                 self.applied += 1
+                if face.deadman is not None:
+                    face.deadman.accepted()  # bound to the live leases: the client's silence stops the robot
             if (stamp.sec or stamp.nanosec) and robot.clock.lockstep:
                 await robot.clock.sleep_until(face.robot_time(stamp))
         except (AgentSDKError, ValueError) as exc:  # ValueError: names and values of different lengths

@@ -33,6 +33,10 @@ latches a fault before the tick writes, so no command is ever sent on stale stat
 e-stop or fault sends the controller a hold (an empty trajectory: JTC holds its current
 position) and cancels every FollowJointTrajectory goal of the controller.
 
+Against a served agentsdk robot the backend holds a dead-man lease (``lease`` seconds,
+:class:`agentsdk.ros2.lease.Heartbeat`) from open to close: if this process dies or stalls, the
+served robot stops; closing releases the lease.
+
 ``realtime=None`` picks the remote's time model: lockstep when the robot's participant
 publishes ``clock``, else realtime. Position mode only (what a JTC takes).
 """
@@ -75,6 +79,7 @@ from agentsdk.ros2.dds import (
     service_wire_type,
     wrap,
 )
+from agentsdk.ros2.lease import Heartbeat
 from agentsdk.ros2.msgs import (
     CancelGoal_Request,
     Clock,
@@ -132,6 +137,8 @@ class Ros2Options(BaseModel):
     horizon: float | None = Field(default=None, gt=0.0)
     #: forward_command_controller: its joints, in its order (default: the robot's joints)
     command_joints: tuple[str, ...] | None = None
+    #: dead-man lease (s) held with an agentsdk server while connected (heartbeats; None: no lease)
+    lease: float | None = Field(default=1.0, gt=0.0)
 
 
 class Ros2Backend(Backend):
@@ -175,6 +182,7 @@ class Ros2Backend(Backend):
         self._seq = 0
         self._lock = threading.Lock()
         self._node: DdsNode | None = None
+        self._heartbeat: Heartbeat | None = None
         self._error: str | None = None
         self._last_rx = -math.inf  # monotonic time of the newest joint_states (or reply)
         self._state_stamp = -math.inf  # remote time of the newest state
@@ -226,6 +234,11 @@ class Ros2Backend(Backend):
         self._node = await run_blocking(self._build, loop, name="agentsdk-ros2-connect")
         self._node.start()
         await self._discover()
+        if self.interface == "agentsdk" and self.options.lease is not None:
+            # the served robot's dead-man covers this client: it stops when the heartbeats stop
+            self._heartbeat = Heartbeat(self._node, self.options.lease, f"agentsdk-ros2-{self._session}")
+            self._heartbeat.beat()
+            self._heartbeat.start()
 
     def _build(self, loop: asyncio.AbstractEventLoop) -> DdsNode:
         """The participant, its readers and writers, the pre-laid encoders (in a worker thread)."""
@@ -340,8 +353,11 @@ class Ros2Backend(Backend):
         node, self._node = self._node, None
         if node is None:
             return
+        heartbeat, self._heartbeat = self._heartbeat, None
         try:
             self._send_hold()
+            if heartbeat is not None:
+                await heartbeat.aclose()  # released on purpose: leaving never stops the served robot
         finally:
             node.close()
 

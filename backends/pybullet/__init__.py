@@ -75,7 +75,7 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
 from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf, standing_height
-from agentsdk.description.mjcf import free_root, mjcf_unsupported_by_pybullet
+from agentsdk.description.mjcf import free_root, mjcf_pybullet_fit
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel
@@ -270,13 +270,15 @@ class PybulletController(Backend):
         cid = self._cid
         desc = self.description
         if desc.format == "mjcf":
-            unsupported = mjcf_unsupported_by_pybullet(desc)
+            dropped, unsupported = mjcf_pybullet_fit(desc)
             if unsupported:
                 raise UnsupportedModelError(
                     f"PyBullet cannot load {label}: the MJCF model uses {'; '.join(unsupported)}, which a URDF "
                     "cannot carry (PyBullet's own loadMJCF reads even less: no <include>, default classes or "
                     "meshdir). Use the mujoco backend for this model"
                 )
+            for what in dropped:
+                log.warning("%s: PyBullet leaves out the %s", label, what)
             collision = from_mjcf(desc)
         else:
             collision = for_robot(desc, self.config, opts.self_collision)

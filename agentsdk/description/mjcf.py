@@ -515,12 +515,12 @@ def mjcf_pybullet_fit(description: RobotDescription) -> tuple[list[str], list[st
     body = functools.partial(mujoco.mj_id2name, m, obj.mjOBJ_BODY)
     other_eq: list[str] = []
     for e in range(m.neq):
-        kind = int(m.eq_type[e])
+        eq_kind = int(m.eq_type[e])
         name = mujoco.mj_id2name(m, obj.mjOBJ_EQUALITY, e)
-        label = f"{mujoco.mjtEq(kind).name.removeprefix('mjEQ_').lower()}" + (f" {name!r}" if name else f" #{e}")
-        if kind == int(mujoco.mjtEq.mjEQ_JOINT) and m.eq_obj2id[e] >= 0:
+        label = f"{mujoco.mjtEq(eq_kind).name.removeprefix('mjEQ_').lower()}" + (f" {name!r}" if name else f" #{e}")
+        if eq_kind == int(mujoco.mjtEq.mjEQ_JOINT) and m.eq_obj2id[e] >= 0:
             continue  # a joint coupling: a mimic joint, a gear constraint on PyBullet
-        if kind in (int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)):
+        if eq_kind in (int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)):
             b1, b2 = _eq_body(m, e, 1), _eq_body(m, e, 2)
             w1, w2 = int(m.body_weldid[b1]), int(m.body_weldid[b2])
             mocap = int(m.body_mocapid[b1]) >= 0 or int(m.body_mocapid[b2]) >= 0

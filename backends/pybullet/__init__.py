@@ -94,6 +94,7 @@ from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 from .floating import FloatingStep
+from .friction import friction_torque
 from .sensors import SERVED, PybulletSensors
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletController", "PybulletOptions"]
@@ -586,9 +587,8 @@ class PybulletController(Backend):
     def _implicit_step(self, f_all: np.ndarray, d_all: np.ndarray, h: float) -> np.ndarray:
         """The generalized force whose explicit PyBullet step lands where an implicit-damping step would.
 
-        ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction: per dof, the
-        torque that would stop the joint this step, within +-its friction (one decoupled projection),
-        then ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
+        ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction (the joints
+        that can stop this step stop, the others slide: :func:`.friction.friction_torque`), then ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
         rotor inertia ``A`` (MJCF ``armature``, diagonal) that PyBullet does not simulate: the torque
         ``A qacc`` that accelerates the rotors is held back, so PyBullet's rigid bodies take ``qacc``.
         """
@@ -598,10 +598,8 @@ class PybulletController(Backend):
         a[self._diag] += h * d_all
         rhs = f_all - bias
         qacc = np.linalg.solve(a, rhs)
-        if self._friction_any:
-            stop = -(a[self._diag] / h) * (self._v_all + h * qacc)  # torque that stops each dof this step
-            np.clip(stop, -self._friction, self._friction, out=stop)
-            rhs += stop
+        if self._friction_any:  # the joints that can stop this step stop, the others slide (coupled)
+            rhs += friction_torque(a, rhs, self._v_all, h, self._friction)
             qacc = np.linalg.solve(a, rhs)
         if self._armature_any:
             rigid = self._rigid_mass

@@ -588,7 +588,8 @@ class PybulletController(Backend):
         """The generalized force whose explicit PyBullet step lands where an implicit-damping step would.
 
         ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction (the joints
-        that can stop this step stop, the others slide: :func:`.friction.friction_torque`), then ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
+        that can stop this step stop, the others slide: :func:`.friction.friction_torque`), then
+        ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
         rotor inertia ``A`` (MJCF ``armature``, diagonal) that PyBullet does not simulate: the torque
         ``A qacc`` that accelerates the rotors is held back, so PyBullet's rigid bodies take ``qacc``.
         """

@@ -26,8 +26,8 @@ def friction_torque(a: np.ndarray, rhs: np.ndarray, v: np.ndarray, h: float, fri
     """
     n = v.shape[0]
     w = a / h
-    b = w @ v + rhs  # F = -b stops every joint
-    force = np.clip(-b, -friction, friction)
+    b: np.ndarray = w @ v + rhs  # F = -b stops every joint
+    force: np.ndarray = np.clip(-b, -friction, friction)
     sliding = (friction <= 0.0) | (np.abs(b) > friction)
     if not sliding.any():
         return force  # every joint holds: the exact torque that stops them
@@ -50,5 +50,25 @@ def friction_torque(a: np.ndarray, rhs: np.ndarray, v: np.ndarray, h: float, fri
         if not changed:
             force[t] = hold
             return force
-    force[t] = np.clip(hold, -friction[t], friction[t])
+    return _descend(w, b, friction)
+
+
+def _descend(w: np.ndarray, b: np.ndarray, friction: np.ndarray, sweeps: int = 200) -> np.ndarray:
+    """The same torque by coordinate descent, when the active set cycles (rare: strongly coupled joints).
+
+    ``v'`` minimizes ``v'^T W v' / 2 - b^T v' + sum friction |v'|`` (convex: ``W`` is positive definite);
+    each coordinate's exact minimum is a soft threshold, and every sweep lowers the objective.
+    """
+    vn = np.zeros_like(b)
+    diag = np.diag(w)
+    for _ in range(sweeps):
+        largest = 0.0
+        for i in range(b.shape[0]):
+            r = b[i] - float(w[i] @ vn) + diag[i] * vn[i]
+            new = np.sign(r) * max(abs(r) - friction[i], 0.0) / diag[i]
+            largest = max(largest, abs(new - vn[i]))
+            vn[i] = new
+        if largest <= 1e-12 * (1.0 + float(np.abs(vn).max())):
+            break
+    force: np.ndarray = np.clip(w @ vn - b, -friction, friction)
     return force

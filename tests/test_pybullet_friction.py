@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("pybullet")
 
-from backends.pybullet.friction import friction_torque  # noqa: E402
+from backends.pybullet.friction import friction_torque
 
 H = 0.001
 

@@ -15,6 +15,7 @@ import pytest
 
 import agentsdk
 from agentsdk import JointCommand, ResultCode, SafetyState, UnsupportedModelError
+from agentsdk.description.mjcf import load_mjcf, mjcf_pybullet_fit
 
 FIXTURES = Path(__file__).parent / "fixtures"
 MJCF = FIXTURES / "mjcf_pybullet"
@@ -92,7 +93,10 @@ async def test_a_free_joint_root_can_be_welded_to_the_world() -> None:
 
 @pytest.mark.parametrize(
     ("model", "named"),
-    [("tendon_arm.xml", "tendons (1)"), ("two_free_bodies.xml", "free joints other than one at the root (a, b)")],
+    [
+        ("tendon_arm.xml", "fixed tendon 'coupling' with a length range"),
+        ("two_free_bodies.xml", "free joints other than one at the root (a, b)"),
+    ],
 )
 async def test_what_a_urdf_cannot_carry_is_refused_by_name(model: str, named: str) -> None:
     with pytest.raises(UnsupportedModelError, match=r"PyBullet cannot load .*" + named.replace("(", r"\(")
@@ -116,3 +120,63 @@ async def test_a_camera_fixed_to_a_tilting_head_does_not_stop_the_tilt(backend: 
         result = await robot.move_to({"joint_tilt": 0.25})
         assert result.code is ResultCode.SUCCESSFUL, result
         assert abs((await robot.read()).position[1] - 0.25) < 0.02
+
+
+@pytest.mark.parametrize("backend", SIMULATORS)
+async def test_a_tendon_driven_linkage_is_commanded_joint_by_joint(
+    backend: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A fixed tendon that only transmits the model's actuator and a connect constraint that closes a
+    parallelogram (Menagerie's xArm7 gripper): PyBullet drops both, naming each; both simulators command every
+    joint on its own, hold the linkage and move it along a pose that keeps the loop closed."""
+    async with agentsdk.connect(backend, robot=MJCF / "tendon_linkage.xml") as robot:
+        assert [j.name for j in robot.joints] == ["j1", "j3", "j2"]
+        q0 = np.array((await robot.read()).position)
+        await robot.clock.sleep(1.0)
+        assert float(np.abs(np.array((await robot.read()).position) - q0).max()) < 0.005
+        result = await robot.move_to({"j1": 0.55, "j3": -0.55, "j2": 0.55})  # still a parallelogram
+        assert result.code is ResultCode.SUCCESSFUL, result
+        assert np.abs(np.array((await robot.read()).position) - [0.55, -0.55, 0.55]).max() < 0.02
+        if backend == "pybullet":
+            # the loop is open: a command that breaks the parallelogram moves that joint alone (MuJoCo's
+            # constraint would hold the coupler on the second crank)
+            result = await robot.move_to({"j1": 0.55, "j3": -0.3, "j2": 0.55})
+            assert result.code is ResultCode.SUCCESSFUL, result
+            assert abs((await robot.read()).position[1] + 0.3) < 0.02
+        assert robot.safety.state is SafetyState.OK
+    warned = [r.getMessage() for r in caplog.records if "PyBullet leaves out" in r.getMessage()]
+    if backend == "mujoco":
+        assert warned == []
+    else:
+        assert len(warned) == 2, warned
+        assert "fixed tendon 'drive'" in warned[0]
+        assert "connect 'close' constraint between bodies 'coupler' and 'crank2'" in warned[1]
+
+
+@pytest.mark.parametrize(
+    ("extra", "refused"),
+    [
+        ('<tendon><fixed name="t" damping="1"><joint joint="j1" coef="1"/></fixed></tendon>',
+         "fixed tendon 't' with damping"),
+        ('<tendon><fixed name="t" stiffness="2"><joint joint="j1" coef="1"/></fixed></tendon>',
+         "fixed tendon 't' with stiffness"),
+        ('<equality><weld name="w" body1="b"/></equality>',
+         "equality constraints other than joint coupling or linkage closure (weld 'w')"),
+        ('<equality><connect name="c" body1="b" body2="a" anchor="0 0 0"/></equality>', None),
+    ],
+)
+def test_what_pybullet_drops_and_what_it_refuses(tmp_path: Path, extra: str, refused: str | None) -> None:
+    """The rule, on elements nobody named: a tendon acting by itself or a weld to the world has no URDF form;
+    a connect between two moving bodies closes a loop and is dropped."""
+    path = tmp_path / "m.xml"
+    path.write_text(
+        '<mujoco><worldbody><body name="a"><joint name="j1" axis="0 1 0" range="-1 1"/>'
+        '<geom type="sphere" size="0.05" mass="1"/><body name="b" pos="0.2 0 0"><joint name="j2" axis="0 1 0" '
+        f'range="-1 1"/><geom type="sphere" size="0.05" mass="1"/></body></body></worldbody>{extra}</mujoco>'
+    )
+    dropped, unsupported = mjcf_pybullet_fit(load_mjcf(path))
+    if refused is None:
+        assert unsupported == [] and len(dropped) == 1
+        assert "connect 'c' constraint between bodies 'b' and 'a'" in dropped[0]
+    else:
+        assert unsupported == [refused] and dropped == []

@@ -75,7 +75,7 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
 from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf, standing_height
-from agentsdk.description.mjcf import free_root, mjcf_unsupported_by_pybullet
+from agentsdk.description.mjcf import free_root, mjcf_pybullet_fit
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel
@@ -94,6 +94,7 @@ from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
 from .floating import FloatingStep
+from .friction import friction_torque
 from .sensors import SERVED, PybulletSensors
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletBackend", "PybulletController", "PybulletOptions"]
@@ -270,13 +271,15 @@ class PybulletBackend(Backend):
         cid = self._cid
         desc = self.description
         if desc.format == "mjcf":
-            unsupported = mjcf_unsupported_by_pybullet(desc)
+            dropped, unsupported = mjcf_pybullet_fit(desc)
             if unsupported:
                 raise UnsupportedModelError(
                     f"PyBullet cannot load {label}: the MJCF model uses {'; '.join(unsupported)}, which a URDF "
                     "cannot carry (PyBullet's own loadMJCF reads even less: no <include>, default classes or "
                     "meshdir). Use the mujoco backend for this model"
                 )
+            for what in dropped:
+                log.warning("%s: PyBullet leaves out the %s", label, what)
             collision = from_mjcf(desc)
         else:
             collision = for_robot(desc, self.config, opts.self_collision)
@@ -584,9 +587,9 @@ class PybulletBackend(Backend):
     def _implicit_step(self, f_all: np.ndarray, d_all: np.ndarray, h: float) -> np.ndarray:
         """The generalized force whose explicit PyBullet step lands where an implicit-damping step would.
 
-        ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction: per dof, the
-        torque that would stop the joint this step, within +-its friction (one decoupled projection),
-        then ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
+        ``(M + h D) qacc = f - c(q, v) - g(q) + F`` with ``F`` the joints' Coulomb friction (the joints
+        that can stop this step stop, the others slide: :func:`.friction.friction_torque`), then
+        ``f = c + g + (M - A) qacc`` (PyBullet's motors carry no friction here). ``M`` includes the
         rotor inertia ``A`` (MJCF ``armature``, diagonal) that PyBullet does not simulate: the torque
         ``A qacc`` that accelerates the rotors is held back, so PyBullet's rigid bodies take ``qacc``.
         """
@@ -596,10 +599,8 @@ class PybulletBackend(Backend):
         a[self._diag] += h * d_all
         rhs = f_all - bias
         qacc = np.linalg.solve(a, rhs)
-        if self._friction_any:
-            stop = -(a[self._diag] / h) * (self._v_all + h * qacc)  # torque that stops each dof this step
-            np.clip(stop, -self._friction, self._friction, out=stop)
-            rhs += stop
+        if self._friction_any:  # the joints that can stop this step stop, the others slide (coupled)
+            rhs += friction_torque(a, rhs, self._v_all, h, self._friction)
             qacc = np.linalg.solve(a, rhs)
         if self._armature_any:
             rigid = self._rigid_mass

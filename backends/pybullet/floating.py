@@ -39,6 +39,8 @@ import pybullet as p
 from agentsdk.dynamics import DynamicsModel
 from agentsdk.pose import Pose
 
+from .friction import friction_torque
+
 __all__ = ["EXT_FILTER", "FloatingStep", "free_body_name"]
 
 #: weight of the newest measurement in the low-pass filtered constraint force (per substep)
@@ -107,6 +109,8 @@ class FloatingStep:
         self._friction_any = bool(self._friction.any())
         self._armature = np.asarray(m.dof_armature, dtype=float).copy()
         nv = m.nv
+        self._friction_all = np.zeros(nv)  # the base's six dofs: none
+        self._friction_all[self._dofs] = self._friction
         self._qpos = m.qpos0.copy()
         self._qvel = np.zeros(nv)
         self._qvel_prev = np.zeros(nv)
@@ -224,10 +228,8 @@ class FloatingStep:
         np.subtract(ext, bias, out=rhs)
         rhs[dofs] += force
         qacc = np.linalg.solve(a, rhs)
-        if self._friction_any:
-            stop = -(a[self._jdiag] / h) * (v + h * qacc[dofs])  # torque that stops each joint this substep
-            np.clip(stop, -self._friction, self._friction, out=stop)
-            rhs[dofs] += stop
+        if self._friction_any:  # the joints that can stop this substep stop, the others slide (coupled)
+            rhs += friction_torque(a, rhs, qvel, h, self._friction_all)
             qacc = np.linalg.solve(a, rhs)
         mass[self._diag] -= self._armature  # PyBullet's rigid bodies: the rotors take A qacc
         out = self._out

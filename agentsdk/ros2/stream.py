@@ -33,7 +33,7 @@ import asyncio
 import logging
 import re
 from collections.abc import Callable, Coroutine
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 from cyclonedds.core import Policy, Qos
 from cyclonedds.util import duration
@@ -44,9 +44,26 @@ from .dds import QOS_DEFAULT, DdsNode
 from .msgs import Header, JointState
 
 if TYPE_CHECKING:
-    from .server import RosFace
+    from ..robot import Robot
+    from .lease import Deadman
+    from .msgs import Time
 
-__all__ = ["COMMAND_TOPIC", "QOS_STREAM", "STATE_TOPIC", "CommandStream", "parse_frame_id"]
+
+class Face(Protocol):
+    """What the command stream needs of the face that serves the robot (:class:`~agentsdk.ros2.server.RosFace`)."""
+
+    robot: Robot
+    deadman: Deadman | None
+
+    def stamp(self, t: float) -> Time:
+        """Robot time ``t`` as a message stamp."""
+        ...
+
+    def robot_time(self, stamp: Time) -> float:
+        """A message stamp as robot time."""
+        ...
+
+__all__ = ["COMMAND_TOPIC", "QOS_STREAM", "STATE_TOPIC", "CommandStream", "Face", "parse_frame_id"]
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +88,7 @@ def parse_frame_id(frame_id: str) -> tuple[str, int] | None:
 class CommandStream:
     """The ``agentsdk/command`` reader and ``agentsdk/state`` writer of one served robot."""
 
-    def __init__(self, face: RosFace) -> None:
+    def __init__(self, face: Face) -> None:
         self.face = face
         self._last: dict[str, int] = {}
         self._queue: asyncio.Queue[tuple[str, JointState]] = asyncio.Queue(_QUEUE)

@@ -497,6 +497,10 @@ def mjcf_pybullet_fit(description: RobotDescription) -> tuple[list[str], list[st
     free = [j for j in description.all_joints if j.type == "floating"]
     if free and not (len(free) == 1 and free_root(description) is not None):
         out.append(f"free joints other than one at the root ({', '.join(j.name for j in free)})")
+    elif free and any(not m.body(int(m.jnt_bodyid[j])).name for j in range(m.njnt)
+                      if int(m.jnt_type[j]) == int(mujoco.mjtJoint.mjJNT_FREE)):
+        # the floating step matches the body between the two simulators by its name
+        out.append(f"a free joint on an unnamed body ({free[0].child!r} here; give the <body> a name)")
     kinds = {j.type for j in description.all_joints}
     if "ball" in kinds:
         out.append("ball joints")

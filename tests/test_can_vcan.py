@@ -338,7 +338,7 @@ async def main(robot):
     # (the safety layer would stop a stream at a position limit)
     names = [j.name for j in robot.joints]
     mid = {j.name: 0.5 * (j.lower + j.upper) for j in robot.joints}
-    half = {j.name: 0.2 * (j.upper - j.lower) for j in robot.joints}
+    half = {j.name: 0.15 * (j.upper - j.lower) for j in robot.joints}
     sign = {name: 1.0 for name in names}
     n = 0
     while True:
@@ -346,7 +346,8 @@ async def main(robot):
         for name in names:
             if (q[name] - mid[name]) * sign[name] > half[name]:
                 sign[name] = -sign[name]
-        await robot.command(JointCommand("velocity", {name: 2.0 * sign[name] for name in names}))
+        # 1 rad/s: a starved VM may see the reversal point late, and 0.35 of the range is left before the limit
+        await robot.command(JointCommand("velocity", {name: 1.0 * sign[name] for name in names}))
         n += 1
         if n == 50:
             print("STREAMING", flush=True)
@@ -394,8 +395,8 @@ def test_kill_9_of_the_host_leaves_the_motors_limp_by_their_own_timeout(tmp_path
                     live[msg.data[0]].append(decode_reply(msg.data, ranges[msg.data[0]], profile))
             for mid, reps in live.items():
                 assert reps, f"no reply from motor {mid} in the last 150 ms"
-                assert max(abs(r.velocity) for r in reps) > 1.5, (mid, reps[:3])
-                assert max(abs(r.torque) for r in reps) > 5 * lsb[mid], (mid, reps[:3])
+                assert max(abs(r.velocity) for r in reps) > 0.75, (mid, reps[:3])
+                assert max(abs(r.torque) for r in reps) > 2 * lsb[mid], (mid, reps[:3])  # torque on (limp: < 1 LSB)
             os.kill(host.popen.pid, signal.SIGKILL)
             t_kill = time.monotonic()
             assert host.popen.wait(10) == -signal.SIGKILL
@@ -481,12 +482,6 @@ SIGNAL_TRIALS = int(os.environ.get("AGENTSDK_SIGNAL_TRIALS", "5"))
 
 
 @pytest.mark.timeout(900)
-@pytest.mark.xfail(
-    strict=False,
-    reason="flaky in user-mode Linux since the trust-boundary merge: the host records every tick in realtime "
-    "on the VM's one vCPU and a trial can end in a stall or reply-deadline fault before its signal; the same "
-    "signal path is covered on the host by tests/test_signals.py; to be investigated",
-)
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_signal_stops_the_motors_at_rest_before_disabling_them(tmp_path: Path, leg: str, sig: int) -> None:
     """Ctrl-C/SIGTERM mid-trajectory: a category 1 stop to rest, then DISABLE; exit 128 + signal.

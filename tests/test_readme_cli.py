@@ -97,6 +97,8 @@ def _variants(line: str) -> list[str]:
 def _skip_reason(cmd: str) -> str:
     if "--backend can" in cmd or re.search(r"\bcan:", cmd) or "--rt-priority" in cmd:
         return "needs a CAN bus with motors and real-time privileges (hardware)"
+    if "--backend ros2" in cmd:
+        return "drives a robot served by another process (tests/test_ros2_backend.py runs it against agentsdk serve)"
     if cmd.startswith("agentsdk vcan"):
         return "needs root and user-mode Linux (scripts/test.sh runs the vcan suite)"
     if "--web-wait" in cmd:

@@ -49,6 +49,7 @@ TYPE_ONLY_ALLOWED = {
 #: layer or a lower one. The diagram and the reasons are in docs/architecture.md.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("agentsdk.errors", "agentsdk.types"),
+    ("agentsdk.backendspec",),
     ("agentsdk.backend",),
     ("agentsdk.loop",),
     ("agentsdk.limits", "agentsdk.commands", "agentsdk.checks", "agentsdk.stall"),

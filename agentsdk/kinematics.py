@@ -55,6 +55,7 @@ from .hostmodel import (
     EQ_JOINT,
     HINGE,
     SLIDE,
+    GravityTerm,
     MjcfDescription,
     Positions,
     compile_model,
@@ -190,6 +191,8 @@ class Kinematics:
         self._links, self._parents, self.root_link = link_tree(m, description)
         self._body = {name: bid for name, bid in self._links.items()}
         self._ik: IKSolver | None = None
+        self._gravity: GravityTerm | None = None
+        self._gravity_qpos = np.zeros(0)
 
     @classmethod
     def for_robot(cls, robot: Any) -> Kinematics:
@@ -441,22 +444,26 @@ class Kinematics:
         if g.shape != (3,) or not np.isfinite(g).all():
             raise InvalidValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
         m = self.model
+        out = np.zeros(len(self.joints))
         with self._lock:
+            term = self._gravity_term()
             saved = m.opt.gravity.copy()
             try:
                 m.opt.gravity[:] = g
-                d = self._data
-                self._qpos(q, d.qpos)
-                d.qvel[:] = 0.0
-                mujoco.mj_fwdPosition(m, d)
-                mujoco.mj_fwdVelocity(m, d)
-                bias = d.qfrc_bias.copy()
+                term.invalidate()
+                self._qpos(q, self._gravity_qpos)
+                term.compute(self._gravity_qpos, out)
             finally:
                 m.opt.gravity[:] = saved
-        tau: FloatArray = bias[self._dadr].copy()
-        for c in self._couplings:
-            tau[c.leader] += c.multiplier * bias[c.dadr]
-        return tau
+                term.invalidate()
+        return out
+
+    def _gravity_term(self) -> GravityTerm:
+        """The host model's one g(q) (:class:`~agentsdk.hostmodel.GravityTerm`), made on first use."""
+        if self._gravity is None:
+            self._gravity = GravityTerm(self.model, self.joint_names)
+            self._gravity_qpos = np.zeros(self.model.nq)
+        return self._gravity
 
     # ------------------------------------------------------------ inverse kinematics
     def ik(

@@ -31,6 +31,8 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--cpus", metavar="LIST",
                    help="pin the process to these CPUs, e.g. 2,3 (with or without --rt-priority)")
     r.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
+    r.add_argument("--update-rate", type=float, metavar="HZ",
+                   help="control rate (default: robot.yaml update_rate), e.g. lower for an emulated bus in a VM")
     r.add_argument("--quiet", "-q", action="store_true", help="no summary, no progress bar")
     r.add_argument("--debug", action="store_true", help="show tracebacks")
     r.add_argument("--record", metavar="RUN.mcap", help="record joint states, commands, safety events and "

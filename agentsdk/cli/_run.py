@@ -201,6 +201,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     robot = args.robot or getattr(module, "ROBOT", "arm3")
     backend = args.backend or getattr(module, "BACKEND", "mujoco")
     options = parse_options(args.option)
+    if args.update_rate is not None:
+        options["update_rate"] = args.update_rate
     _check_output(args.record, "recording")
     _check_output(args.plot, "plot")
     video_size = _video_args(args)

@@ -107,6 +107,7 @@ async def can_robot(robot: str | Path = "mit_leg", **options: Any) -> AsyncItera
     """Emulator + ``connect("can", robot=...)`` on one fresh virtual channel."""
     channel = unique_channel()
     options.setdefault("max_missed_replies", MAX_MISSED)
+    options.setdefault("open_timeout", 2.0)  # the emulator thread shares a loaded host's GIL; the enable is resent
     with emulator(channel, robot) as emu:
         async with agentsdk.connect("can", robot=robot, interface="virtual", channel=channel, **options) as bot:
             yield bot, emu, channel
@@ -200,7 +201,8 @@ async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant(tmp_path: P
         leg = mit_leg_at(tmp_path / str(on), 500.0, gravity_compensation=on)
         channel = unique_channel()
         with emulator(channel, leg, plant="mujoco"):
-            async with agentsdk.connect("can", robot=leg, interface="virtual", channel=channel,
+            # the plant's first physics step can take longer than 0.2 s on a loaded host: the enable is resent
+            async with agentsdk.connect("can", robot=leg, interface="virtual", channel=channel, open_timeout=5.0,
                                         max_missed_replies=MAX_MISSED) as robot:
                 drift[on] = await hold_drift(robot)
                 sent = robot.controller.gravity_torque

@@ -95,9 +95,14 @@ class InverseDynamicsTerm:
         self._tmp = np.zeros(m.nv)
         self._sq = np.zeros(())
         self._effort = np.zeros(len(joints), dtype=bool)
+        #: the bytes of an all-zero (n,) row: a hold's velocity and acceleration, compared without a BLAS call
+        self._zero = np.zeros(len(joints)).tobytes()
 
     def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
         """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
+        zero = self._zero
+        if velocity.tobytes() == zero and acceleration.tobytes() == zero:  # a hold: the common case, cheapest
+            return False
         sq = self._sq
         np.dot(velocity, velocity, out=sq)
         if sq.item() != 0.0:

@@ -95,6 +95,7 @@ class InverseDynamicsTerm:
         self._tmp = np.zeros(m.nv)
         self._sq = np.zeros(())
         self._effort = np.zeros(len(joints), dtype=bool)
+        self._no_effort = self._effort.tobytes()
         #: the bytes of an all-zero (n,) row: a hold's velocity and acceleration, compared without a BLAS call
         self._zero = np.zeros(len(joints)).tobytes()
 
@@ -146,6 +147,6 @@ class InverseDynamicsTerm:
         if mode is not None:
             effort = self._effort
             np.equal(mode, _EFFORT, out=effort)
-            if np.count_nonzero(effort):
+            if effort.tobytes() != self._no_effort:  # (np.count_nonzero's Python wrapper costs more)
                 out[effort] = 0.0
         return out

@@ -413,12 +413,12 @@ class MujocoBackend(Backend):
         ctrl += tmp
         ctrl += sp.effort
         if self._gravity is not None:  # tau_model: g(q) at the measured position, allocation-free
-            tau = self._gravity.compute(self.data.qpos, self._tau_model)
+            tau = self._gravity.compute(self._qpos, self._tau_model)  # (views made once: no array per tick)
             tau *= self._gc_mask
             ctrl += tau
         inverse = self._inverse
         if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics
-            ctrl += inverse.compute(self.data.qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode)
+            ctrl += inverse.compute(self._qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode)
         en = sp.enabled
         if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0

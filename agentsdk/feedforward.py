@@ -118,6 +118,8 @@ class InverseDynamicsTerm:
         acceleration: np.ndarray,
         out: np.ndarray,
         mode: np.ndarray | None = None,
+        *,
+        moving: bool | None = None,
     ) -> np.ndarray:
         """Write the term (n,) for the desired ``velocity`` and ``acceleration`` (n,) at ``qpos`` into ``out``.
 
@@ -125,8 +127,12 @@ class InverseDynamicsTerm:
         desired velocity and acceleration are both 0 (nothing computed). ``mode`` (the setpoint's
         :class:`~agentsdk.backend.ModeCode` per joint): an effort-mode joint gets none of it (its
         torque is the one commanded, plus ``g(q)``), though its motion still counts for the others.
+        ``moving``: what :meth:`moving` returned for these very arrays, when the caller already asked
+        (the tick asks once); None asks here.
         """
-        if not self.moving(velocity, acceleration):
+        if moving is None:
+            moving = self.moving(velocity, acceleration)
+        if not moving:
             out.fill(0.0)
             return out
         qvel = self._qvel

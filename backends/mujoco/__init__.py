@@ -418,7 +418,7 @@ class MujocoBackend(Backend):
             ctrl += tau
         inverse = self._inverse
         if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics
-            ctrl += inverse.compute(self._qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode)
+            ctrl += inverse.compute(self._qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode, moving=True)
         en = sp.enabled
         if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0

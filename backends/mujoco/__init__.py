@@ -345,6 +345,8 @@ class MujocoBackend(Backend):
         mask = self.gravity_compensation.astype(float)
         self._tau_model = np.zeros(len(self.joints))
         self._gc_mask = mask
+        #: every joint compensated: the mask multiplies by 1.0 everywhere (no bit changes), so it is skipped
+        self._gc_all = bool(mask.all())
         on = mask.any() and bool(np.any(m.opt.gravity))
         self._gravity = GravityTerm(m, self.names) if on else None
         # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from this model, armature included
@@ -414,7 +416,8 @@ class MujocoBackend(Backend):
         ctrl += sp.effort
         if self._gravity is not None:  # tau_model: g(q) at the measured position, allocation-free
             tau = self._gravity.compute(self._qpos, self._tau_model)  # (views made once: no array per tick)
-            tau *= self._gc_mask
+            if not self._gc_all:
+                tau *= self._gc_mask
             ctrl += tau
         inverse = self._inverse
         if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics

@@ -217,6 +217,7 @@ class GravityTerm:
     def __init__(self, model: mujoco.MjModel, joints: Sequence[str]) -> None:
         self.model = model
         self._data = mujoco.MjData(model)  # qvel stays 0: mj_rne gives the bias at rest, g(q)
+        self._qpos = self._data.qpos  # a view made once (each MjData attribute access builds a new array)
         self._st = np.ascontiguousarray(coupling_matrix(model, joints).T)
         self._all = np.zeros(model.nv)
         #: the last result and the bytes of the ``qpos`` it is for: a robot at rest has the same
@@ -233,7 +234,7 @@ class GravityTerm:
         key = qpos.tobytes()
         if key != self._key:
             m, d = self.model, self._data
-            d.qpos[:] = qpos
+            self._qpos[...] = qpos
             mujoco.mj_kinematics(m, d)
             mujoco.mj_comPos(m, d)
             mujoco.mj_rne(m, d, 0, self._all)

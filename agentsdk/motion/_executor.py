@@ -132,7 +132,7 @@ class _Executor(_Admission):
         elapsed = tau - ex.t0
         if ex.phase == MotionPhase.FOLLOW:
             np.less_equal(np.abs(err, out=w.tmp), ex.path_tol, out=w.mask)
-            if np.count_nonzero(w.mask) != len(idx):
+            if w.mask.tobytes() != w.all:
                 over = ~w.mask
                 k = int(np.argmax(over))
                 name = m.joint_names[k] if m else str(k)
@@ -154,7 +154,8 @@ class _Executor(_Admission):
             if ex.wrap is not None:
                 _wrap_into(gerr, ex.wrap, w.dev)
             np.abs(gerr, out=gerr)
-            if np.count_nonzero(np.less_equal(gerr, ex.goal_tol, out=w.mask)) == len(idx):
+            np.less_equal(gerr, ex.goal_tol, out=w.mask)
+            if w.mask.tobytes() == w.all:
                 self._write(ex, t, st, sp, qc, v, a, err)
                 self._finish(ex, ResultCode.SUCCESSFUL, "")
                 self.loop.hold_at(idx, qc)
@@ -211,7 +212,8 @@ class _Executor(_Admission):
             w = ex.work = _TickBuffers(len(ex.idx))
         out = lim.clamp_bounds(q, w.out)
         what = ""
-        if np.count_nonzero(np.not_equal(out, q, out=w.mask)) and float(np.max(np.abs(out - q))) > _BOUND_TOL:
+        np.not_equal(out, q, out=w.mask)
+        if w.mask.tobytes() != w.none and float(np.max(np.abs(out - q))) > _BOUND_TOL:
             what = "bounds"
         step, step_tol = lim.step, lim.step_tol
         origin = self._origin
@@ -221,7 +223,8 @@ class _Executor(_Admission):
                 o = np.take(origin, ex.idx, out=w.o, mode="clip")
             dev = np.abs(np.subtract(out, o, out=w.dev), out=w.dev)
             # beyond the limiter's window: float noise is clamped, more aborts
-            if np.count_nonzero(np.greater(dev, step, out=w.mask)):
+            np.greater(dev, step, out=w.mask)
+            if w.mask.tobytes() != w.none:
                 if not what and (dev > step_tol).any():
                     what = "step"
                 lim.clamp_step(out, o, out)

@@ -24,12 +24,14 @@ class _TickBuffers:
         "act",
         "actual",
         "actual_v",
+        "all",
         "at",
         "bound",
         "dev",
         "err",
         "gain",
         "mask",
+        "none",
         "o",
         "out",
         "q",
@@ -49,6 +51,8 @@ class _TickBuffers:
         self.v, self.a, self.err, self.actual, self.out = (np.zeros(n) for _ in range(5))
         self.tmp, self.o, self.dev, self.gain, self.act, self.actual_v = (np.zeros(n) for _ in range(6))
         self.mask = np.zeros(n, dtype=bool)
+        #: ``mask.tobytes()`` with every / no joint set (a bytes compare costs less than np.count_nonzero)
+        self.all, self.none = np.ones(n, dtype=bool).tobytes(), self.mask.tobytes()
         #: the joints as a slice when they are consecutive, else their index array
         self.sel: Any = None
         #: views of the setpoint, state and limiter arrays made once (basic indexing makes a view each

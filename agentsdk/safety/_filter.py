@@ -27,9 +27,11 @@ class _Filter(_SafetyCore):
         lo, hi, what, unit = limiter.command_range(mode, idx)
         out = limiter.clamp_command(mode, idx, values)
         bad = out != values
+        # one ufunc reduction, kept (ndarray.any goes through a Python wrapper, and it was asked twice)
+        any_bad = bool(np.logical_or.reduce(bad))
         reject = self.config.limit_policy == "reject"
         names = self.loop.names
-        if reject and bad.any():
+        if reject and any_bad:
             k = int(np.argmax(bad))
             raise LimitViolation(
                 f"{what} command {values[k]:.4g} {unit} for joint {names[int(idx[k])]!r} is outside "
@@ -46,7 +48,7 @@ class _Filter(_SafetyCore):
                     f"above max_position_step {self._step[j]:.4f} rad per cycle (stream smaller steps, "
                     "use robot.move_to, or set limit_policy='clamp' to ramp)"
                 )
-        if not bad.any():
+        if not any_bad:
             return values
         self._record_clamps(what, unit, idx, values, out, lo, hi)
         return out

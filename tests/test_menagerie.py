@@ -46,7 +46,7 @@ LEGGED = (
     "anybotics_anymal_c/anymal_c.xml",
     "boston_dynamics_spot/spot.xml",
     "unitree_g1/g1.xml",
-    "apptronik_apollo/apollo.xml",
+    "apptronik_apollo/apptronik_apollo.xml",
     # not named in the issue
     "unitree_go1/go1.xml",
     "unitree_a1/a1.xml",

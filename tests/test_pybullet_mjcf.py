@@ -180,3 +180,41 @@ def test_what_pybullet_drops_and_what_it_refuses(tmp_path: Path, extra: str, ref
         assert "connect 'c' constraint between bodies 'b' and 'a'" in dropped[0]
     else:
         assert unsupported == [refused] and dropped == []
+
+
+#: a wrist like Menagerie's Lite6: the flange (link3) folds back against link1 at the start pose (they overlap
+#: by 5 mm; not parent and child, so MuJoCo's parent filter does not cover them)
+FOLDED_WRIST = """<mujoco model="folded_wrist">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="0.002"/>
+  <default><joint axis="0 1 0" range="-2.5 2.5" damping="0.5" armature="0.01"/></default>
+  <worldbody>
+    <body name="base"><geom type="cylinder" size="0.05 0.02" mass="2"/>
+      <body name="link1" pos="0 0 0.05"><joint name="j1" axis="0 0 1"/>
+        <geom type="box" size="0.03 0.03 0.06" pos="0 0 0.06" mass="1"/>
+        <body name="link2" pos="0 0 0.15"><joint name="j2"/>
+          <geom type="capsule" fromto="0 0 0 0.08 0 0" size="0.015" mass="0.4"/>
+          <body name="link3" pos="0.08 0 0"><joint name="j3"/>
+            <geom type="box" size="0.02 0.02 0.06" pos="-0.045 0 -0.06" mass="0.2"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("backend", SIMULATORS)
+async def test_links_touching_at_the_start_pose_do_not_collide_on_either_simulator(
+    tmp_path: Path, backend: str
+) -> None:
+    path = tmp_path / "folded_wrist.xml"
+    path.write_text(FOLDED_WRIST)
+    async with agentsdk.connect(backend, robot=path) as robot:
+        if backend == "pybullet":
+            assert robot.controller.collision.excluded.get(("link1", "link3")) == "touching at the start pose"
+        q0 = np.array((await robot.read()).position)
+        await robot.clock.sleep(1.0)
+        drift = float(np.abs(np.array((await robot.read()).position) - q0).max())
+        assert drift < 0.005, f"drift {drift:.4f} rad: the touching links push each other"

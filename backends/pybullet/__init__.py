@@ -280,7 +280,10 @@ class PybulletBackend(Backend):
                 )
             for what in dropped:
                 log.warning("%s: PyBullet leaves out the %s", label, what)
-            collision = from_mjcf(desc)
+            # the one collision rule: bodies touching at the start pose do not collide (as on MuJoCo), unless
+            # self_collision says to keep every pair
+            mode = self.config.self_collision if opts.self_collision is None else opts.self_collision
+            collision = from_mjcf(desc, self.config if mode == "auto" else None)
         else:
             collision = for_robot(desc, self.config, opts.self_collision)
         self.collision = collision

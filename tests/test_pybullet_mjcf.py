@@ -218,3 +218,26 @@ async def test_links_touching_at_the_start_pose_do_not_collide_on_either_simulat
         await robot.clock.sleep(1.0)
         drift = float(np.abs(np.array((await robot.read()).position) - q0).max())
         assert drift < 0.005, f"drift {drift:.4f} rad: the touching links push each other"
+
+
+@pytest.mark.parametrize("simulator", SIMULATORS)
+async def test_a_main_file_whose_contacts_are_scene_pairs_stands_beside_an_empty_world_body(
+    tmp_path: Path, simulator: str
+) -> None:
+    """Like Menagerie's Apollo main file: no geom has a contact bit (the scene file's explicit pairs touch the
+    floor) and an empty marker body is fixed to the world beside the floating base."""
+    xml = (MJCF / "free_quad.xml").read_text()
+    xml = xml.replace("<default>\n", '<default>\n    <geom contype="0" conaffinity="0"/>\n', 1)
+    xml = xml.replace("<worldbody>\n", '<worldbody>\n    <body name="world_link"/>\n', 1)
+    path = tmp_path / "free_quad.xml"
+    path.write_text(xml)
+    desc = load_mjcf(path)
+    assert desc.free_root == "torso" and mjcf_pybullet_fit(desc)[1] == []
+    async with agentsdk.connect(simulator, robot=path) as robot:
+        z0 = float(robot.base_state().pose.position[2])
+        assert 0.2 < z0 < 0.3  # on its feet
+        for _ in range(6):
+            await robot.clock.sleep(0.3)
+            z = float(robot.base_state().pose.position[2])
+            assert abs(z - z0) < 0.2 * z0, f"base at {z:.3f} m from {z0:.3f} m"
+        assert robot.safety.state is SafetyState.OK

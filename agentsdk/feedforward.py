@@ -39,12 +39,15 @@ import numpy as np
 from .backend import ModeCode
 from .dynamics import coupling_matrix
 
-__all__ = ["FRICTION_VELOCITY", "InverseDynamicsTerm"]
+__all__ = ["ACCELERATION_DTYPE", "FRICTION_VELOCITY", "InverseDynamicsTerm"]
 
 _EFFORT = int(ModeCode.EFFORT)
 
 #: desired speed (rad/s or m/s) from which a joint's full Coulomb friction is fed forward (linear below)
 FRICTION_VELOCITY = 0.01
+#: precision of the desired acceleration the term uses (rounded to it: relative 6e-8, far below any model's
+#: accuracy), so that a recording carries it exactly in 4 bytes a joint and a replay feeds the same torque
+ACCELERATION_DTYPE = np.float32
 
 
 class InverseDynamicsTerm:
@@ -98,6 +101,8 @@ class InverseDynamicsTerm:
         self._no_effort = self._effort.tobytes()
         #: the bytes of an all-zero (n,) row: a hold's velocity and acceleration, compared without a BLAS call
         self._zero = np.zeros(len(joints)).tobytes()
+        self._acc = np.zeros(len(joints))
+        self._acc_rounded = np.zeros(len(joints), dtype=ACCELERATION_DTYPE)
 
     def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
         """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
@@ -123,6 +128,8 @@ class InverseDynamicsTerm:
     ) -> np.ndarray:
         """Write the term (n,) for the desired ``velocity`` and ``acceleration`` (n,) at ``qpos`` into ``out``.
 
+        ``acceleration`` is used rounded to :data:`ACCELERATION_DTYPE`.
+
         ``qpos`` is the model's full position vector (a floating base's pose included). 0 when the
         desired velocity and acceleration are both 0 (nothing computed). ``mode`` (the setpoint's
         :class:`~agentsdk.backend.ModeCode` per joint): an effort-mode joint gets none of it (its
@@ -138,7 +145,10 @@ class InverseDynamicsTerm:
         qvel = self._qvel
         self._qpos[...] = qpos
         np.dot(self._s, velocity, out=qvel)
-        np.dot(self._s, acceleration, out=self._qacc)
+        acc = self._acc
+        np.copyto(self._acc_rounded, acceleration, casting="same_kind")  # see ACCELERATION_DTYPE
+        np.copyto(acc, self._acc_rounded)
+        np.dot(self._s, acc, out=self._qacc)
         mujoco.mj_inverse(self.model, self._data)
         full = self._qfrc
         friction = self._friction

@@ -117,6 +117,36 @@ async def test_a_floating_mjcf_robot_without_a_floor_stands_on_an_added_ground()
         assert np.abs(end.linear_velocity).max() < 0.01 and np.abs(end.angular_velocity).max() < 0.05
 
 
+@pytest.mark.parametrize("bits", ["0", "2"])
+async def test_a_robot_whose_geoms_do_not_collide_by_default_still_stands_on_the_added_ground(
+    tmp_path: Path, bits: str
+) -> None:
+    # like Menagerie's Apollo main file: every geom contype = conaffinity = 0, contacts only through explicit
+    # <pair>s in a scene file ("0"); or collision bits the default plane (contype 1) would not meet ("2")
+    xml = QUADRUPED.read_text().replace(
+        "<default>\n", f'<default>\n    <geom contype="{bits}" conaffinity="{bits}"/>\n', 1
+    ).replace(  # a visual shape (group 1, below the trunk's collision box): not a collision shape
+        '<geom name="trunk_box"', '<geom name="trunk_visual" type="sphere" size="0.1" pos="0 0 -0.05" group="1" '
+        'contype="0" conaffinity="0"/>\n      <geom name="trunk_box"', 1
+    )
+    path = tmp_path / "quadruped.xml"
+    path.write_text(xml)
+    async with agentsdk.connect("mujoco", robot=path) as robot:
+        m = robot.controller.model
+        ground = m.geom("agentsdk/ground").id
+        paired = {int(g) for p in range(m.npair) for g in (m.pair_geom1[p], m.pair_geom2[p]) if g != ground}
+        if bits == "0":  # the collision shapes (group 3) are paired with the ground, not the visual sphere
+            assert paired == {g for g in range(m.ngeom) if m.geom_group[g] == 3}
+        else:  # the ground meets every contype/conaffinity bit: no pair needed
+            assert paired == set()
+        h0 = float(robot.base_state().pose.position[2])
+        assert 0.2 < h0 < 0.3  # stands on its feet (the visual sphere would put it higher)
+        for _ in range(6):
+            await robot.clock.sleep(0.5)
+            h = float(robot.base_state().pose.position[2])
+            assert abs(h - h0) < 0.05 * h0, f"base at {h:.3f} m, started at {h0:.3f} m"
+
+
 async def test_base_state_follows_the_free_joint() -> None:
     async with agentsdk.connect("mujoco", robot=QUADRUPED) as robot:
         ctl = robot.controller

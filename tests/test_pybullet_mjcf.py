@@ -180,3 +180,64 @@ def test_what_pybullet_drops_and_what_it_refuses(tmp_path: Path, extra: str, ref
         assert "connect 'c' constraint between bodies 'b' and 'a'" in dropped[0]
     else:
         assert unsupported == [refused] and dropped == []
+
+
+#: a wrist like Menagerie's Lite6: the flange (link3) folds back against link1 at the start pose (they overlap
+#: by 5 mm; not parent and child, so MuJoCo's parent filter does not cover them)
+FOLDED_WRIST = """<mujoco model="folded_wrist">
+  <compiler angle="radian" autolimits="true"/>
+  <option timestep="0.002"/>
+  <default><joint axis="0 1 0" range="-2.5 2.5" damping="0.5" armature="0.01"/></default>
+  <worldbody>
+    <body name="base"><geom type="cylinder" size="0.05 0.02" mass="2"/>
+      <body name="link1" pos="0 0 0.05"><joint name="j1" axis="0 0 1"/>
+        <geom type="box" size="0.03 0.03 0.06" pos="0 0 0.06" mass="1"/>
+        <body name="link2" pos="0 0 0.15"><joint name="j2"/>
+          <geom type="capsule" fromto="0 0 0 0.08 0 0" size="0.015" mass="0.4"/>
+          <body name="link3" pos="0.08 0 0"><joint name="j3"/>
+            <geom type="box" size="0.02 0.02 0.06" pos="-0.045 0 -0.06" mass="0.2"/>
+          </body>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+@pytest.mark.parametrize("backend", SIMULATORS)
+async def test_links_touching_at_the_start_pose_do_not_collide_on_either_simulator(
+    tmp_path: Path, backend: str
+) -> None:
+    path = tmp_path / "folded_wrist.xml"
+    path.write_text(FOLDED_WRIST)
+    async with agentsdk.connect(backend, robot=path) as robot:
+        if backend == "pybullet":
+            assert robot.controller.collision.excluded.get(("link1", "link3")) == "touching at the start pose"
+        q0 = np.array((await robot.read()).position)
+        await robot.clock.sleep(1.0)
+        drift = float(np.abs(np.array((await robot.read()).position) - q0).max())
+        assert drift < 0.005, f"drift {drift:.4f} rad: the touching links push each other"
+
+
+@pytest.mark.parametrize("simulator", SIMULATORS)
+async def test_a_main_file_whose_contacts_are_scene_pairs_stands_beside_an_empty_world_body(
+    tmp_path: Path, simulator: str
+) -> None:
+    """Like Menagerie's Apollo main file: no geom has a contact bit (the scene file's explicit pairs touch the
+    floor) and an empty marker body is fixed to the world beside the floating base."""
+    xml = (MJCF / "free_quad.xml").read_text()
+    xml = xml.replace("<default>\n", '<default>\n    <geom contype="0" conaffinity="0"/>\n', 1)
+    xml = xml.replace("<worldbody>\n", '<worldbody>\n    <body name="world_link"/>\n', 1)
+    path = tmp_path / "free_quad.xml"
+    path.write_text(xml)
+    desc = load_mjcf(path)
+    assert desc.free_root == "torso" and mjcf_pybullet_fit(desc)[1] == []
+    async with agentsdk.connect(simulator, robot=path) as robot:
+        z0 = float(robot.base_state().pose.position[2])
+        assert 0.2 < z0 < 0.3  # on its feet
+        for _ in range(6):
+            await robot.clock.sleep(0.3)
+            z = float(robot.base_state().pose.position[2])
+            assert abs(z - z0) < 0.2 * z0, f"base at {z:.3f} m from {z0:.3f} m"
+        assert robot.safety.state is SafetyState.OK

@@ -111,7 +111,7 @@ def test_recording_has_cdr_channels_with_ros2msg_schemas(wave_run: dict[str, Pat
     assert channels["/joint_commands"][1].name == "agentsdk_msgs/msg/JointCommand"
     assert channels["/tf"][1].name == "tf2_msgs/msg/TFMessage"
     assert meta["robot"] == "arm3" and meta["backend"] == "mujoco" and meta["control_period"] == "0.002"
-    assert meta["format"] == "agentsdk-recording/2" and meta["record_rate"] == "50.0"
+    assert meta["format"] == "agentsdk-recording/3" and meta["record_rate"] == "50.0"
     assert json.loads(meta["joints"]) == ["joint1", "joint2", "joint3"]
     assert meta["behavior"].endswith("wave.py")
 

@@ -22,7 +22,7 @@ import pytest
 import agentsdk
 from agentsdk import Pose, ResultCode, Robot
 from agentsdk.backend import ModeCode
-from agentsdk.feedforward import FRICTION_VELOCITY, InverseDynamicsTerm
+from agentsdk.feedforward import ACCELERATION_DTYPE, FRICTION_VELOCITY, InverseDynamicsTerm
 from agentsdk.loop import Phase
 from agentsdk.probe import TRACK, ProbePool
 
@@ -212,8 +212,10 @@ def test_the_term_is_the_rigid_body_inverse_dynamics_without_gravity(armature: f
     out = np.zeros(2)
     zero = np.zeros(3)
     for q, v, a in _samples(2):
-        expected = s.T @ (_rne(m, q, s @ v, s @ a) - _rne(m, q, zero, zero))
+        a_used = a.astype(ACCELERATION_DTYPE).astype(np.float64)  # the precision a recording carries exactly
+        expected = s.T @ (_rne(m, q, s @ v, s @ a_used) - _rne(m, q, zero, zero))
         assert np.allclose(term.compute(q, v, a, out), expected, rtol=1e-9, atol=1e-9)
+        assert np.allclose(out, s.T @ (_rne(m, q, s @ v, s @ a) - _rne(m, q, zero, zero)), rtol=1e-6)
     # at rest the term is exactly zero (holds are unchanged)
     assert not term.moving(np.zeros(2), np.zeros(2))
     assert not term.compute(q, np.zeros(2), np.zeros(2), out).any()

@@ -58,6 +58,7 @@ from .xacro_expand import TRUST_HINT
 __all__ = [
     "START_STATE_NAMES",
     "colliding_body_pairs",
+    "empty_world_links",
     "free_root",
     "load_mjcf",
     "mjcf_dropped_by_pybullet",
@@ -254,6 +255,17 @@ def _load_mjcf(path: Path) -> RobotDescription:
     last_link: dict[int, str] = {0: "world"}
     unnamed: list[str] = []
     no_velocity: list[str] = []
+    # a floating robot none of whose geoms collides (its contacts are a scene file's explicit pairs) stands on
+    # the simulators' ground with its collision shapes (mjcf_scene.ground_geoms): collision shapes here too
+    from .mjcf_scene import ground_geoms
+
+    stands_on: set[int] = set()
+    for jid in range(m.njnt):
+        body = int(m.jnt_bodyid[jid])
+        if int(m.jnt_type[jid]) == mujoco.mjtJoint.mjJNT_FREE and int(m.body_parentid[body]) == 0:
+            geoms, paired = ground_geoms(m, int(m.body_rootid[body]))
+            if paired:
+                stands_on.update(geoms)
     for b in range(1, m.nbody):
         name = body_name(b)
         parent = int(m.body_parentid[b])
@@ -343,7 +355,7 @@ def _load_mjcf(path: Path) -> RobotDescription:
         visuals: list[Geometry] = []
         collisions: list[Geometry] = []
         for g in range(int(m.body_geomadr[b]), int(m.body_geomadr[b]) + int(m.body_geomnum[b])):
-            collides = bool(m.geom_contype[g] or m.geom_conaffinity[g])
+            collides = bool(m.geom_contype[g] or m.geom_conaffinity[g]) or g in stands_on
             geom = _geometry(m, g, shift, collides)
             if geom is None:
                 continue
@@ -448,10 +460,28 @@ def free_root(description: RobotDescription) -> str | None:
     That body is the robot's floating base: a URDF's root link, which PyBullet floats unless the
     base is fixed.
     """
-    out = description.child_joints(description.root_link)
+    out = [j for j in description.child_joints(description.root_link) if j.child not in empty_world_links(description)]
     if len(out) == 1 and out[0].type == "floating":
         return out[0].child
     return None
+
+
+def empty_world_links(description: RobotDescription) -> frozenset[str]:
+    """Bodies fixed to the world that hold nothing: no mass, no shape, no joint or body below (markers).
+
+    Menagerie's Apollo has one (``world_link``) beside its floating base; it changes no physics, and a
+    URDF rooted at the floating base has no place for it, so the floating step leaves it out.
+    """
+    records = {rec.name: rec for rec in description.link_records}
+    out = []
+    for j in description.child_joints(description.root_link):
+        rec = records.get(j.child)
+        if (
+            j.type == "fixed" and rec is not None and not description.child_joints(j.child)
+            and not rec.visuals and not rec.collisions and (rec.inertial is None or rec.inertial.mass <= 0.0)
+        ):
+            out.append(j.child)
+    return frozenset(out)
 
 
 def _tendon_passive(m: Any, t: int) -> list[str]:

@@ -12,7 +12,11 @@ compiled MuJoCo model so that an MJCF file keeps its own contact settings otherw
   robot never loses its contact with a floor, a table or another object of the scene;
 * **ground**: a model has one when a plane or height field is attached to the world;
 * **standing**: a floating base without ground is placed so that its lowest collision
-  shape touches the ground plane ``z = 0`` that the simulator adds.
+  shape touches the ground plane ``z = 0`` that the simulator adds. That plane collides with
+  every geom that takes part in contacts (any contype/conaffinity bit); a robot none of whose
+  geoms does (a main file whose contacts are the scene file's explicit ``<pair>`` elements,
+  e.g. Menagerie's Apollo) stands on it through explicit pairs with its collision shapes
+  (:func:`ground_geoms`).
 """
 
 from __future__ import annotations
@@ -24,7 +28,13 @@ import numpy as np
 
 from .collision import TOUCH_DISTANCE, lowest_point
 
-__all__ = ["collision_geoms", "has_ground", "standing_offset", "start_qpos", "touching_at_start"]
+__all__ = [
+    "COLLISION_GROUP", "collision_geoms", "ground_geoms", "has_ground", "standing_offset", "start_qpos",
+    "touching_at_start",
+]
+
+#: the first geom group MuJoCo's viewer hides by default: where models keep their collision shapes by convention
+COLLISION_GROUP = 3
 
 Pair = tuple[str, str]
 
@@ -55,6 +65,26 @@ def collision_geoms(model: Any, body_root: int | None = None) -> list[int]:
         and int(model.geom_bodyid[g]) != 0
         and (body_root is None or int(model.body_rootid[model.geom_bodyid[g]]) == body_root)
     ]
+
+
+def ground_geoms(model: Any, body_root: int) -> tuple[list[int], bool]:
+    """The geoms of one tree that stand on the ground plane the simulator adds, and whether they need explicit pairs.
+
+    The tree's :func:`collision_geoms` (the plane collides with any contype/conaffinity bit),
+    ``False``; when it has none (every geom contype = conaffinity = 0: the model's contacts
+    are explicit pairs in a scene file), its collision shapes by MuJoCo's convention (geom
+    group :data:`COLLISION_GROUP` and up), else all its geoms, ``True``: the simulator pairs
+    them with the plane.
+    """
+    own = collision_geoms(model, body_root)
+    if own:
+        return own, False
+    tree = [
+        g for g in range(model.ngeom)
+        if int(model.geom_bodyid[g]) != 0 and int(model.body_rootid[model.geom_bodyid[g]]) == body_root
+    ]
+    hidden = [g for g in tree if int(model.geom_group[g]) >= COLLISION_GROUP]
+    return (hidden or tree), True
 
 
 def start_qpos(
@@ -120,6 +150,9 @@ def touching_at_start(model: Any, data: Any) -> set[Pair]:
 
 
 def standing_offset(model: Any, data: Any, body: int) -> float:
-    """How far (m) to raise the tree of ``body`` so that its lowest collision shape touches ``z = 0``."""
-    lowest = lowest_point(model, data, collision_geoms(model, int(model.body_rootid[body])))
+    """How far (m) to raise the tree of ``body`` so that its lowest ground contact shape touches ``z = 0``.
+
+    The shapes are :func:`ground_geoms`.
+    """
+    lowest = lowest_point(model, data, ground_geoms(model, int(model.body_rootid[body]))[0])
     return 0.0 if not math.isfinite(lowest) else -lowest

@@ -14,10 +14,12 @@ topic                      message type                         content
                                                                 ``None``: every control tick)
 ``/joint_commands``        ``agentsdk_msgs/msg/JointCommand``   the servo setpoint actually written to the
                                                                 backend (after the safety layer): name[],
-                                                                position[], velocity[], effort[], mode[]
-                                                                (uint8: 0 position, 1 velocity, 2 effort),
-                                                                enabled[], kp[], kd[], target[] (the last
-                                                                commanded value before ramping)
+                                                                position[], velocity[], acceleration[] (fed
+                                                                forward by the inverse-dynamics term),
+                                                                effort[], mode[] (uint8: 0 position, 1
+                                                                velocity, 2 effort), enabled[], kp[], kd[],
+                                                                target[] (the last commanded value before
+                                                                ramping)
 ``/safety/events``         ``agentsdk_msgs/msg/SafetyEvent``    kind, joint ("" for none), detail
 ``/behavior/transitions``  ``agentsdk_msgs/msg/Transition``     state-machine history records: machine,
                                                                 source, target, event ("" for none), note
@@ -55,8 +57,9 @@ names, the record rates, the validated robot.yaml content and the behavior
 script.  ``--record-format ros2`` (``format="ros2"``) writes only standard
 message types (``/joint_commands`` as ``sensor_msgs/msg/JointState``, no
 events or transitions) for ``ros2 bag play``; such a file cannot be replayed.
-Recordings of earlier versions (JSON messages, format ``agentsdk-recording/1``)
-are still read.
+Recordings of earlier versions (JSON messages, format ``agentsdk-recording/1``;
+CDR commands without ``acceleration[]``, format ``agentsdk-recording/2``) are
+still read; their ``RunData.cmd_acceleration`` is ``None``.
 
 Why CDR and ``ros2msg`` rather than protobuf: the per-tick messages have a
 fixed layout for a given robot, so a block of them is encoded (and decoded)
@@ -120,16 +123,23 @@ recorded robot.
 Replay
 ------
 :func:`replay` connects a fresh robot (lockstep for simulators), and an
-updater writes the recorded setpoint (position, velocity, effort, kp, kd,
-enabled, mode) into the robot's setpoint (a COMMAND-phase tick hook) at the same tick it was
+updater writes the recorded setpoint (position, velocity, acceleration, effort,
+kp, kd, enabled, mode) into the robot's setpoint (a COMMAND-phase tick hook) at the same tick it was
 applied in the recording.  The safety layer filters it again, which leaves it
 unchanged (the recorded setpoint is already limited and ramped); the command
 watchdog is turned off because no commands are sent.  Lockstep MuJoCo is
 deterministic, so a MuJoCo recording replays into MuJoCo bit for bit.
+
+A recording without the setpoint's acceleration (format ``agentsdk-recording/2``,
+written before the servo law fed the desired motion's inverse dynamics forward)
+replays with the acceleration estimated from the recorded velocity setpoints
+(central differences over consecutive ticks): close, no longer bit for bit.
+:attr:`ReplayResult.notes` says so, and a warning is logged.
 """
 
 from . import _recorder
 from ._cdr import MSGDEFS as MSGDEFS
+from ._channels import CDR2_FORMAT as CDR2_FORMAT
 from ._channels import FORMAT, TOPICS, robot_spec_for_metadata
 from ._channels import JOINT_COMMANDS as JOINT_COMMANDS
 from ._channels import JOINT_STATES as JOINT_STATES

@@ -57,7 +57,9 @@ MSGDEFS: dict[str, str] = {
         "# effort = kp*(position - q) + kd*(velocity - v) + effort, zero where not enabled\n"
         "uint8 POSITION=0\nuint8 VELOCITY=1\nuint8 EFFORT=2\n"
         "std_msgs/Header header\nstring[] name\n"
-        "float64[] position\nfloat64[] velocity\nfloat64[] effort\n"
+        "float64[] position\nfloat64[] velocity\n"
+        "float32[] acceleration  # desired acceleration fed forward (inverse dynamics, which rounds it to float32)\n"
+        "float64[] effort\n"
         "float64[] target  # last commanded value (per mode) before ramping\n"
         "float64[] kp\nfloat64[] kd\nuint8[] mode\nbool[] enabled\n"
         + _HEADER + _TIME
@@ -322,14 +324,22 @@ def joint_state_layout(names: Sequence[str]) -> FixedLayout:
     return lay.finish()
 
 
-def command_layout(names: Sequence[str]) -> FixedLayout:
-    """``agentsdk_msgs/msg/JointCommand`` with these joint names."""
+def command_layout(names: Sequence[str], *, acceleration: bool = True) -> FixedLayout:
+    """``agentsdk_msgs/msg/JointCommand`` with these joint names.
+
+    ``acceleration=False``: the layout of format-2 recordings, written before the message carried
+    the setpoint's acceleration.
+    """
     n = len(names)
     lay = FixedLayout()
     lay.header()
     _names(lay, names)
     # the fields that change every tick of a motion first, the ones that rarely change together
-    for f in ("position", "velocity", "effort", "target", "kp", "kd"):
+    lay.seq("position", n, "<f8")
+    lay.seq("velocity", n, "<f8")
+    if acceleration:  # float32: the precision the servo law's inverse-dynamics term uses
+        lay.seq("acceleration", n, "<f4")
+    for f in ("effort", "target", "kp", "kd"):
         lay.seq(f, n, "<f8")
     lay.seq("mode", n, "u1")
     lay.seq("enabled", n, "u1")

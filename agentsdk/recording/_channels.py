@@ -5,8 +5,11 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-#: the format of the recordings written now (CDR); :data:`JSON_FORMAT` files (agentsdk < 0.x) are still read
-FORMAT = "agentsdk-recording/2"
+#: the format of the recordings written now (CDR, commands with the setpoint's acceleration); the older
+#: :data:`CDR2_FORMAT` (commands without it) and :data:`JSON_FORMAT` files are still read
+FORMAT = "agentsdk-recording/3"
+#: CDR recordings written before the commands carried the setpoint's acceleration (replayed without it)
+CDR2_FORMAT = "agentsdk-recording/2"
 JSON_FORMAT = "agentsdk-recording/1"
 #: ``--record-format ros2`` files: standard message types only, not replayable
 ROS2_FORMAT = "agentsdk-recording/2+ros2"

@@ -20,6 +20,7 @@ from ..backend import ModeCode
 from ..errors import ConfigurationError
 from ._cdr import CdrReader, FixedLayout, command_layout, joint_state_layout
 from ._channels import (
+    CDR2_FORMAT,
     FORMAT,
     JOINT_COMMANDS,
     JOINT_STATES,
@@ -58,6 +59,13 @@ class RunData:
 
        The recorded camera frames by camera name: header stamps and the compressed bytes
        (``ImageSeries.frame(i)`` decodes one).
+
+    .. attribute:: cmd_acceleration
+       :type: numpy.ndarray | None
+
+       The setpoint's desired acceleration of every command row (what the servo law's
+       inverse-dynamics term fed forward; 0 where nothing did); ``None`` for recordings
+       written before the commands carried it (formats ``agentsdk-recording/1`` and ``/2``).
     """
 
     names: tuple[str, ...]
@@ -82,6 +90,7 @@ class RunData:
     truncated: bool = False
     sensors: dict[str, SensorSeries] = field(default_factory=dict)
     images: dict[str, ImageSeries] = field(default_factory=dict)
+    cmd_acceleration: np.ndarray | None = None
 
     @property
     def duration(self) -> float:
@@ -176,6 +185,8 @@ _COMMAND_FIELDS: dict[str, Any] = {
     "position": float, "velocity": float, "effort": float, "kp": float, "kd": float, "target": float,
     "enabled": bool, "mode": np.int8,
 }
+#: the command fields of the current format: also the setpoint's acceleration
+_COMMAND_FIELDS_ACC: dict[str, Any] = {**_COMMAND_FIELDS, "acceleration": float}
 
 
 class _File:
@@ -256,7 +267,8 @@ def read_recording(path: str | os.PathLike[str]) -> RunData:
 
     Streams the file chunk by chunk into arrays allocated once from the file's
     message counts, so memory stays close to the arrays returned.  Reads the
-    current (CDR) format and the JSON format of earlier versions.  A recording
+    current (CDR) format, the CDR format without the setpoint's acceleration and the
+    JSON format of earlier versions (``RunData.cmd_acceleration`` is then ``None``).  A recording
     cut short (the process was killed) is read up to its last complete chunk;
     ``RunData.truncated`` is then True.
     """
@@ -283,7 +295,7 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
             f"{p} is a --record-format ros2 recording: its commands carry no modes or gains, so it cannot be "
             "replayed or read with read_recording; read it with ROS 2 tools or the rosbags library"
         )
-    if fmt not in (FORMAT, JSON_FORMAT):
+    if fmt not in (FORMAT, CDR2_FORMAT, JSON_FORMAT):
         if f.truncated and not md and not counts:
             raise ConfigurationError(f"cannot read recording {p}: {f.reason or 'no MCAP data'}")
         raise ConfigurationError(f"{p} is not an agentsdk recording (no '{METADATA_NAME}' metadata)")
@@ -294,7 +306,8 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
         raise ConfigurationError(f"cannot read recording {p}: bad metadata ({exc})") from exc
     n = len(names)
     states = _Columns(counts.get(JOINT_STATES, 0), n, _STATE_FIELDS)
-    commands = _Columns(counts.get(JOINT_COMMANDS, 0), n, _COMMAND_FIELDS)
+    accelerations = fmt == FORMAT
+    commands = _Columns(counts.get(JOINT_COMMANDS, 0), n, _COMMAND_FIELDS_ACC if accelerations else _COMMAND_FIELDS)
     events: list[dict[str, Any]] = []
     transitions: list[dict[str, Any]] = []
     try:
@@ -309,7 +322,7 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
     except (ValueError, KeyError, TypeError) as exc:
         raise ConfigurationError(f"cannot read recording {p}: bad cameras metadata ({exc})") from exc
     image_stamps: dict[str, list[int]] = {topic: [] for topic in images}
-    dec = _JsonDecoder(names) if fmt == JSON_FORMAT else _CdrDecoder(names)
+    dec = _JsonDecoder(names) if fmt == JSON_FORMAT else _CdrDecoder(names, acceleration=accelerations)
     try:
         for msgs in f.batches():
             by_topic: dict[str, list[Message]] = {}
@@ -350,6 +363,7 @@ def _decode(f: _File, counts: dict[str, int]) -> RunData:
     out.cmd_position, out.cmd_velocity, out.cmd_effort = cm["position"], cm["velocity"], cm["effort"]
     out.cmd_kp, out.cmd_kd, out.cmd_target = cm["kp"], cm["kd"], cm["target"]
     out.cmd_enabled, out.cmd_mode = cm["enabled"], cm["mode"]
+    out.cmd_acceleration = cm.get("acceleration")
     out.sensors = {c.track.name: c.series() for c in sensors.values()}
     for topic, series in images.items():
         series.time = np.array(image_stamps[topic], np.int64)
@@ -398,11 +412,15 @@ class _SensorColumns:
 class _CdrDecoder:
     """The CDR messages of the current format; whole chunks at once when they have the expected layout."""
 
-    def __init__(self, names: tuple[str, ...]) -> None:
+    def __init__(self, names: tuple[str, ...], *, acceleration: bool = True) -> None:
         self.names = names
         self.index = {nm: i for i, nm in enumerate(names)}
         self.state = joint_state_layout(names)
-        self.command = command_layout(names)
+        self.command = command_layout(names, acceleration=acceleration)
+        self.command_fields = _COMMAND_FIELDS_ACC if acceleration else _COMMAND_FIELDS
+        # the message's field order (the layout's float sequences, then mode and enabled)
+        self.command_order = (*(f for f in self.command.fields if f not in ("sec", "nanosec", "mode", "enabled")),
+                              "mode", "enabled")
 
     def _block(self, group: list[Message], lay: FixedLayout) -> np.ndarray | None:
         if any(len(m.data) != lay.size for m in group):
@@ -425,11 +443,11 @@ class _CdrDecoder:
         block = self._block(group, self.command)
         if block is None:
             for m in group:
-                self._one(m, out, ("position", "velocity", "effort", "target", "kp", "kd", "mode", "enabled"))
+                self._one(m, out, self.command_order)
             return
         i = out.reserve(len(group))
         out.time[i : i + len(group)] = [m.log_time for m in group]
-        for fld in _COMMAND_FIELDS:
+        for fld in self.command_fields:
             col = self.command.column(block, fld)
             out.arrays[fld][i : i + len(group)] = col.view(bool) if fld == "enabled" else col
 
@@ -442,11 +460,12 @@ class _CdrDecoder:
         ok = cols >= 0
         i = out.reserve(1)
         out.time[i] = m.log_time
+        layout = self.command.fields
         for fld in fields:
             count = r.u32()
-            dt = np.dtype("u1") if fld in ("mode", "enabled") else np.dtype("<f8")
-            if count and dt.itemsize == 8:
-                r.pos += -r.pos % 8
+            dt = np.dtype(layout[fld][2]) if fld in layout else np.dtype("<f8")
+            if count:
+                r.pos += -r.pos % dt.itemsize
             values = np.frombuffer(r.data, dtype=dt, count=count, offset=r.pos)
             r.pos += count * dt.itemsize
             row = out.arrays[fld][i]

@@ -292,6 +292,7 @@ class Recorder:
         b.e[k] = st.effort
         b.sp_q[k] = sp.position
         b.sp_v[k] = sp.velocity
+        b.sp_a[k] = sp.acceleration
         b.sp_e[k] = sp.effort
         b.kp[k] = sp.kp
         b.kd[k] = sp.kd

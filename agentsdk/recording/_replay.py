@@ -7,12 +7,12 @@ import json
 import logging
 import os
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from ..backend import SetpointView
+from ..backend import ModeCode, SetpointView
 from ..errors import ConfigurationError
 from ..loop import Phase, Setpoint, StateView
 from ._channels import NS_PER_S, robot_spec_for_metadata, stamp_ns
@@ -36,6 +36,12 @@ class ReplayResult:
        :type: bool
 
        True for a real-time recording: its stamps are off the tick grid, the replay is interpolated.
+
+    .. attribute:: notes
+       :type: list[str]
+
+       Why the replay may not be exact (printed under the table): e.g. a recording without the
+       setpoint's acceleration, replayed with an estimate of it.
     """
 
     names: tuple[str, ...]
@@ -47,6 +53,7 @@ class ReplayResult:
     config_changed: bool = False
     # documented in the class docstring (Sphinx reads field comments only from the package __init__)
     interpolated: bool = False
+    notes: list[str] = field(default_factory=list)
 
     @property
     def worst(self) -> float:
@@ -63,6 +70,7 @@ class ReplayResult:
         ]
         for n in self.names:
             out.append(f"  {n:{width}s}  {self.max_abs[n]:11.3e}  {self.rms[n]:11.3e}")
+        out.extend(f"note: {note}" for note in self.notes)
         return out
 
 
@@ -129,6 +137,17 @@ async def replay(
         cmd_ns = data.cmd_time
         pos, vel, eff = data.cmd_position, data.cmd_velocity, data.cmd_effort
         kp, kd, en, mode, tgt = data.cmd_kp, data.cmd_kd, data.cmd_enabled, data.cmd_mode, data.cmd_target
+        notes: list[str] = []
+        acc = data.cmd_acceleration
+        if acc is None:
+            acc = estimated_acceleration(data)
+            notes.append(
+                f"the recording ({data.metadata.get('format', '?')}, agentsdk "
+                f"{data.metadata.get('agentsdk_version', '?')}) does not carry the setpoint's acceleration, which "
+                "the servo law's inverse-dynamics term feeds forward: replayed with an estimate from the recorded "
+                "velocity setpoints, so the replay is close but not exact"
+            )
+            log.warning("%s", notes[-1])
 
         def update(t: float, st: StateView, sp: Setpoint) -> bool:
             ns = stamp_ns(t)
@@ -138,6 +157,7 @@ async def replay(
             if i >= 0:
                 sp.position[cols] = pos[i]
                 sp.velocity[cols] = vel[i]
+                sp.acceleration[cols] = acc[i]
                 sp.effort[cols] = eff[i]
                 sp.kp[cols] = kp[i]
                 sp.kd[cols] = kd[i]
@@ -169,7 +189,33 @@ async def replay(
             raise
         ticks = bot.ticks
     rec.finish()  # after close: joining the writer must not stall the control loop
-    return _compare(data, rec.data(), ticks, config_changed)
+    result = _compare(data, rec.data(), ticks, config_changed)
+    result.notes.extend(notes)
+    return result
+
+
+def estimated_acceleration(data: RunData) -> np.ndarray:
+    """The setpoint acceleration of every command row, estimated for a recording that does not carry it.
+
+    Central differences of the recorded velocity setpoints where a row and both neighbours are
+    commands of consecutive ticks (a moving trajectory writes a row every tick; inside one of its
+    jerk-limited segments the velocity is quadratic in time, so the difference is its derivative),
+    on enabled position-mode joints (the only ones the trajectory executor feeds an acceleration
+    to); 0 elsewhere (holds, velocity and effort modes, the ends of a motion's rows).
+    """
+    vel, t = data.cmd_velocity, data.cmd_time
+    out = np.zeros_like(vel)
+    if len(t) < 3:
+        return out
+    tick = round(data.period * NS_PER_S)
+    dt = np.diff(t)
+    inner = (np.abs(dt[:-1] - tick) <= 1) & (np.abs(dt[1:] - tick) <= 1)  # rows 1 .. n-2
+    span = (t[2:] - t[:-2]).astype(np.float64) / NS_PER_S
+    with np.errstate(invalid="ignore", divide="ignore"):
+        central = (vel[2:] - vel[:-2]) / span[:, None]
+    servo = (data.cmd_mode[1:-1] == ModeCode.POSITION) & data.cmd_enabled[1:-1] & inner[:, None]
+    out[1:-1] = np.where(servo & np.isfinite(central), central, 0.0)
+    return out
 
 
 def _compare(data: RunData, replayed: RunData, ticks: int, config_changed: bool) -> ReplayResult:

@@ -82,14 +82,15 @@ CHANNEL_TYPES: dict[str, dict[str, str]] = {
     },
 }
 
-CMD_FIELDS = ("sp_q", "sp_v", "sp_e", "kp", "kd", "en", "mode", "target")
+CMD_FIELDS = ("sp_q", "sp_v", "sp_a", "sp_e", "kp", "kd", "en", "mode", "target")
 
 
 # ------------------------------------------------------------------ blocks
 class Block:
     """Preallocated per-tick rows (one control tick per row), reused for the whole run."""
 
-    __slots__ = ("e", "en", "kd", "kp", "mode", "q", "sp_e", "sp_q", "sp_v", "ss", "sv", "t", "target", "tc", "v")
+    __slots__ = ("e", "en", "kd", "kp", "mode", "q", "sp_a", "sp_e", "sp_q", "sp_v", "ss", "sv", "t", "target", "tc",
+                 "v")
 
     def __init__(self, cap: int, n: int, width: int = 0, sensors: int = 0) -> None:
         #: sensor values (the recorded sensors' values side by side) and their stamps (robot time, s)
@@ -102,6 +103,7 @@ class Block:
         self.e = np.empty((cap, n))
         self.sp_q = np.empty((cap, n))
         self.sp_v = np.empty((cap, n))
+        self.sp_a = np.empty((cap, n))
         self.sp_e = np.empty((cap, n))
         self.kp = np.empty((cap, n))
         self.kd = np.empty((cap, n))
@@ -112,7 +114,7 @@ class Block:
     @staticmethod
     def row_bytes(n: int, width: int = 0, sensors: int = 0) -> int:
         """Bytes per row."""
-        return 16 + n * (9 * 8 + 2) + 8 * (width + sensors)
+        return 16 + n * (10 * 8 + 2) + 8 * (width + sensors)
 
 
 @dataclass
@@ -441,8 +443,8 @@ class Output:
         c = rows.cmd
         cols = {"position": c["sp_q"], "velocity": c["sp_v"], "effort": c["sp_e"]}
         if self.kind == "agentsdk":
-            cols.update(kp=c["kp"], kd=c["kd"], target=c["target"], mode=c["mode"].view(np.uint8),
-                        enabled=c["en"].view(np.uint8))
+            cols.update(acceleration=c["sp_a"], kp=c["kp"], kd=c["kd"], target=c["target"],
+                        mode=c["mode"].view(np.uint8), enabled=c["en"].view(np.uint8))
         return self.command.encode(rows.cmd_ns, cols)
 
     def side(self, side: list[tuple[int, str, tuple[str | float, ...]]]) -> list[Part]:

@@ -21,7 +21,9 @@ the robot touching at the start pose do not collide (:mod:`agentsdk.description.
 robot.yaml ``self_collision: true`` keeps them). A free joint at the root (``<freejoint>``)
 is the floating base whatever robot.yaml says; a model without a floor (a plane or height
 field attached to the world) gets the ground plane above (the model's own geom frictions
-kept), and the robot is raised or lowered to stand on it. The simulation starts from the
+kept; it meets every contype/conaffinity bit, and a robot with no colliding geom at all gets
+explicit pairs of its collision shapes with it: :func:`agentsdk.description.mjcf_scene.ground_geoms`),
+and the robot is raised or lowered to stand on it. The simulation starts from the
 keyframe the start pose comes from (:attr:`agentsdk.description.start.StartPose.keyframe`).
 
 Divergence: MuJoCo silently resets a diverged state (``mjWARN_BADQACC``) and
@@ -47,7 +49,7 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description.collision import SelfCollision, for_robot, standing_height
 from agentsdk.description.mjcf import colliding_body_pairs
-from agentsdk.description.mjcf_scene import has_ground, standing_offset, start_qpos, touching_at_start
+from agentsdk.description.mjcf_scene import ground_geoms, has_ground, standing_offset, start_qpos, touching_at_start
 from agentsdk.description.mjspec import build_spec, mjcf_spec_without_actuators
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.dynamics import GravityTerm
@@ -311,6 +313,11 @@ class MujocoBackend(Backend):
                 ground.size = [0.0, 0.0, 1.0]  # infinite
                 ground.friction = [mu, 0.005, 0.0001]
                 ground.rgba = list(GROUND_RGBA)
+                ground.contype = ground.conaffinity = _ALL_BITS  # touches every geom that takes part in contacts
+                root = int(probe.body_rootid[probe.body(free).id])
+                geoms, paired = ground_geoms(probe, root)
+                if paired:  # no geom of the robot collides: its collision shapes are paired with the ground
+                    _pair_with_ground(spec, probe, geoms, ground.name, mu)
                 self._ground_height = standing_offset(probe, pdata, probe.body(free).id)
         return spec
 
@@ -497,6 +504,25 @@ class MujocoBackend(Backend):
 
     async def _recover(self) -> None:
         self._reset_state()
+
+
+#: contype/conaffinity of the ground plane a floating MJCF robot stands on: every bit
+_ALL_BITS = 0x7FFFFFFF
+
+
+def _pair_with_ground(spec: mujoco.MjSpec, model: mujoco.MjModel, geoms: Sequence[int], ground: str, mu: float) -> None:
+    """Explicit contact pairs of the compiled ``model``'s ``geoms`` with the ground (friction ``mu``, condim 3).
+
+    A geom without a name is given one (``agentsdk/geom<id>``): a pair names its geoms. The spec's
+    bodies and their geoms are in the compiled model's order.
+    """
+    bodies = list(spec.bodies)
+    for g in geoms:
+        b = int(model.geom_bodyid[g])
+        geom = list(bodies[b].geoms)[g - int(model.body_geomadr[b])]
+        if not geom.name:
+            geom.name = f"agentsdk/geom{g}"
+        spec.add_pair(geomname1=geom.name, geomname2=ground, condim=3, friction=[mu, mu, 0.005, 0.0001, 0.0001])
 
 
 def _add_free_joint(spec: mujoco.MjSpec, robot: str) -> str:

@@ -75,7 +75,7 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
 from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf, standing_height
-from agentsdk.description.mjcf import free_root, mjcf_pybullet_fit
+from agentsdk.description.mjcf import empty_world_links, free_root, mjcf_pybullet_fit
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel
@@ -280,7 +280,10 @@ class PybulletBackend(Backend):
                 )
             for what in dropped:
                 log.warning("%s: PyBullet leaves out the %s", label, what)
-            collision = from_mjcf(desc)
+            # the one collision rule: bodies touching at the start pose do not collide (as on MuJoCo), unless
+            # self_collision says to keep every pair
+            mode = self.config.self_collision if opts.self_collision is None else opts.self_collision
+            collision = from_mjcf(desc, self.config if mode == "auto" else None)
         else:
             collision = for_robot(desc, self.config, opts.self_collision)
         self.collision = collision
@@ -291,6 +294,8 @@ class PybulletBackend(Backend):
             # base static); it starts where the root frame stands on the ground plane
             if _float_link(desc) != desc.root_link:
                 skip = frozenset({desc.root_link})
+                if desc.format == "mjcf":  # with the bodies fixed to the world that hold nothing
+                    skip |= empty_world_links(desc)
             if desc.format == "urdf":
                 height = standing_height(desc, collision)
             else:  # the MJCF body at its free joint's place, its lowest shape on the ground at the start pose

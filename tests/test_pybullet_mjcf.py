@@ -15,7 +15,8 @@ import pytest
 
 import agentsdk
 from agentsdk import JointCommand, ResultCode, SafetyState, UnsupportedModelError
-from agentsdk.description.mjcf import load_mjcf, mjcf_pybullet_fit
+from agentsdk.description.mjcf import load_mjcf
+from agentsdk.description.mjcf_pybullet import mjcf_pybullet_fit
 
 FIXTURES = Path(__file__).parent / "fixtures"
 MJCF = FIXTURES / "mjcf_pybullet"

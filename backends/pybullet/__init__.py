@@ -75,7 +75,8 @@ from agentsdk.backend import Backend, Capabilities, JointReading, SetpointView, 
 from agentsdk.config import MAX_GAIN
 from agentsdk.description import RobotDescription
 from agentsdk.description.collision import SelfCollision, for_robot, from_mjcf, standing_height
-from agentsdk.description.mjcf import empty_world_links, free_root, mjcf_pybullet_fit
+from agentsdk.description.mjcf import empty_world_links, free_root
+from agentsdk.description.mjcf_pybullet import mjcf_pybullet_fit
 from agentsdk.description.model import quat_from_rpy
 from agentsdk.description.simurdf import collapsible_links, simulator_urdf
 from agentsdk.dynamics import DynamicsModel

@@ -54,6 +54,7 @@ from .errors import CommandRejected, ConfigurationError, InvalidValueError, Limi
 from .limits import STEP_RTOL as _STEP_RTOL
 from .limits import PositionBounds, StepGuard, StepLimiter
 from .loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
+from .offload import OffloadedGoal, OffloadRequest, TrajectoryOffload
 from .trajectory import (
     MAX_TIME_FROM_START,
     Trajectory,
@@ -82,6 +83,10 @@ _SCALE_ACC_MARGIN = 0.95
 _MAX_STRETCH_ITERATIONS = 12
 #: the ``poses`` of a feedback message nobody asked link poses for (shared, immutable)
 _NO_POSES: Mapping[str, Pose] = MappingProxyType({})
+#: an ended offloaded goal's joints are at rest below this speed (rad/s or m/s) ...
+_REMOTE_STILL_SPEED = 1e-2
+#: ... for this long (s): then the setpoint holds there and the backend streams again
+_REMOTE_STILL = 0.1
 #: a planned position beyond the bounds by more than this is not float noise (rad or m)
 _BOUND_TOL = 2e-6
 
@@ -92,6 +97,8 @@ class ResultCode(enum.IntEnum):
     SUCCESSFUL = 0
     INVALID_GOAL = -1
     INVALID_JOINTS = -2
+    #: a controller refused a goal stamped too far in the past (offloaded goals, :mod:`agentsdk.offload`)
+    OLD_HEADER_TIMESTAMP = -3
     PATH_TOLERANCE_VIOLATED = -4
     GOAL_TOLERANCE_VIOLATED = -5
     #: motion.cancel() or the awaiting task was cancelled: decelerated and holding
@@ -584,6 +591,12 @@ class _Exec:
     sel: Any = None
     #: the tick path's preallocated arrays (made on the first tick)
     work: _TickBuffers | None = None
+    #: the goal the backend's own controller runs instead (:mod:`agentsdk.offload`), and its desired state
+    remote: OffloadedGoal | None = None
+    remote_q: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: robot time since which the joints of an ended offloaded goal are still (-1: the goal runs)
+    remote_rest: float = -1.0
+    remote_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 class MotionManager:
@@ -625,6 +638,9 @@ class MotionManager:
         self.kinematics_source: Callable[[], Kinematics] | None = None
         #: the robot's sensors (set by the Robot), for ``motion.feedback(sensors=...)``
         self.sensors_source: Callable[[], Any] | None = None
+        backend = getattr(loop, "backend", None)
+        #: the backend's controller runs whole trajectories (goals) instead of streamed setpoints
+        self._offload = backend if isinstance(backend, TrajectoryOffload) else None
 
     def kinematics(self) -> Kinematics:
         """The robot's :class:`~agentsdk.kinematics.Kinematics` (raises if it has none)."""
@@ -758,10 +774,12 @@ class MotionManager:
         traj, sampler = self._prepare(ex, traj, q0, v0, a0, t_start)
         motion = Motion(self, idx, names, traj, t_start)
         ex.motion = motion
+        self._preempt_offloaded()
         self._preempt(idx)
         self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
         self._begin(ex, sampler, q0, v0, a0, t_start)
         self._install(ex)
+        self._try_offload(ex, traj)
         scope.register(motion)
         return motion
 
@@ -880,6 +898,101 @@ class MotionManager:
         traj = plan_point_to_point((q0, v0, a0), goal, joints, duration=duration)
         return self.follow(traj, tol)
 
+    # ------------------------------------------------------------ offload (agentsdk.offload)
+    def _try_offload(self, ex: _Exec, traj: Trajectory) -> None:
+        """Hand ``ex``'s validated trajectory to the backend's controller as one goal, where it can take it.
+
+        Only a motion that alone drives the robot (the other joints hold) and ends at rest is
+        offloaded; the executor then keeps sampling it locally (limits, setpoint) while the
+        backend streams nothing, and the controller's outcome ends it (:meth:`_update_remote`).
+        """
+        if self._offload is None or ex.motion is None or ex.end_moving:
+            return
+        if any(o is not None and o is not ex for o in self._owner):
+            return  # another motion or stop ramp drives joints: streamed
+        names, sp = self.loop.names, self.loop.setpoint
+        others = np.ones(len(names), dtype=bool)
+        others[ex.idx] = False
+        hold = MappingProxyType({names[j]: float(sp.position[j]) for j in np.flatnonzero(others).tolist()})
+        remote = self._offload.offload_trajectory(
+            OffloadRequest(traj, ex.path_tol.copy(), ex.goal_tol.copy(), ex.goal_time, hold))
+        if remote is None:
+            return
+        ex.remote, ex.s, ex.sdot = remote, 1.0, 0.0
+        ex.remote_q, ex.remote_v = np.zeros(len(ex.idx)), np.zeros(len(ex.idx))
+
+    def _preempt_offloaded(self) -> None:
+        """A new motion on any joint preempts an offloaded goal (the controller runs one trajectory at a time)."""
+        for ex in [o for o in dict.fromkeys(self._owner) if o is not None and o.remote is not None]:
+            if ex.remote_rest >= 0.0:  # its goal has ended: the joints hold where the setpoint is
+                self._finish(ex, None, "")
+                continue
+            q, v, a = self._desired_next(ex)
+            self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
+            self._start_ramp(ex.idx, q, v, a, None, "")
+
+    def _update_remote(self, ex: _Exec, remote: OffloadedGoal, t: float, st: StateView, sp: Setpoint,
+                       q: np.ndarray, v: np.ndarray, a: np.ndarray, err: np.ndarray, elapsed: float) -> bool:
+        """One tick of an offloaded motion: follow the local sample (not streamed) until the controller's outcome.
+
+        Success: the local sample runs to its end (the goal), then the joints hold there. Any other
+        outcome (or a cancel asked here): the motion's result is known at once; the controller stops
+        the robot itself, and the setpoint follows the measured position (nothing streamed) until
+        the joints have been still for :data:`_REMOTE_STILL` s, then holds there and streaming resumes.
+        """
+        outcome = remote.outcome(t)
+        if ex.remote_rest >= 0.0:  # the goal ended: wait for the controller's own stop to come to rest
+            return self._follow_remote_stop(ex, t, st, sp)
+        if outcome is not None:
+            try:
+                code = ResultCode(outcome[0])
+            except ValueError:
+                code = ResultCode.ABORTED
+            msg = outcome[1]
+            if ex.phase == MotionPhase.STOPPING and ex.stop_code is not None:
+                code, msg = ex.stop_code, ex.stop_msg  # asked here (cancel, abort, stop_early): that is the result
+            elif code is ResultCode.SUCCESSFUL:
+                if elapsed >= ex.sampler.duration:
+                    qc = self._limited(ex, q, v, a)
+                    if qc is None:
+                        return self._write_stop(ex, t, st, sp)
+                    self._write(ex, t, st, sp, qc, v, a, err)
+                    self._finish(ex, ResultCode.SUCCESSFUL, msg)
+                    self.loop.hold_at(ex.idx, qc)
+                    return False
+                outcome = None  # reached early: the local sample catches up before the motion ends
+            if outcome is not None:
+                self._resolve(ex, code, msg)
+                ex.motion = None
+                ex.phase = MotionPhase.STOPPING
+                ex.remote_rest = t
+                return self._follow_remote_stop(ex, t, st, sp)
+        if ex.phase == MotionPhase.FOLLOW and elapsed >= ex.sampler.duration:
+            ex.phase = MotionPhase.SETTLE  # the controller's goal tolerance and goal time decide
+        qc = self._limited(ex, q, v, a)
+        if qc is None:
+            return self._write_stop(ex, t, st, sp)
+        self._write(ex, t, st, sp, qc, v, a, err)
+        return True
+
+    def _follow_remote_stop(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
+        """The setpoint of an ended offloaded goal's joints is their measured position until they are still."""
+        idx = ex.idx
+        qm = st.position[idx]
+        if not np.isfinite(qm).all():
+            qm = ex.des_q
+        if not np.all(np.abs(st.velocity[idx]) < _REMOTE_STILL_SPEED):
+            ex.remote_rest = t
+        zero = np.zeros(len(idx))
+        qc = self._limited(ex, qm, zero, zero)
+        assert qc is not None  # a stopping executor is limited, never aborted
+        self._write(ex, t, st, sp, qc, zero, zero, qm - qc)
+        if t - ex.remote_rest >= _REMOTE_STILL:
+            self._finish(ex, None, "")
+            self.loop.hold_at(idx, qc)
+            return False
+        return True
+
     def _install(self, ex: _Exec) -> None:
         for j in ex.idx.tolist():
             self._owner[j] = ex
@@ -892,6 +1005,9 @@ class MotionManager:
         self.owned_mask[ex.idx] = True
 
     def _release(self, ex: _Exec) -> None:
+        remote, ex.remote = ex.remote, None
+        if remote is not None:
+            remote.release()  # cancels the goal if it still runs; the backend streams again
         for j in ex.idx.tolist():
             if self._owner[j] is ex:
                 self._owner[j] = None
@@ -985,6 +1101,8 @@ class MotionManager:
         """
         if ex.phase in (MotionPhase.STOPPING, MotionPhase.DEAD):
             return
+        if ex.remote is not None:
+            ex.remote.cancel()  # the controller stops its goal; its outcome ends the motion (_update_remote)
         if measured is not None and measured.any() and self._guard is not None:
             self._guard.rebase(ex.idx[measured], q[measured])
         ex.sampler = self._plan_stop_sampler(ex.idx, q, v, a, t0)
@@ -1136,7 +1254,7 @@ class MotionManager:
         if ex.phase == MotionPhase.STOPPING:
             return ex.tau + dt, 1.0, 0.0
         s = ex.s
-        f = self._speed
+        f = self._speed if ex.remote is None else 1.0  # an offloaded goal runs at the controller's timing
         if s == f:
             return ex.tau + s * dt, s, 0.0
         d = f - s
@@ -1201,6 +1319,8 @@ class MotionManager:
             _wrap_into(err, ex.wrap, w.tmp)
         m = ex.motion
         elapsed = tau - ex.t0
+        if ex.remote is not None:
+            return self._update_remote(ex, ex.remote, t, st, sp, q, v, a, err, elapsed)
         if ex.phase == MotionPhase.FOLLOW:
             np.less_equal(np.abs(err, out=w.tmp), ex.path_tol, out=w.mask)
             if np.count_nonzero(w.mask) != len(idx):
@@ -1378,6 +1498,13 @@ class MotionManager:
                 np.take(st.position, idx, out=w.act, mode="clip")
                 np.take(st.velocity, idx, out=w.actual_v, mode="clip")
             snap.actual_q, snap.actual_v = w.act, w.actual_v
+            remote = ex.remote
+            if remote is not None and remote.desired_into(ex.remote_q, ex.remote_v):
+                # an offloaded goal: the desired state is the controller's, from its feedback
+                snap.q, snap.v = ex.remote_q, ex.remote_v
+                np.subtract(ex.remote_q, w.act, out=err)
+                if ex.wrap is not None:
+                    _wrap_into(err, ex.wrap, w.tmp)
             snap.seq += 1
             m._keep_measured(st.position)
 
@@ -1403,7 +1530,9 @@ class MotionManager:
             return False
         if ex.motion is not None:
             ex.motion.trajectory = traj
+        self._preempt_offloaded()
         self._preempt(idx)
         self._own(ex)
         self._begin(ex, sampler, q0, v0, a0, t)
+        self._try_offload(ex, traj)
         return True

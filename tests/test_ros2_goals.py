@@ -28,6 +28,7 @@ from agentsdk.ros2 import expose
 from agentsdk.ros2.convert import GOAL_ABORTED, GOAL_CANCELED, GOAL_SUCCEEDED
 from agentsdk.ros2.dds import DdsNode
 from agentsdk.ros2.goals import goal_message, map_result
+from agentsdk.backends.ros2.msgs import Float64MultiArray
 from agentsdk.ros2.msgs import (
     UUID,
     CancelGoal_Request,
@@ -217,7 +218,8 @@ class FakeController:
     """
 
     def __init__(self, domain_id: int, namespace: str, controller: str, loop: asyncio.AbstractEventLoop,
-                 outcome: tuple[int, int] | None = (GOAL_SUCCEEDED, 0)) -> None:
+                 outcome: tuple[int, int] | None = (GOAL_SUCCEEDED, 0), *, action: bool = True,
+                 forward_joints: tuple[str, ...] = ()) -> None:
         self.names = ["gripper", "joint3", "joint2", "joint1"]  # not the robot's order, one joint it does not know
         self.q = np.array([0.02, -0.1, 0.2, 0.1])
         self.outcome = outcome
@@ -227,15 +229,22 @@ class FakeController:
         self.results: dict[bytes, FollowJointTrajectory_GetResult_Response] = {}
         self._waiting: dict[bytes, list[Any]] = {}
         self._tasks: set[asyncio.Task[None]] = set()
+        #: a forward_command_controller's joints, in its order (its ``commands`` topic)
+        self.forward_joints = forward_joints
+        self.forwarded: list[Float64MultiArray] = []
         node = self.node = DdsNode(domain_id, namespace, loop)
-        action = f"{controller}/follow_joint_trajectory/_action"
-        node.service(f"{action}/send_goal", FollowJointTrajectory_SendGoal_Request,
-                     FollowJointTrajectory_SendGoal_Response, self._on_goal)
-        node.service(f"{action}/get_result", FollowJointTrajectory_GetResult_Request,
-                     FollowJointTrajectory_GetResult_Response, self._on_get_result)
-        node.service(f"{action}/cancel_goal", CancelGoal_Request, CancelGoal_Response, self._on_cancel)
-        node.subscribe(f"{controller}/joint_trajectory", JointTrajectory, self._on_trajectory)
-        self._feedback = node.writer(f"{action}/feedback", FollowJointTrajectory_FeedbackMessage)
+        prefix = f"{controller}/follow_joint_trajectory/_action"
+        if action:
+            node.service(f"{prefix}/send_goal", FollowJointTrajectory_SendGoal_Request,
+                         FollowJointTrajectory_SendGoal_Response, self._on_goal)
+            node.service(f"{prefix}/get_result", FollowJointTrajectory_GetResult_Request,
+                         FollowJointTrajectory_GetResult_Response, self._on_get_result)
+            node.service(f"{prefix}/cancel_goal", CancelGoal_Request, CancelGoal_Response, self._on_cancel)
+        if forward_joints:
+            node.subscribe(f"{controller}/commands", Float64MultiArray, self._on_forward)
+        else:
+            node.subscribe(f"{controller}/joint_trajectory", JointTrajectory, self._on_trajectory)
+        self._feedback = node.writer(f"{prefix}/feedback", FollowJointTrajectory_FeedbackMessage)
         self._js = node.writer("joint_states", JointState)
         node.start()
         self._spawn(self._publish())
@@ -255,6 +264,11 @@ class FakeController:
         if msg.points:
             for name, x in zip(msg.joint_names, msg.points[-1].positions, strict=True):
                 self.q[self.names.index(name)] = x
+
+    def _on_forward(self, msg: Float64MultiArray) -> None:
+        self.forwarded.append(msg)
+        for name, x in zip(self.forward_joints, msg.data, strict=True):
+            self.q[self.names.index(name)] = x
 
     def _on_goal(self, _h: Any, req: FollowJointTrajectory_SendGoal_Request, reply: Any) -> None:
         self.goals.append(req)
@@ -317,11 +331,13 @@ class FakeController:
 
 
 @contextlib.asynccontextmanager
-async def _controller(outcome: tuple[int, int] | None = (GOAL_SUCCEEDED, 0), **options: Any
+async def _controller(outcome: tuple[int, int] | None = (GOAL_SUCCEEDED, 0), *, action: bool = True,
+                      forward_joints: tuple[str, ...] = (), name: str = "scaled_arm_controller", **options: Any
                       ) -> AsyncIterator[tuple[FakeController, agentsdk.Robot]]:
     did = _domain()
-    ns, name = "/lab/cell_2/arm", "scaled_arm_controller"  # nested namespace, another controller name
-    fake = FakeController(did, ns, name, asyncio.get_running_loop(), outcome)
+    ns = "/lab/cell_2/arm"  # a nested namespace, another controller name
+    fake = FakeController(did, ns, name, asyncio.get_running_loop(), outcome, action=action,
+                          forward_joints=forward_joints)
     try:
         async with agentsdk.connect("ros2", robot="arm3", namespace=ns, controller=name, domain_id=did,
                                     realtime=True, safety=SAFETY, **options) as robot:
@@ -396,3 +412,36 @@ async def test_a_rejected_goal_is_invalid_goal_and_cancel_and_preemption_reach_t
         result = await motion
         assert result.code is ResultCode.PREEMPTED, result
         assert "joint3" in result.message
+
+
+@pytest.mark.asyncio
+async def test_a_forward_command_controller_in_its_own_joint_order_is_streamed() -> None:
+    """A forward_command_controller (no action): ``commands`` in ``command_joints`` order, follow() streamed."""
+    order = ("joint3", "joint1", "joint2")
+    async with _controller(action=False, forward_joints=order, name="forward_position_controller",
+                           interface="forward_command", command_joints=order) as (fake, robot):
+        backend: Any = robot.controller
+        assert backend.interface == "forward_command" and not backend.goals_available
+        result = await robot.move_to({"joint1": 0.4, "joint3": 0.2}, duration=1.0)
+        assert result.ok, result
+        await robot.clock.sleep(0.1)
+        assert fake.q[[fake.names.index(n) for n in ("joint1", "joint2", "joint3")]].tolist() == pytest.approx(
+            [0.4, 0.2, 0.2], abs=1e-6)
+        assert len(fake.forwarded) > 100 and not fake.goals
+        assert list(fake.forwarded[-1].data) == pytest.approx([0.2, 0.4, 0.2], abs=1e-6)  # its order
+
+
+@pytest.mark.asyncio
+async def test_ros_domain_id_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No ``domain_id``: ``ROS_DOMAIN_ID`` picks the domain (ROS 2's rule), here a non-zero one."""
+    did = _domain()
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(did))
+    fake = FakeController(did, "/env", "joint_trajectory_controller", asyncio.get_running_loop())
+    try:
+        async with agentsdk.connect("ros2", robot="arm3", namespace="/env", realtime=True, safety=SAFETY) as robot:
+            backend: Any = robot.controller
+            assert backend.domain_id == did != 0
+            assert (await robot.move_to({"joint2": 0.0}, duration=1.0)).ok
+            assert len(fake.goals) == 1
+    finally:
+        await fake.aclose()

@@ -23,6 +23,11 @@ another host. What the backend uses, under ``namespace``:
   - ``"forward_command"`` (a ``forward_command_controller``'s ``<controller>/commands``,
     ``std_msgs/Float64MultiArray`` in ``command_joints`` order);
 
+* ``<controller>/follow_joint_trajectory`` (``follow_goals``): a ``follow()``/``move_to`` trajectory,
+  validated and limit-checked here, is sent as one ``FollowJointTrajectory`` goal when the action
+  server speaks rmw_cyclonedds' request format (:mod:`agentsdk.ros2.goals`, the
+  :class:`agentsdk.offload.TrajectoryOffload` capability): nothing is streamed while it runs, its
+  feedback and result come back to the motion; else, and against a lockstep served robot, streamed;
 * ``clock`` (``<namespace>/clock``: remap a simulator's ``/clock`` there): followed when the remote runs in
   simulated time (lockstep): a tick ends when the remote's time has advanced by one period.
 

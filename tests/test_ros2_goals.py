@@ -33,6 +33,7 @@ from agentsdk.ros2.msgs import (
     UUID,
     CancelGoal_Request,
     CancelGoal_Response,
+    Clock,
     FollowJointTrajectory_Feedback,
     FollowJointTrajectory_FeedbackMessage,
     FollowJointTrajectory_GetResult_Request,
@@ -220,7 +221,7 @@ class FakeController:
 
     def __init__(self, domain_id: int, namespace: str, controller: str, loop: asyncio.AbstractEventLoop,
                  outcome: tuple[int, int] | None = (GOAL_SUCCEEDED, 0), *, action: bool = True,
-                 forward_joints: tuple[str, ...] = ()) -> None:
+                 forward_joints: tuple[str, ...] = (), clock: bool = False) -> None:
         self.names = ["gripper", "joint3", "joint2", "joint1"]  # not the robot's order, one joint it does not know
         self.q = np.array([0.02, -0.1, 0.2, 0.1])
         self.outcome = outcome
@@ -247,6 +248,7 @@ class FakeController:
             node.subscribe(f"{controller}/joint_trajectory", JointTrajectory, self._on_trajectory)
         self._feedback = node.writer(f"{prefix}/feedback", FollowJointTrajectory_FeedbackMessage)
         self._js = node.writer("joint_states", JointState)
+        self._clock = node.writer("clock", Clock) if clock else None
         node.start()
         self._spawn(self._publish())
 
@@ -256,9 +258,15 @@ class FakeController:
         task.add_done_callback(self._tasks.discard)
 
     async def _publish(self) -> None:
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
         while True:
-            self._js.write(JointState(Header(), self.names, self.q.tolist(), [0.0] * 4, [0.0] * 4))
-            await asyncio.sleep(0.01)
+            # a simulator at real-time factor 1 stamps with its clock, which it publishes on <ns>/clock
+            stamp = Time.from_seconds(loop.time() - t0) if self._clock is not None else Time()
+            if self._clock is not None:
+                self._clock.write(Clock(stamp))
+            self._js.write(JointState(Header(stamp), self.names, self.q.tolist(), [0.0] * 4, [0.0] * 4))
+            await asyncio.sleep(0.002 if self._clock is not None else 0.01)
 
     def _on_trajectory(self, msg: JointTrajectory) -> None:
         self.streamed.append(msg)
@@ -444,5 +452,24 @@ async def test_ros_domain_id_from_the_environment(monkeypatch: pytest.MonkeyPatc
             assert backend.domain_id == did != 0
             assert (await robot.move_to({"joint2": 0.0}, duration=1.0)).ok
             assert len(fake.goals) == 1
+    finally:
+        await fake.aclose()
+
+
+@pytest.mark.asyncio
+async def test_a_simulator_with_a_clock_runs_the_goal_in_lockstep() -> None:
+    """A simulator's JTC that publishes ``<ns>/clock``: the robot follows its time, the goal runs there."""
+    did = _domain()
+    fake = FakeController(did, "/sim", "joint_trajectory_controller", asyncio.get_running_loop(), clock=True)
+    try:
+        async with agentsdk.connect("ros2", robot="arm3", namespace="/sim", domain_id=did, safety=SAFETY) as robot:
+            backend: Any = robot.controller
+            assert not robot.realtime and backend.goals_available
+            result = await robot.move_to({"joint1": -0.3}, duration=0.8)
+            assert result.ok, result
+            assert len(fake.goals) == 1
+            assert fake.q[fake.names.index("joint1")] == pytest.approx(-0.3, abs=1e-6)
+            await robot.clock.sleep(0.05)  # the simulator's next joint_states
+            assert (await robot.read()).position[0] == pytest.approx(-0.3, abs=1e-6)
     finally:
         await fake.aclose()

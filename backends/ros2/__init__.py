@@ -206,6 +206,7 @@ class Ros2Backend(Backend):
         self._goals: FollowJointTrajectoryClient | None = None
         #: the robot's joints an offloaded goal holds (indices, positions), and the goal
         self._hold: tuple[np.ndarray, np.ndarray, GoalHandle] | None = None
+        self._hold_dev = np.zeros(0)
         #: True once the controller's FollowJointTrajectory action server was found (follow_goals)
         self.goals_available = False
         #: FollowJointTrajectory goals sent
@@ -538,6 +539,7 @@ class Ros2Backend(Backend):
             self._deferred = (self._send_sync(0.0), handle)
         hold_idx = np.array([self.index[n] for n in request.hold], dtype=np.intp)
         self._hold = (hold_idx, np.array([float(x) for x in request.hold.values()]), handle)
+        self._hold_dev = np.zeros(len(hold_idx))
         self.goals_sent += 1
         return handle
 
@@ -549,7 +551,10 @@ class Ros2Backend(Backend):
         if hold is None or hold[2] is not handle or not len(hold[0]):
             return
         idx, q, _ = hold
-        dev = np.abs(sp.position[idx] - q)
+        dev = self._hold_dev  # preallocated: the tick allocates nothing
+        np.take(sp.position, idx, out=dev)
+        np.subtract(dev, q, out=dev)
+        np.abs(dev, out=dev)
         if float(dev.max()) > 1e-9:
             k = int(np.argmax(dev))
             handle.preempt(f"preempted: joint {self.names[int(idx[k])]!r} was commanded while the goal held it")

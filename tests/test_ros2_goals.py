@@ -473,3 +473,31 @@ async def test_a_simulator_with_a_clock_runs_the_goal_in_lockstep() -> None:
             assert (await robot.read()).position[0] == pytest.approx(-0.3, abs=1e-6)
     finally:
         await fake.aclose()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+@pytest.mark.asyncio
+async def test_pick_place_runs_as_goals_against_agentsdk_serve_in_another_process(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    """``agentsdk serve --backend mujoco`` (realtime, its own process): every move_to/follow of the behavior
+    is one goal, each SUCCESSFUL, and the arm ends where the same behavior ends on a local MuJoCo."""
+    import test_ros2_backend as rb
+
+    from agentsdk.cli import load_behavior
+
+    did = _domain()
+    async with rb._serve("--backend", "mujoco", "--robot", "arm3", "--namespace", "/cell", domain_id=did):
+        local = await rb._final_joints("pick_place", "mujoco")
+        capsys.readouterr()
+        module = load_behavior("pick_place")
+        async with agentsdk.connect("ros2", robot="arm3", namespace="/cell", domain_id=did, safety=SAFETY,
+                                    realtime=True) as robot:
+            backend: Any = robot.controller
+            await module.main(robot)  # raises if a step does not end SUCCESSFUL
+            await robot.clock.sleep(0.3)
+            remote = np.array((await robot.read()).position)
+            steps = capsys.readouterr().out.count("SUCCESSFUL")
+            assert steps >= 5 and backend.goals_sent == steps, (steps, backend.goals_sent)
+    # the served arm ends at the behavior's last goal, within its goal tolerance (0.02 rad)
+    assert np.abs(remote - local).max() <= 0.02, (local, remote)

@@ -501,3 +501,45 @@ async def test_pick_place_runs_as_goals_against_agentsdk_serve_in_another_proces
             assert steps >= 5 and backend.goals_sent == steps, (steps, backend.goals_sent)
     # the served arm ends at the behavior's last goal, within its goal tolerance (0.02 rad)
     assert np.abs(remote - local).max() <= 0.02, (local, remote)
+
+
+@pytest.mark.asyncio
+async def test_joint_states_split_over_messages_best_effort_without_velocities() -> None:
+    """A robot whose joint_states come in parts (one message per hardware group), best effort (SensorDataQoS),
+    positions only; a namespace written without its leading slash. Read by name; the JTC topic drives it."""
+    from agentsdk.ros2.dds import QOS_SENSOR
+
+    did = _domain()
+    loop = asyncio.get_running_loop()
+    q = {"joint1": 0.1, "joint2": -0.2, "joint3": 0.3}
+    node = DdsNode(did, "/plant/arm", loop)
+
+    def on_trajectory(msg: JointTrajectory) -> None:
+        if msg.points:
+            q.update(zip(msg.joint_names, msg.points[-1].positions, strict=True))
+
+    node.subscribe("joint_trajectory_controller/joint_trajectory", JointTrajectory, on_trajectory)
+    js = node.writer("joint_states", JointState, QOS_SENSOR)
+    node.start()
+
+    async def publish() -> None:
+        while True:
+            js.write(JointState(Header(), ["joint1"], [q["joint1"]]))
+            js.write(JointState(Header(), ["joint3", "joint2"], [q["joint3"], q["joint2"]]))
+            await asyncio.sleep(0.01)
+
+    task = asyncio.create_task(publish())
+    try:
+        async with agentsdk.connect("ros2", robot="arm3", namespace="plant/arm", domain_id=did, realtime=True,
+                                    safety=SAFETY) as robot:
+            backend: Any = robot.controller
+            assert backend.namespace == "/plant/arm" and not backend.goals_available
+            assert (await robot.read()).position.tolist() == pytest.approx([0.1, -0.2, 0.3])
+            assert (await robot.move_to({"joint2": 0.25}, duration=1.0)).ok
+            await robot.clock.sleep(0.1)
+            assert q["joint2"] == pytest.approx(0.25, abs=1e-6)
+            assert (await robot.read()).position.tolist() == pytest.approx([0.1, 0.25, 0.3], abs=1e-6)
+    finally:
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        node.close()

@@ -83,7 +83,7 @@ _SCALE_ACC_MARGIN = 0.95
 _MAX_STRETCH_ITERATIONS = 12
 #: the ``poses`` of a feedback message nobody asked link poses for (shared, immutable)
 _NO_POSES: Mapping[str, Pose] = MappingProxyType({})
-#: an ended offloaded goal's joints are at rest below this speed (rad/s or m/s) ...
+#: an ended offloaded goal's joints are at rest when their mean speed stays below this (rad/s or m/s) ...
 _REMOTE_STILL_SPEED = 1e-2
 #: ... for this long (s): then the setpoint holds there and the backend streams again
 _REMOTE_STILL = 0.1
@@ -700,6 +700,9 @@ class MotionManager:
         desired motion continues seamlessly; starting it from the last tick's state would
         repeat that position for one tick (a stall of v*dt while the desired velocity says v).
         """
+        if ex.remote_rest >= 0.0:  # an ended offloaded goal: the setpoint follows the measured position, at rest
+            zero = np.zeros(len(ex.idx))
+            return ex.des_q.copy(), zero, zero.copy()
         tau, s, sdot = self._advance(ex, self.loop.stamp)
         q, vt, at = ex.sampler.sample(tau)
         if ex.phase == MotionPhase.STOPPING or (s == 1.0 and sdot == 0.0):
@@ -841,7 +844,7 @@ class MotionManager:
         q, v, a = self.desired(idx)
         for k, j in enumerate(idx.tolist()):
             ex = self._owner[j]
-            if ex is not None and ex.sampler is not None:
+            if ex is not None and ex.sampler is not None and ex.remote_rest < 0.0:
                 m = int(np.flatnonzero(ex.idx == j)[0])
                 tau = t if ex.phase == MotionPhase.STOPPING else ex.tau + ex.s * (t - ex.t_last)
                 eq, ev, ea = ex.sampler.sample(tau)
@@ -978,15 +981,30 @@ class MotionManager:
     def _follow_remote_stop(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
         """The setpoint of an ended offloaded goal's joints is their measured position until they are still."""
         idx = ex.idx
-        qm = st.position[idx]
-        if not np.isfinite(qm).all():
-            qm = ex.des_q
-        if not np.all(np.abs(st.velocity[idx]) < _REMOTE_STILL_SPEED):
-            ex.remote_rest = t
-        zero = np.zeros(len(idx))
+        n = len(idx)
+        w = ex.work
+        if w is None:
+            w = ex.work = _TickBuffers(n)
+        qm = np.take(st.position, idx, out=w.actual, mode="clip")
+        if np.count_nonzero(np.isfinite(qm, out=w.mask)) != n:
+            np.copyto(qm, ex.des_q)  # a failing sensor: hold the last setpoint
+        # still: the measured position stays within _REMOTE_STILL_SPEED * _REMOTE_STILL of where the window
+        # began (a velocity is not needed: some controllers report none, and encoder noise stays well below)
+        ref = ex.remote_q  # no feedback is published any more (the motion has its result): free buffers
+        if ex.remote_rest == t:
+            ref[...] = qm
+        moved = float(np.abs(np.subtract(qm, ref, out=w.dev), out=w.dev).max(initial=0.0))
+        zero = ex.remote_v
+        zero.fill(0.0)
         qc = self._limited(ex, qm, zero, zero)
         assert qc is not None  # a stopping executor is limited, never aborted
-        self._write(ex, t, st, sp, qc, zero, zero, qm - qc)
+        err = np.subtract(qm, qc, out=w.err)
+        # ... and the setpoint has reached it (the step limiter moves it at most max_position_step a tick)
+        if (moved > _REMOTE_STILL_SPEED * _REMOTE_STILL
+                or float(np.abs(err, out=w.tmp).max(initial=0.0)) > 1e-9):
+            ex.remote_rest = t
+            ref[...] = qm
+        self._write(ex, t, st, sp, qc, zero, zero, err)
         if t - ex.remote_rest >= _REMOTE_STILL:
             self._finish(ex, None, "")
             self.loop.hold_at(idx, qc)

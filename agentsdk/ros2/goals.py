@@ -26,6 +26,7 @@ import logging
 import math
 import secrets
 import threading
+import time
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -130,6 +131,8 @@ class GoalHandle:
         self._cancel_wanted = False
         self._cancel_sent = False
         self.released = False
+        #: seconds a released, unfinished goal is waited for before streaming again (0: not waited for)
+        self.drain = 0.0
         #: set when something else commanded the robot: the cancel's outcome is PREEMPTED with this reason
         self.preempted: str | None = None
         #: the goal while its sending is deferred (:meth:`FollowJointTrajectoryClient.dispatch`)
@@ -176,7 +179,7 @@ class GoalHandle:
         if self.result is None:
             self.cancel()
         self.released = True
-        self._client.released(self)
+        self._client.released(self, self.drain)
 
     def preempt(self, reason: str) -> None:
         """Something else commands the robot: cancel; the outcome is PREEMPTED, ``reason`` its message."""
@@ -231,6 +234,8 @@ class FollowJointTrajectoryClient:
         self._requests: dict[tuple[int, int], GoalHandle] = {}
         #: goals the motion layer has not released yet (the backend streams nothing meanwhile)
         self.active: list[GoalHandle] = []
+        #: released goals without a result yet, and the monotonic time until which they are waited for
+        self._draining: dict[GoalHandle, float] = {}
         self._send_w: DataWriter[Any] = node.writer(
             f"{action}/send_goalRequest", service_wire_type(FollowJointTrajectory_SendGoal_Request), QOS_SERVICE,
             prefix="rq/")
@@ -313,12 +318,24 @@ class FollowJointTrajectoryClient:
                                       CancelGoal_Request(info)))
             self.cancels += 1
 
-    def released(self, handle: GoalHandle) -> None:
-        """The motion layer let go of ``handle``."""
+    def released(self, handle: GoalHandle, drain: float = 0.0) -> None:
+        """The motion layer let go of ``handle``; without a result yet it drains for ``drain`` s (:meth:`draining`)."""
         if handle in self.active:
             self.active.remove(handle)
         if handle.result is not None:
             self._goals.pop(handle.uuid, None)
+        elif drain > 0.0 and handle.accepted is not False and handle._message is None:
+            self._draining[handle] = time.monotonic() + drain
+
+    def draining(self) -> bool:
+        """True while a released goal may still run on the controller (cancelled, its result not back yet)."""
+        if not self._draining:
+            return False
+        now = time.monotonic()
+        for handle, until in list(self._draining.items()):
+            if handle.result is not None or now > until:
+                del self._draining[handle]
+        return bool(self._draining)
 
     # replies (event loop) ----------------------------------------------------------------
     def _take_request(self, header: RequestHeader) -> GoalHandle | None:
@@ -335,6 +352,7 @@ class FollowJointTrajectoryClient:
         if handle is None:
             return
         handle._on_result(int(sample.status), int(sample.result.error_code), str(sample.result.error_string))
+        self._draining.pop(handle, None)
         if handle.released:
             self._goals.pop(handle.uuid, None)
 

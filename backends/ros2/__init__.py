@@ -407,6 +407,8 @@ class Ros2Backend(Backend):
         if goals is not None and goals.active:
             self._check_hold(sp, goals.active[-1])
             return  # the controller runs the goal: nothing is streamed meanwhile
+        if goals is not None and self.interface == "agentsdk" and goals.draining():
+            return  # a served robot still stops a cancelled goal (its stream would be refused): not yet
         if self.interface == "agentsdk":
             self._cmd_enc.encode(0.0, sp.position, sp.velocity, sp.effort)
             if self.realtime and self._enabled:
@@ -535,6 +537,10 @@ class Ros2Backend(Backend):
         # the robot has answered a sync sent now, after every command before it (none refused as "driven by a goal")
         defer = self.interface == "agentsdk"
         handle = goals.send(request, deadline, defer=defer)
+        if defer:
+            # released unfinished (e-stop, abort): the served robot decelerates the goal itself and refuses stream
+            # commands on its joints until it has; nothing is streamed until its result (at most `timeout`)
+            handle.drain = self.timeout
         if defer:
             self._deferred = (self._send_sync(0.0), handle)
         hold_idx = np.array([self.index[n] for n in request.hold], dtype=np.intp)

@@ -1304,6 +1304,9 @@ class MotionManager:
         w = ex.work
         if w is None:
             w = ex.work = _TickBuffers(len(idx))
+        remote = ex.remote
+        if remote is not None and ex.remote_rest < 0.0 and not remote.started():
+            ex.t_last = t  # the controller has not taken the goal yet: its trajectory time has not begun
         dt = t - ex.t_last
         s = ex.s
         if dt > 0.0 and s == self._speed and ex.phase != MotionPhase.STOPPING:  # _advance's common case, inline

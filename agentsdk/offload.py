@@ -7,8 +7,9 @@ trajectory it has already validated and checked against every limit, asks the ba
 send it as one goal instead of streaming it setpoint by setpoint:
 
 * the motion layer keeps sampling the trajectory locally (the safety layer's limiter checks
-  every setpoint, the setpoint stays where the robot is meant to be), but while the goal is
-  held the backend sends no setpoint of its own to the controller;
+  every setpoint, the setpoint stays where the robot is meant to be), its trajectory time
+  running from the moment the controller has taken the goal (``started()``), but while the
+  goal is held the backend sends no setpoint of its own to the controller;
 * the controller's result (FollowJointTrajectory ``error_code`` and the goal's final status)
   ends the motion; its feedback's desired state is the motion's feedback;
 * ``cancel()`` (motion.cancel(), preemption, e-stop, a limit the executor hits) cancels the
@@ -60,6 +61,10 @@ class OffloadedGoal(Protocol):
         ``now`` is the robot time; a goal whose controller stays silent past its deadline ends
         with an error code here (the backend's own bound).
         """
+        ...
+
+    def started(self) -> bool:
+        """True once the controller has taken the goal (or it has ended): its trajectory time runs from then."""
         ...
 
     def desired_into(self, position: np.ndarray, velocity: np.ndarray) -> bool:

@@ -493,7 +493,11 @@ async def test_pick_place_runs_as_goals_against_agentsdk_serve_in_another_proces
     from agentsdk.cli import load_behavior
 
     did = _domain()
-    async with rb._serve("--backend", "mujoco", "--robot", "arm3", "--namespace", "/cell", domain_id=did):
+    # a loaded 2-core test machine runs both processes: the served robot's stall watchdog gets the client's slack,
+    # and joint_states go out at 500 Hz (at 100 Hz a late sample of the fast transfer can jump more than the
+    # client's sensor plausibility margin allows between two of its ticks)
+    async with rb._serve("--backend", "mujoco", "--robot", "arm3", "--namespace", "/cell", "--rate", "500", "-o",
+                         "safety={stall_timeout: 5.0}", domain_id=did):
         local = await rb._final_joints("pick_place", "mujoco")
         capsys.readouterr()
         module = load_behavior("pick_place")

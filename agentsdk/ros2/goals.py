@@ -154,6 +154,10 @@ class GoalHandle:
                            "(robot time) of the trajectory's end plus its goal time and the backend's timeout")
         return self.result
 
+    def started(self) -> bool:
+        """True once the controller accepted the goal (or the goal has ended)."""
+        return self.accepted is True or self.result is not None
+
     def desired_into(self, position: np.ndarray, velocity: np.ndarray) -> bool:
         """The controller's latest desired state (trajectory joint order); False before its first feedback."""
         q, v = self._fb_q, self._fb_v

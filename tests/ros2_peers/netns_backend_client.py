@@ -26,7 +26,8 @@ from agentsdk import Trajectory, TrajectoryPoint  # noqa: E402
 async def main() -> None:
     out: dict[str, Any] = {}
     async with agentsdk.connect("ros2", robot="arm3", namespace=NAMESPACE, domain_id=int(DOMAIN), realtime=True,
-                                timeout=60.0, lease=LEASE, safety={"stall_timeout": 5.0}) as robot:
+                                timeout=60.0, lease=LEASE, stale_after=LEASE,  # a loaded one-vCPU guest
+                                safety={"stall_timeout": 5.0}) as robot:
         backend: Any = robot.controller
         out["goals_available"] = backend.goals_available
         first = await robot.move_to({"joint1": 0.4, "joint2": -0.2}, duration=1.0)

@@ -89,6 +89,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
+from .backendspec import BackendSpec
 from .config import MAX_GAIN, Gains
 from .errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, DescriptionError
 from .pose import BaseState, Pose
@@ -258,33 +259,26 @@ class Backend(ABC):
         self.period: float = config.control_period
         from_file = config.backend_options(self.name)
         merged = {**from_file, **options}
+        # the options are validated by the (overridable) hook, which may read the attributes above
+        validated = self._validate_options(merged, given=frozenset(options))
+        #: every ready value this backend is built from (limits, start pose, servo-law flags, options)
+        self.spec: BackendSpec = BackendSpec.build(config, description, joints, validated, realtime=self.realtime)
+        spec = self.spec
         #: the validated options (an instance of ``options_model``, or None)
-        self.options: Any = self._validate_options(merged, given=frozenset(options))
-        self.lower = _readonly([j.lower for j in joints])
-        self.upper = _readonly([j.upper for j in joints])
-        self.max_velocity = _readonly([j.max_velocity for j in joints])
-        self.max_effort = _readonly([j.max_effort for j in joints])
-        from .description.start import start_pose
-
-        start = start_pose(description, config, joints)
-        warning = start.warning(config.name or description.name)
-        if warning:
-            log.warning("%s", warning)
+        self.options: Any = spec.options
+        self.lower = spec.lower
+        self.upper = spec.upper
+        self.max_velocity = spec.max_velocity
+        self.max_effort = spec.max_effort
         #: the start pose and where each joint's value came from (:mod:`agentsdk.description.start`)
-        self.start_pose: StartPose = start
+        self.start_pose: StartPose = spec.start_pose
         #: where the joints start: robot.yaml ``initial_positions``, an SRDF group state, the model's
         #: home pose, else 0 -- always inside the limits
-        self.initial_positions = _readonly([start.positions[j.name] for j in joints])
-        gc = np.array([config.gravity_compensation_for(j.name) for j in joints], dtype=bool)
-        override = getattr(self.options, "gravity_compensation", None)  # a backend option may switch it
-        if override is not None:
-            gc[:] = bool(override)
-        gc.flags.writeable = False
+        self.initial_positions = spec.initial_positions
         #: per joint: the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)
-        self.gravity_compensation: np.ndarray = gc
-        id_override = getattr(self.options, "inverse_dynamics", None)  # connect(..., inverse_dynamics=...)
+        self.gravity_compensation: np.ndarray = spec.gravity_compensation
         #: the servo law adds the inverse dynamics of the desired motion (robot.yaml ``inverse_dynamics``)
-        self.inverse_dynamics: bool = bool(config.inverse_dynamics if id_override is None else id_override)
+        self.inverse_dynamics: bool = spec.inverse_dynamics
         self._backend_open = False
         #: joints whose reading frame the backend is changing on purpose (see :meth:`frame_change`),
         #: and how many changes are in progress (one list item: the gate checks it every tick)
@@ -566,9 +560,3 @@ def substeps(period: float, timestep: float, simulator: str, source: str) -> int
             f"{period:g} s (at most {MAX_SUBSTEPS}); raise the timestep or update_rate"
         )
     return nsub
-
-
-def _readonly(values: Any) -> FloatArray:
-    arr = np.array(values, dtype=np.float64)
-    arr.flags.writeable = False
-    return arr

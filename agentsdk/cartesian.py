@@ -33,14 +33,8 @@ import numpy as np
 import numpy.typing as npt
 
 from .errors import InvalidValueError, LimitViolation, RobotClosedError, UnreachablePoseError
-from .kinematics import (
-    IK_ORIENTATION_TOLERANCE,
-    IK_POSITION_TOLERANCE,
-    IKSolver,
-    Kinematics,
-    ik_target,
-    run_async,
-)
+from .ik import IK_ORIENTATION_TOLERANCE, IK_POSITION_TOLERANCE, IKSolver, ik_target, run_async
+from .kinematics import Kinematics
 from .pose import Pose, quat_from_rotation_vector, quat_multiply, rotation_vector
 from .trajectory import Trajectory, TrajectoryPoint, TrajectorySampler, plan_point_to_point
 from .types import FloatArray, JointInfo

@@ -7,6 +7,7 @@ validated, limited commands. Pure functions of the command and the robot's joint
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection, Mapping, Sequence
 
 import numpy as np
@@ -69,8 +70,10 @@ def map_values(
             )
         idx = np.arange(len(names))
         arr = np.asarray(values, dtype=np.float64)
-    bad = ~np.isfinite(arr)
-    if bad.any():
+    # NaN propagates through the largest and the smallest value, an infinity shows in one of them
+    # (two ufunc reductions: ndarray.any's Python wrapper costs more on a few joints)
+    if arr.size and not (math.isfinite(np.maximum.reduce(arr)) and math.isfinite(np.minimum.reduce(arr))):
+        bad = ~np.isfinite(arr)
         j = int(idx[int(np.argmax(bad))])
         raise InvalidValueError(f"{what}: non-finite value {float(arr[bad][0])} for joint {names[j]!r}")
     return idx, arr

@@ -183,6 +183,15 @@ class RobotConfig(_Strict):
         """The robot.yaml ``srdf`` as an absolute path (None when not given)."""
         return (self.base_dir / self.srdf).resolve() if self.srdf else None
 
+    def with_update_rate(self, update_rate: float) -> RobotConfig:
+        """This configuration at another control rate (Hz), validated like robot.yaml's ``update_rate``."""
+        rate = float(update_rate)
+        if not MIN_UPDATE_RATE <= rate <= MAX_UPDATE_RATE:  # NaN fails too
+            raise ConfigurationError(
+                f"{self.label}: update_rate {update_rate!r} Hz is outside [{MIN_UPDATE_RATE:g}, {MAX_UPDATE_RATE:g}]"
+            )
+        return self.model_copy(update={"update_rate": rate})
+
     @property
     def control_period(self) -> float:
         """Seconds per control tick (``1 / update_rate``)."""

@@ -37,6 +37,7 @@ import numpy as np
 from .config import Gains
 from .description.model import quat_from_rpy
 from .errors import DescriptionError
+from .hostmodel import EQ_JOINT, GravityTerm, coupling_matrix
 from .pose import Pose
 from .types import FloatArray, JointInfo
 
@@ -45,7 +46,6 @@ if TYPE_CHECKING:
 
 __all__ = ["DynamicsModel", "GainReport", "GravityTerm", "coupling_matrix", "model_gains"]
 
-_EQ_JOINT = int(mujoco.mjtEq.mjEQ_JOINT)
 
 #: error at which a model-based servo commands the full effort limit (rad, or m for prismatic joints)
 EFFORT_ERROR = 0.02
@@ -55,76 +55,6 @@ FRICTION_ERROR = 0.005
 STABILITY_FRACTION = 0.25
 #: smallest joint inertia considered (kg·m² or kg): a massless chain is not divided by zero
 MIN_INERTIA = 1e-9
-
-
-def coupling_matrix(model: mujoco.MjModel, joints: Sequence[str]) -> FloatArray:
-    """``S`` (nv, n): generalized velocities of ``model`` from the commanded joints' velocities.
-
-    Column ``k`` has 1 at joint ``k``'s dof and ``multiplier`` at the dof of every joint
-    coupled to it by a joint equality ``q_follower = offset + multiplier * q_leader``
-    (URDF mimic joints as built by :func:`~agentsdk.description.mjspec.build_spec`, MJCF
-    joint equalities). ``S.T @ tau_all`` is the generalized force on the commanded
-    joints (a follower's torque is carried by its leader), ``S.T @ M @ S`` their inertia.
-    """
-    index = {name: k for k, name in enumerate(joints)}
-    s = np.zeros((model.nv, len(joints)))
-    for k, name in enumerate(joints):
-        jid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-        if jid < 0:
-            raise DescriptionError(f"joint {name!r} is missing from the MuJoCo model")
-        s[model.jnt_dofadr[jid], k] = 1.0
-    for e in range(model.neq):
-        if int(model.eq_type[e]) != _EQ_JOINT or not model.eq_active0[e]:
-            continue
-        follower, leader = int(model.eq_obj1id[e]), int(model.eq_obj2id[e])
-        if leader < 0:
-            continue
-        col = index.get(model.joint(leader).name)
-        if col is None or model.joint(follower).name in index:
-            continue
-        s[model.jnt_dofadr[follower], col] += float(model.eq_data[e, 1])
-    return s
-
-
-class GravityTerm:
-    """``g(q)`` of the commanded joints from a compiled MuJoCo model, allocation-free per call.
-
-    Holds a private ``MjData``; :meth:`compute` takes a full ``qpos`` (a floating
-    base's pose included: gravity acts along the world's ``-z`` whatever the base's
-    attitude) and writes ``S.T @ g_all`` into ``out``. Not thread-safe (one caller).
-    """
-
-    def __init__(self, model: mujoco.MjModel, joints: Sequence[str]) -> None:
-        self.model = model
-        self._data = mujoco.MjData(model)  # qvel stays 0: mj_rne gives the bias at rest, g(q)
-        self._st = np.ascontiguousarray(coupling_matrix(model, joints).T)
-        self._all = np.zeros(model.nv)
-        #: the last result and the bytes of the ``qpos`` it is for: a robot at rest has the same
-        #: ``qpos`` bit for bit tick after tick, and g(q) is a pure function of it (same result)
-        self._g = np.zeros(len(joints))
-        self._key = b""
-
-    def compute(self, qpos: np.ndarray, out: np.ndarray) -> np.ndarray:
-        """Write the joint torques that hold the robot against gravity at ``qpos`` into ``out``.
-
-        The result for the previous ``qpos`` is reused when ``qpos`` is bit for bit the same
-        (the model is not meant to change between calls; :meth:`invalidate` after changing it).
-        """
-        key = qpos.tobytes()
-        if key != self._key:
-            m, d = self.model, self._data
-            d.qpos[:] = qpos
-            mujoco.mj_kinematics(m, d)
-            mujoco.mj_comPos(m, d)
-            mujoco.mj_rne(m, d, 0, self._all)
-            np.dot(self._st, self._all, out=self._g)
-            self._key = key
-        out[:] = self._g
-        return out
-
-    def invalidate(self) -> None:
-        """Forget the cached result (after changing the model's masses, inertias or gravity)."""
-        self._key = b""
 
 
 def _description_spec(description: RobotDescription) -> mujoco.MjSpec:
@@ -182,7 +112,7 @@ class DynamicsModel:
         self._followers: list[tuple[int, int, float, float]] = []
         index = {name: k for k, name in enumerate(self.names)}
         for e in range(m.neq):
-            if int(m.eq_type[e]) != _EQ_JOINT or not m.eq_active0[e] or m.eq_obj2id[e] < 0:
+            if int(m.eq_type[e]) != EQ_JOINT or not m.eq_active0[e] or m.eq_obj2id[e] < 0:
                 continue
             f, leader = int(m.eq_obj1id[e]), m.joint(int(m.eq_obj2id[e])).name
             if leader in index and m.joint(f).name not in index:

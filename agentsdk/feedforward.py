@@ -95,9 +95,15 @@ class InverseDynamicsTerm:
         self._tmp = np.zeros(m.nv)
         self._sq = np.zeros(())
         self._effort = np.zeros(len(joints), dtype=bool)
+        self._no_effort = self._effort.tobytes()
+        #: the bytes of an all-zero (n,) row: a hold's velocity and acceleration, compared without a BLAS call
+        self._zero = np.zeros(len(joints)).tobytes()
 
     def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
         """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
+        zero = self._zero
+        if velocity.tobytes() == zero and acceleration.tobytes() == zero:  # a hold: the common case, cheapest
+            return False
         sq = self._sq
         np.dot(velocity, velocity, out=sq)
         if sq.item() != 0.0:
@@ -112,6 +118,8 @@ class InverseDynamicsTerm:
         acceleration: np.ndarray,
         out: np.ndarray,
         mode: np.ndarray | None = None,
+        *,
+        moving: bool | None = None,
     ) -> np.ndarray:
         """Write the term (n,) for the desired ``velocity`` and ``acceleration`` (n,) at ``qpos`` into ``out``.
 
@@ -119,8 +127,12 @@ class InverseDynamicsTerm:
         desired velocity and acceleration are both 0 (nothing computed). ``mode`` (the setpoint's
         :class:`~agentsdk.backend.ModeCode` per joint): an effort-mode joint gets none of it (its
         torque is the one commanded, plus ``g(q)``), though its motion still counts for the others.
+        ``moving``: what :meth:`moving` returned for these very arrays, when the caller already asked
+        (the tick asks once); None asks here.
         """
-        if not self.moving(velocity, acceleration):
+        if moving is None:
+            moving = self.moving(velocity, acceleration)
+        if not moving:
             out.fill(0.0)
             return out
         qvel = self._qvel
@@ -141,6 +153,6 @@ class InverseDynamicsTerm:
         if mode is not None:
             effort = self._effort
             np.equal(mode, _EFFORT, out=effort)
-            if np.count_nonzero(effort):
+            if effort.tobytes() != self._no_effort:  # (np.count_nonzero's Python wrapper costs more)
                 out[effort] = 0.0
         return out

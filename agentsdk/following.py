@@ -119,6 +119,11 @@ class FollowingErrorCheck:
         self._last_t = -math.inf
         self._period = loop.period
         self._none = np.zeros(n, dtype=bool).tobytes()
+        self._all = np.ones(n, dtype=bool).tobytes()
+        self._gain = np.zeros(n, dtype=bool)
+        #: the (mode, enabled, kp > 0) bytes the watched mask (``_mask``, ``_maskf``) was computed for
+        self._mask_key: tuple[bytes, bytes, bytes] = (b"", b"", b"")
+        self._all_watched = False
         #: largest error seen per watched joint since construction or :meth:`reset_peak` (diagnostics)
         self.peak = np.zeros(n)
 
@@ -139,14 +144,22 @@ class FollowingErrorCheck:
             np.subtract(wrapped, math.pi, out=wrapped)
             np.copyto(err, wrapped, where=self._continuous)
         np.abs(err, out=err)
-        # watched: position mode, torque on, a position gain
+        # watched: position mode, torque on, a position gain; the mask changes only with those rows,
+        # so it is kept while their bytes repeat (bytes compares instead of four ufunc calls and a
+        # multiply; one small bytes object at a time, compared and dropped: the tick's peak memory stays low)
         # (operands of one dtype with preallocated outputs: a Python scalar or a cast allocates per tick)
-        np.equal(sp.mode, self._pos_row, out=mask)
-        np.logical_and(mask, sp.enabled, out=mask)
-        np.greater(sp.kp, self._zeros, out=self._tmp)
-        np.logical_and(mask, self._tmp, out=mask)
-        np.copyto(self._maskf, mask)  # (a bool -> float copy allocates nothing; a mixed multiply does)
-        np.multiply(err, self._maskf, out=err)  # unwatched joints: no error
+        gain = self._gain
+        np.greater(sp.kp, self._zeros, out=gain)
+        key = self._mask_key
+        if gain.tobytes() != key[2] or sp.mode.tobytes() != key[0] or sp.enabled.tobytes() != key[1]:
+            np.equal(sp.mode, self._pos_row, out=mask)
+            np.logical_and(mask, sp.enabled, out=mask)
+            np.logical_and(mask, gain, out=mask)
+            np.copyto(self._maskf, mask)  # (a bool -> float copy allocates nothing; a mixed multiply does)
+            self._all_watched = mask.tobytes() == self._all
+            self._mask_key = (sp.mode.tobytes(), sp.enabled.tobytes(), gain.tobytes())
+        if not self._all_watched:  # (times 1.0 everywhere would change no bit: skipped)
+            np.multiply(err, self._maskf, out=err)  # unwatched joints: no error
         np.fmax(self.peak, err, out=self.peak)  # (NaN: not an error figure)
         outside = self._tmp
         np.greater(err, self.windows, out=outside)

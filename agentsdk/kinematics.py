@@ -33,15 +33,13 @@ Conventions (as ROS / KDL / MoveIt):
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import math
 import threading
-import time
-from collections.abc import Callable, Generator, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
@@ -52,9 +50,33 @@ from .errors import (
     InvalidValueError,
     UnknownJointError,
     UnknownLinkError,
-    UnreachablePoseError,
 )
-from .pose import Pose, quat_multiply, rotation_vector
+from .hostmodel import (
+    EQ_JOINT,
+    HINGE,
+    SLIDE,
+    GravityTerm,
+    MjcfDescription,
+    Positions,
+    compile_model,
+    find_couplings,
+    link_tree,
+    wxyz_to_xyzw,
+)
+
+# mjcf_source and ik_target live in .hostmodel and .ik; still importable from here (re-exported)
+from .hostmodel import mjcf_source as mjcf_source
+from .ik import (
+    IK_ORIENTATION_TOLERANCE,
+    IK_POSITION_TOLERANCE,
+    IKResult,
+    IKSolver,
+    run_async,
+    run_sync,
+    search,
+)
+from .ik import ik_target as ik_target
+from .pose import Pose
 from .types import FloatArray, JointInfo, JointState
 
 if TYPE_CHECKING:
@@ -64,100 +86,9 @@ __all__ = ["IKResult", "Kinematics", "LinkPoses", "Positions", "run_async", "run
 
 log = logging.getLogger(__name__)
 
-Positions = Mapping[str, float] | Sequence[float] | npt.NDArray[np.floating] | JointState
-"""Joint positions: ``{joint: value}``, a full-length sequence in joint order, or a JointState."""
-
-_HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
-_SLIDE = int(mujoco.mjtJoint.mjJNT_SLIDE)
-_FREE = int(mujoco.mjtJoint.mjJNT_FREE)
-_BALL = int(mujoco.mjtJoint.mjJNT_BALL)
-_EQ_JOINT = int(mujoco.mjtEq.mjEQ_JOINT)
-
-#: IK defaults: convergence tolerances (10x tighter than what users usually ask for)
-IK_POSITION_TOLERANCE = 1e-4
-IK_ORIENTATION_TOLERANCE = 1e-3
-
-
-#: wall time a coroutine computes IK before yielding to the event loop (s)
-_SLICE = 0.002
-
-
-def run_sync(gen: Generator[None, None, Any]) -> Any:
-    """Run a cooperative computation (a generator that yields between steps) to completion."""
-    while True:
-        try:
-            next(gen)
-        except StopIteration as stop:
-            return stop.value
-
-
-async def run_async(gen: Generator[None, None, Any], slice_s: float = _SLICE) -> Any:
-    """Run a cooperative computation, yielding to the event loop every ``slice_s`` seconds of wall time.
-
-    In lockstep, simulated time stays frozen meanwhile (this task stays ready), so the result and
-    the robot's motion do not depend on the machine's speed; in realtime the control loop and the
-    watchdogs keep running.
-    """
-    t0 = time.perf_counter()
-    while True:
-        try:
-            next(gen)
-        except StopIteration as stop:
-            return stop.value
-        now = time.perf_counter()
-        if now - t0 >= slice_s:
-            await asyncio.sleep(0)
-            t0 = time.perf_counter()
-
-
-def _wxyz_to_xyzw(q: FloatArray) -> FloatArray:
-    return np.array([q[1], q[2], q[3], q[0]])
 
 
 # --------------------------------------------------------------------------- results
-
-
-class IKResult(dict[str, float]):
-    """Joint positions found by :meth:`Kinematics.ik`: a ``{joint: position}`` dict, plus diagnostics.
-
-    ``ok`` is True for a solution within the tolerances; :meth:`Kinematics.ik` raises
-    :class:`UnreachablePoseError` (carrying the best attempt, ``ok == False``) otherwise,
-    so a returned result is always a solution. ``position_error`` (m) and
-    ``orientation_error`` (rad, 0 for position-only) are the residual at the solution.
-    """
-
-    ok: bool
-    position_error: float
-    orientation_error: float
-    iterations: int
-    attempts: int
-    message: str
-
-    def __init__(
-        self,
-        positions: Mapping[str, float],
-        *,
-        ok: bool,
-        position_error: float,
-        orientation_error: float,
-        iterations: int,
-        attempts: int,
-        message: str = "",
-    ) -> None:
-        super().__init__(positions)
-        self.ok = ok
-        self.position_error = position_error
-        self.orientation_error = orientation_error
-        self.iterations = iterations
-        self.attempts = attempts
-        self.message = message
-
-    def __repr__(self) -> str:
-        vals = ", ".join(f"{k!r}: {v:.6g}" for k, v in self.items())
-        return (
-            f"IKResult({{{vals}}}, ok={self.ok}, position_error={self.position_error:.3g}, "
-            f"orientation_error={self.orientation_error:.3g}, iterations={self.iterations}, attempts={self.attempts})"
-        )
 
 
 @dataclass(frozen=True)
@@ -199,54 +130,6 @@ class LinkPoses(Mapping[str, Pose]):
 # --------------------------------------------------------------------------- model building
 
 
-@dataclass(frozen=True)
-class _Coupling:
-    """A mimic joint: ``q[follower] = multiplier * q[leader] + offset``."""
-
-    qadr: int
-    dadr: int
-    leader: int  # index into the actuated joints
-    multiplier: float
-    offset: float
-
-
-def mjcf_source(description: Any) -> Path | None:
-    """The MJCF file behind a description, or None for a URDF description."""
-    for attr in ("mjcf_path", "mjcf_file"):
-        path = getattr(description, attr, None)
-        if path:
-            return Path(path)
-    fmt = getattr(description, "format", None) or getattr(description, "kind", None)
-    source = getattr(description, "source", None)
-    if fmt == "mjcf" and source is not None:
-        return Path(source)
-    if source is not None and Path(source).suffix.lower() == ".xml" and not getattr(description, "urdf_xml", ""):
-        return Path(source)
-    return None
-
-
-def _compile(description: Any) -> tuple[mujoco.MjModel, list[str]]:
-    """The kinematic/dynamic model: an MJCF file as written, or the description built by ``build_spec``.
-
-    ``build_spec`` is how the MuJoCo backend builds the robot (one body per link, fixed
-    links kept, the description's repaired inertials, mimic joints as equality
-    constraints), so link frames and g(q) are the simulators' own. No collision geometry.
-    """
-    mjcf = mjcf_source(description)
-    try:
-        if mjcf is not None:
-            spec = mujoco.MjSpec.from_file(str(mjcf))
-            spec.compiler.fusestatic = False
-        else:
-            from .description.mjspec import build_spec
-
-            spec = build_spec(description, {}).spec
-        model = spec.compile()
-    except Exception as exc:
-        raise DescriptionError(f"MuJoCo could not build the kinematics of {description.name!r}: {exc}") from exc
-    return model, [f"{r}" for r in getattr(description, "repairs", ()) if "inertia" in str(r) or "mass" in str(r)]
-
-
 # --------------------------------------------------------------------------- kinematics
 
 
@@ -271,7 +154,7 @@ class Kinematics:
         self.name: str = description.name
         self.joints: tuple[JointInfo, ...] = tuple(joints if joints is not None else description.joints)
         self._state = state
-        self.model, repaired = _compile(description)
+        self.model, repaired = compile_model(description)
         #: bodies whose inertia MuJoCo rejected and that were repaired (see the module docstring)
         self.repaired_inertias: tuple[str, ...] = tuple(repaired)
         m = self.model
@@ -286,7 +169,7 @@ class Kinematics:
             jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j.name)
             if jid < 0:
                 raise DescriptionError(f"joint {j.name!r} of {self.name!r} is missing from the kinematic model")
-            if int(m.jnt_type[jid]) not in (_HINGE, _SLIDE):
+            if int(m.jnt_type[jid]) not in (HINGE, SLIDE):
                 raise DescriptionError(f"joint {j.name!r} of {self.name!r} is not a revolute or prismatic joint")
             qadr[k], dadr[k] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
             # IK keeps within the robot's limits (robot.yaml may tighten the URDF ones)
@@ -298,16 +181,18 @@ class Kinematics:
         self._qadr, self._dadr = qadr, dadr
         self.lower = np.array([j.lower for j in self.joints])
         self.upper = np.array([j.upper for j in self.joints])
-        self._couplings = self._find_couplings()
+        self._couplings = find_couplings(m, description, self._index)
         coupled = {c.dadr for c in self._couplings}
         actuated = set(dadr.tolist())
         #: dofs IK must not move: free/ball joints and joints that are neither actuated nor mimic
         self._frozen_dofs = [d for d in range(m.nv) if d not in actuated and d not in coupled]
         self._neutral = np.clip(np.zeros(n), self.lower, self.upper)
 
-        self._links, self._parents, self.root_link = self._link_tree()
+        self._links, self._parents, self.root_link = link_tree(m, description)
         self._body = {name: bid for name, bid in self._links.items()}
         self._ik: IKSolver | None = None
+        self._gravity: GravityTerm | None = None
+        self._gravity_qpos = np.zeros(0)
 
     @classmethod
     def for_robot(cls, robot: Any) -> Kinematics:
@@ -336,13 +221,13 @@ class Kinematics:
         except Exception as exc:
             raise DescriptionError(f"{path}: MuJoCo could not load the MJCF model: {exc}") from exc
         followers = {
-            int(model.eq_obj1id[e]) for e in range(model.neq) if int(model.eq_type[e]) == _EQ_JOINT
+            int(model.eq_obj1id[e]) for e in range(model.neq) if int(model.eq_type[e]) == EQ_JOINT
         }
         infos: list[JointInfo] = []
         names_in_model = []
         for jid in range(model.njnt):
             typ = int(model.jnt_type[jid])
-            if typ not in (_HINGE, _SLIDE):
+            if typ not in (HINGE, SLIDE):
                 continue
             name = model.joint(jid).name
             names_in_model.append(name)
@@ -353,7 +238,7 @@ class Kinematics:
             infos.append(
                 JointInfo(
                     name=name,
-                    type=("revolute" if limited else "continuous") if typ == _HINGE else "prismatic",
+                    type=("revolute" if limited else "continuous") if typ == HINGE else "prismatic",
                     lower=lo,
                     upper=hi,
                     max_velocity=math.inf,
@@ -369,85 +254,10 @@ class Kinematics:
                     f"{path.name}: no hinge or slide joint {unknown[0]!r}; joints: {', '.join(names_in_model)}"
                 )
             infos = [by_name[j] for j in joints]
-        desc = _MjcfDescription(name=model.names.split(b"\0")[0].decode() or path.stem, source=path)
+        desc = MjcfDescription(name=model.names.split(b"\0")[0].decode() or path.stem, source=path)
         return cls(desc, infos, state=state)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------ structure
-    def _find_couplings(self) -> list[_Coupling]:
-        m = self.model
-        out: list[_Coupling] = []
-        records = getattr(self.description, "all_joints", ())
-        for rec in records:
-            if getattr(rec, "mimic", None) and rec.mimic in self._index and rec.name not in self._index:
-                jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, rec.name)
-                if jid >= 0:
-                    out.append(
-                        _Coupling(int(m.jnt_qposadr[jid]), int(m.jnt_dofadr[jid]), self._index[rec.mimic],
-                                  float(rec.mimic_multiplier), float(rec.mimic_offset))
-                    )
-        if out:
-            return out
-        # MJCF: joint equality constraints q1 = poly(q2); the linear part couples the follower
-        for e in range(m.neq):
-            if int(m.eq_type[e]) != _EQ_JOINT or not m.eq_active0[e]:
-                continue
-            j1, j2 = int(m.eq_obj1id[e]), int(m.eq_obj2id[e])
-            if j2 < 0:
-                continue
-            n1, n2 = m.joint(j1).name, m.joint(j2).name
-            if n2 in self._index and n1 not in self._index:
-                coef = m.eq_data[e]
-                out.append(_Coupling(int(m.jnt_qposadr[j1]), int(m.jnt_dofadr[j1]), self._index[n2],
-                                     float(coef[1]), float(coef[0])))
-        return out
-
-    def _link_tree(self) -> tuple[dict[str, int], dict[str, str], str]:
-        """``({link: body id} in tree order, {link: parent link}, root link)``.
-
-        From the description's links and joints when every link is a body of the model (URDF;
-        MJCF descriptions whose bodies carry at most one joint), else from the model's bodies
-        (MJCF: every body, unnamed ones as ``body<id>``, under ``world``).
-        """
-        m = self.model
-        names = list(getattr(self.description, "links", ()) or ())
-        links: dict[str, int] = {}
-        parents: dict[str, str] = {}
-        found = True
-        for name in names:
-            bid = 0 if name == "world" else mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, name)
-            if bid < 0:
-                found = False
-                break
-            links[name] = bid
-        if names and found:
-            root = self.description.root_link
-            children: dict[str, list[str]] = {}
-            for rec in getattr(self.description, "all_joints", ()):
-                children.setdefault(rec.parent, []).append(rec.child)
-            # tree order (breadth first from the root), so a parent always precedes its children
-            ordered = {root: links[root]}
-            queue = [root]
-            while queue:
-                parent = queue.pop(0)
-                for child in children.get(parent, ()):
-                    if child not in ordered:
-                        ordered[child] = links[child]
-                        parents[child] = parent
-                        queue.append(child)
-            return ordered, parents, root
-        if names and mjcf_source(self.description) is None:
-            missing = next(n for n in names if n not in links)
-            raise DescriptionError(f"link {missing!r} of {self.name!r} is missing from the kinematic model")
-
-        def body_name(b: int) -> str:
-            return "world" if b == 0 else (m.body(b).name or f"body{b}")
-
-        links = {"world": 0}
-        for bid in range(1, m.nbody):
-            links[body_name(bid)] = bid
-            parents[body_name(bid)] = body_name(int(m.body_parentid[bid]))
-        return links, parents, "world"
-
     @property
     def link_names(self) -> tuple[str, ...]:
         """Every link (frame) of the robot, the root first: fixed-joint links included."""
@@ -532,7 +342,7 @@ class Kinematics:
 
     # ------------------------------------------------------------ forward kinematics
     def _pose(self, d: mujoco.MjData, bid: int) -> Pose:
-        return Pose.from_trusted_arrays(d.xpos[bid].copy(), _wxyz_to_xyzw(d.xquat[bid]))
+        return Pose.from_trusted_arrays(d.xpos[bid].copy(), wxyz_to_xyzw(d.xquat[bid]))
 
     def fk(self, link: str, positions: Positions | None = None, reference: str | None = None) -> Pose:
         """Pose of ``link`` in the root frame (or in ``reference``'s frame) at ``positions``."""
@@ -634,22 +444,26 @@ class Kinematics:
         if g.shape != (3,) or not np.isfinite(g).all():
             raise InvalidValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
         m = self.model
+        out = np.zeros(len(self.joints))
         with self._lock:
+            term = self._gravity_term()
             saved = m.opt.gravity.copy()
             try:
                 m.opt.gravity[:] = g
-                d = self._data
-                self._qpos(q, d.qpos)
-                d.qvel[:] = 0.0
-                mujoco.mj_fwdPosition(m, d)
-                mujoco.mj_fwdVelocity(m, d)
-                bias = d.qfrc_bias.copy()
+                term.invalidate()
+                self._qpos(q, self._gravity_qpos)
+                term.compute(self._gravity_qpos, out)
             finally:
                 m.opt.gravity[:] = saved
-        tau: FloatArray = bias[self._dadr].copy()
-        for c in self._couplings:
-            tau[c.leader] += c.multiplier * bias[c.dadr]
-        return tau
+                term.invalidate()
+        return out
+
+    def _gravity_term(self) -> GravityTerm:
+        """The host model's one g(q) (:class:`~agentsdk.hostmodel.GravityTerm`), made on first use."""
+        if self._gravity is None:
+            self._gravity = GravityTerm(self.model, self.joint_names)
+            self._gravity_qpos = np.zeros(self.model.nq)
+        return self._gravity
 
     # ------------------------------------------------------------ inverse kinematics
     def ik(
@@ -679,7 +493,7 @@ class Kinematics:
         never a silent best effort. Each step is mink's QP (DAQP) with the joint limits
         as constraints and mimic joints tied to their leaders.
         """
-        gen = self._ik_gen(None, link, pose, seed, position_only, position_tolerance, orientation_tolerance,
+        gen = search(self, None, link, pose, seed, position_only, position_tolerance, orientation_tolerance,
                            max_iterations, restarts, random_seed)
         with self._lock:
             result: IKResult = run_sync(gen)
@@ -704,67 +518,11 @@ class Kinematics:
         the control loop, the watchdogs and other tasks running meanwhile (in lockstep,
         simulated time does not advance while it computes).
         """
-        gen = self._ik_gen(IKSolver(self), link, pose, seed, position_only, position_tolerance,
+        gen = search(self, IKSolver(self), link, pose, seed, position_only, position_tolerance,
                            orientation_tolerance, max_iterations, restarts, random_seed)
         result: IKResult = await run_async(gen)
         return result
 
-    def _ik_gen(
-        self,
-        solver: IKSolver | None,
-        link: str,
-        pose: Pose | npt.ArrayLike,
-        seed: Positions | None,
-        position_only: bool,
-        position_tolerance: float,
-        orientation_tolerance: float,
-        max_iterations: int,
-        restarts: int,
-        random_seed: int,
-    ) -> Generator[None, None, IKResult]:
-        bid = self.body_id(link)
-        if bid == 0 or link == self.root_link:
-            raise InvalidValueError(f"ik: {link!r} is the root frame; it does not move")
-        target, position_only = ik_target(pose, position_only)
-        for what, tol in (("position_tolerance", position_tolerance), ("orientation_tolerance", orientation_tolerance)):
-            if not (isinstance(tol, int | float) and tol > 0 and math.isfinite(tol)):
-                raise InvalidValueError(f"ik: {what} must be a finite number > 0, got {tol!r}")
-        if int(max_iterations) < 1 or int(restarts) < 0:
-            raise InvalidValueError("ik: max_iterations must be >= 1 and restarts >= 0")
-        q0 = np.clip(self.resolve(seed, "seed"), self.lower, self.upper)
-        rng = np.random.default_rng(random_seed)
-        best: tuple[float, FloatArray, float, float] | None = None
-        total = 0
-        if solver is None:
-            solver = self._solver()
-        for attempt in range(int(restarts) + 1):
-            start = q0 if attempt == 0 else self._random_configuration(rng)
-            q, perr, rerr, iters = yield from solver.solve(
-                bid, link, target, start, position_only, position_tolerance, orientation_tolerance,
-                int(max_iterations),
-            )
-            total += iters
-            score = perr / position_tolerance + (0.0 if position_only else rerr / orientation_tolerance)
-            if best is None or score < best[0]:
-                best = (score, q, perr, rerr)
-            if perr <= position_tolerance and (position_only or rerr <= orientation_tolerance):
-                q = self._tidy(q, q0)
-                return IKResult(dict(zip(self.joint_names, q.tolist(), strict=True)), ok=True,
-                                position_error=perr, orientation_error=0.0 if position_only else rerr,
-                                iterations=total, attempts=attempt + 1)
-        assert best is not None
-        _, q, perr, rerr = best
-        what = "position" if position_only else "pose"
-        rot = "" if position_only else f", {rerr:.4g} rad orientation (tolerance {orientation_tolerance:g} rad)"
-        msg = (
-            f"IK found no joint positions within the limits of {self.name!r} that put link {link!r} at the target "
-            f"{what}: residual {perr:.4g} m position (tolerance {position_tolerance:g} m){rot} "
-            f"after {int(restarts) + 1} attempts ({total} iterations); the target may be out of reach"
-        )
-        result = IKResult(dict(zip(self.joint_names, q.tolist(), strict=True)), ok=False, position_error=perr,
-                          orientation_error=0.0 if position_only else rerr, iterations=total,
-                          attempts=int(restarts) + 1, message=msg)
-        raise UnreachablePoseError(msg, result)
 
     def chain(self, link: str) -> tuple[str, ...]:
         """The actuated joints that move ``link`` (its ancestors' joints; mimic joints count as their leader)."""
@@ -794,19 +552,6 @@ class Kinematics:
             self._ik = IKSolver(self)
         return self._ik
 
-    def _random_configuration(self, rng: np.random.Generator) -> FloatArray:
-        lo = np.where(np.isfinite(self.lower), self.lower, -math.pi)
-        hi = np.where(np.isfinite(self.upper), self.upper, math.pi)
-        return rng.uniform(lo, hi)
-
-    def _tidy(self, q: FloatArray, seed: FloatArray) -> FloatArray:
-        """Clip into the limits (QP round-off) and bring continuous joints within pi of the seed."""
-        q = np.clip(q, self.lower, self.upper)
-        cont = ~(np.isfinite(self.lower) | np.isfinite(self.upper))
-        for k in np.flatnonzero(cont).tolist():
-            if self.joints[k].type != "prismatic":
-                q[k] = seed[k] + (q[k] - seed[k] + math.pi) % (2 * math.pi) - math.pi
-        return q
 
     def __repr__(self) -> str:
         return (
@@ -815,125 +560,3 @@ class Kinematics:
         )
 
 
-@dataclass(frozen=True)
-class _MjcfDescription:
-    """The minimum of a RobotDescription that :class:`Kinematics` needs, for a bare MJCF file."""
-
-    name: str
-    source: Path
-    format: Literal["mjcf"] = "mjcf"
-    urdf_xml: str = ""
-    links: tuple[str, ...] = ()
-    all_joints: tuple[Any, ...] = ()
-    root_link: str = "world"
-
-
-def ik_target(pose: Pose | npt.ArrayLike, position_only: bool) -> tuple[Pose, bool]:
-    """An IK target as a :class:`Pose` (a bare 3-vector is a position-only target) and its mode."""
-    if isinstance(pose, Pose):
-        return pose, bool(position_only)
-    try:
-        arr = np.asarray(pose, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InvalidValueError(f"ik: expected a Pose, a 4x4 matrix or a position (3,), got {pose!r}") from exc
-    if arr.shape == (3,):
-        return Pose(arr), True
-    if arr.shape == (4, 4):
-        return Pose.from_matrix(arr), bool(position_only)
-    raise InvalidValueError(f"ik: expected a Pose, a 4x4 matrix or a position (3,), got shape {arr.shape}")
-
-
-class IKSolver:
-    """mink differential IK iterated to convergence (one per Kinematics, used under its lock)."""
-
-    def __init__(self, kin: Kinematics) -> None:
-        import mink
-
-        self._mink = mink
-        self.kin = kin
-        m = kin.model
-        self.conf = mink.Configuration(m)
-        self.limits = [mink.ConfigurationLimit(m, gain=0.5)]
-        constraints: list[Any] = []
-        if kin._frozen_dofs:
-            constraints.append(mink.DofFreezingTask(m, dof_indices=kin._frozen_dofs))
-        if m.neq > 0 and any(m.eq_active0):
-            constraints.append(mink.EqualityConstraintTask(m, cost=1.0))
-        self.constraints = constraints
-        self._tasks: dict[tuple[int, bool], Any] = {}
-        self._qpos = np.zeros(m.nq)
-
-    def _task(self, link: str, bid: int, position_only: bool) -> Any:
-        key = (bid, position_only)
-        task = self._tasks.get(key)
-        if task is None:
-            task = self._mink.FrameTask(
-                frame_name=link, frame_type="body", position_cost=1.0,
-                orientation_cost=0.0 if position_only else 1.0, lm_damping=1e-6,
-            )
-            self._tasks[key] = task
-        return task
-
-    def solve(
-        self,
-        bid: int,
-        link: str,
-        target: Pose,
-        start: FloatArray,
-        position_only: bool,
-        ptol: float,
-        rtol: float,
-        max_iterations: int,
-    ) -> Generator[None, None, tuple[FloatArray, float, float, int]]:
-        """Iterate from ``start`` (yielding after each step); return ``(q, pos. error, orient. error, iterations)``."""
-        mink = self._mink
-        kin = self.kin
-        conf = self.conf
-        data = conf.data
-        kin._qpos(start, self._qpos)
-        conf.update(self._qpos)
-        task = self._task(link, bid, position_only)
-        wxyz = np.array([target.orientation[3], *target.orientation[:3]])
-        task.set_target(mink.SE3(np.concatenate((wxyz, target.position))))
-        tq = target.orientation
-        best = (math.inf, start.copy(), math.inf, math.inf)
-        stall = 0
-        iters = 0
-        for iters in range(1, max_iterations + 1):
-            perr, rerr = _residual(data, bid, target.position, tq)
-            score = perr / ptol + (0.0 if position_only else rerr / rtol)
-            q_now = data.qpos[kin._qadr].copy()
-            if score < best[0] * (1.0 - 1e-3):
-                stall = 0
-            else:
-                stall += 1
-            if score < best[0]:
-                best = (score, q_now, perr, rerr)
-            if perr <= ptol and (position_only or rerr <= rtol):
-                return q_now, perr, rerr, iters - 1
-            if stall >= 15:  # a local minimum (or the target is out of reach)
-                break
-            yield
-            if position_only:
-                # mink's frame error is the SE(3) log, whose translation part mixes in the rotation
-                # error: aim at the current orientation so the error is the position error alone
-                task.set_target(mink.SE3(np.concatenate((data.xquat[bid], target.position))))
-            vel = mink.solve_ik(conf, [task], 1.0, "daqp", damping=1e-8, limits=self.limits,
-                                constraints=self.constraints)
-            conf.integrate_inplace(vel, 1.0)
-            # the QP meets limits and couplings to solver precision: restore them exactly
-            kin._qpos(np.clip(data.qpos[kin._qadr], kin.lower, kin.upper), self._qpos)
-            conf.update(self._qpos)
-        perr, rerr = _residual(data, bid, target.position, tq)
-        score = perr / ptol + (0.0 if position_only else rerr / rtol)
-        if score < best[0]:
-            best = (score, data.qpos[kin._qadr].copy(), perr, rerr)
-        return best[1], best[2], best[3], iters
-
-
-def _residual(data: mujoco.MjData, bid: int, position: FloatArray, quat_xyzw: FloatArray) -> tuple[float, float]:
-    perr = float(np.linalg.norm(data.xpos[bid] - position))
-    cur = _wxyz_to_xyzw(data.xquat[bid])
-    inv = np.array([-cur[0], -cur[1], -cur[2], cur[3]])
-    rerr = float(np.linalg.norm(rotation_vector(quat_multiply(inv, quat_xyzw))))
-    return perr, rerr

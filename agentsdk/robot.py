@@ -458,6 +458,7 @@ async def _open_robot(
     options: dict[str, Any],
     strict: bool | None = None,
     trusted: bool | None = None,
+    update_rate: float | None = None,
 ) -> Robot:
     from .motion import MotionManager
 
@@ -466,6 +467,8 @@ async def _open_robot(
         # so that other robots on this event loop keep their deadlines while this one loads
         cls = load_backend(backend)
         config, description = resolve_robot(_robot_spec(cls, robot, options), strict=strict, trusted=trusted)
+        if update_rate is not None:
+            config = config.with_update_rate(update_rate)
         joints = apply_overrides(description, config)
         safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
         bounds = PositionBounds(joints, safety_cfg.position_margin)
@@ -550,6 +553,7 @@ def connect(
     safety: SafetyConfig | Mapping[str, Any] | None = None,
     strict: bool | None = None,
     trusted: bool | None = None,
+    update_rate: float | None = None,
     **options: Any,
 ) -> _Connection:
     """Connect to ``robot`` on ``backend``.
@@ -564,10 +568,11 @@ def connect(
     you trust as code: xacro expressions unchecked, files outside its package
     allowed (by default a robot file is data, see README "Bring your own robot").
     ``safety`` overrides fields of the robot.yaml ``safety`` section;
-    other keyword options go to the backend (they override robot.yaml
+    ``update_rate`` (Hz) overrides robot.yaml's control rate (like ros2_control's
+    ``controller_manager.update_rate`` set at launch); other keyword options go to the backend (they override robot.yaml
     ``backends.<name>``). Use as ``async with connect(...) as robot`` or
     ``robot = await connect(...)`` (then ``await robot.close()``).
     """
-    return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted))
+    return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted, update_rate))
 
 

@@ -200,7 +200,7 @@ def _visual_mujoco_model(description: Any) -> Any:
     """The description compiled by MuJoCo with its meshes (as the mujoco backend does), for drawing."""
     import mujoco
 
-    from .kinematics import mjcf_source
+    from .hostmodel import mjcf_source
 
     mjcf = mjcf_source(description)
     if mjcf is not None:
@@ -249,7 +249,7 @@ class _PybulletRenderer:
         with filtered_native_output():  # no "pybullet build time: ..." on the user's terminal
             import pybullet as p
 
-        from .kinematics import mjcf_source
+        from .hostmodel import mjcf_source
 
         if mjcf_source(description) is not None:
             raise BackendUnavailableError("PyBullet's renderer draws URDF robots only; this robot is MJCF")

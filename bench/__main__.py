@@ -111,6 +111,12 @@ def _planning(quick: bool) -> list[Section]:
     return [planning.run(quick)]
 
 
+def _anchors(quick: bool) -> list[Section]:
+    from agentsdk.bench import anchors
+
+    return [anchors.run(quick)]
+
+
 def _tracking(quick: bool) -> list[Section]:
     from agentsdk.bench import tracking
 
@@ -501,6 +507,7 @@ def _can_cycle(quick: bool) -> list[Section]:
 BENCHMARKS: dict[str, tuple[str, Runner]] = {
     "overhead": ("SDK overhead per control cycle vs raw MuJoCo / PyBullet loops", _overhead),
     "rtf": ("lockstep real-time factor vs the raw simulators", _rtf),
+    "anchors": ("env step ÷ raw mj_step: agentsdk beside gymnasium and dm_control", _anchors),
     "multi": ("many lockstep robots in one event loop vs one robot", _multi),
     "realtime": ("realtime control-loop pacing at 500 Hz / 1 kHz vs raw pacing loops", _realtime),
     "feedback_timing": ("realtime loop timing at 500 Hz / 1 kHz vs a raw asyncio loop", _feedback_timing),
@@ -527,6 +534,8 @@ ALIASES = {
     "trajectory": "planning",
     "real_time_factor": "rtf",
     "record": "recording",
+    "gymnasium": "anchors",
+    "dm_control": "anchors",
 }
 
 

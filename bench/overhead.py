@@ -476,6 +476,10 @@ async def _sdk_track(backend: str, robot: str, traj: Any, tail: float) -> tuple[
         return sim, wall, res, (await r.read()).position.copy()
 
 
+#: the SDK runs, for the other benchmarks that time them the same way (bench/anchors.py)
+run_sdk, sdk_hold, sdk_track = _run_sdk, _sdk_hold, _sdk_track
+
+
 def waypoints(rb: _Robot, target_duration: float, seed: int = 1) -> tuple[np.ndarray, Any]:
     """Fixed-seed random waypoints in the middle of the joint ranges until the plan lasts ~target_duration."""
     from agentsdk.trajectory import plan

@@ -78,6 +78,10 @@ suite "sphinx" "$PY" -m sphinx -W --keep-going -q -b html docs build/docs
 suite "pytest (main suite)" "$PY" -m pytest -m "not vcan and not netns" "$@"
 
 if [ "${SKIP_VCAN:-0}" != 1 ]; then
+    # the VM's real-time tests share this machine's CPUs: show what else runs (a process the main suite
+    # left behind would show up here)
+    echo "--- load before the VM: $(cut -d' ' -f1-3 /proc/loadavg); busiest processes:"
+    ps -eo pid=,etimes=,pcpu=,args= --sort=-pcpu 2>/dev/null | head -n 5 | cut -c1-160
     PYBIN=$("$PY" -c 'import sys; print(sys.executable)')
     # the same kernel also has network namespaces, veth and netem (as modules) for the ROS 2 network-fault tests
     suite "pytest (vcan and netns suites, real SocketCAN and netem inside user-mode Linux)" \

@@ -5,6 +5,9 @@ Static checks over the shipped code (agentsdk/, backends/, behaviors/, bench/):
 * ``from x import _name`` of another module's private name;
 * ``obj._name`` where ``_name`` is not defined in the same module (so it belongs to another
   module's object), apart from a short allowlist, each with its documented reason;
+* inside a subpackage of agentsdk (``agentsdk.motion``, ``agentsdk.safety``, ...) the package is the
+  unit of privacy: its modules may use each other's private names (``from ._types import _POS``,
+  ``motion._settle(...)``), never those of another package or of a top-level module;
 * assignments to attributes of imported modules or classes (monkey-patching).
 """
 
@@ -63,16 +66,30 @@ def _imported_names(tree: ast.AST) -> set[str]:
     return out
 
 
+def _package_private_names(path: Path) -> set[str]:
+    """The private names defined by the other modules of ``path``'s package (none at the top level)."""
+    if path.parent in (ROOT / "agentsdk", ROOT):
+        return set()
+    names: set[str] = set()
+    for other in path.parent.glob("*.py"):
+        if other != path:
+            names |= _defined_private_names(ast.parse(other.read_text(), filename=str(other)))
+    return names
+
+
 def _problems(path: Path) -> list[str]:
     rel = path.relative_to(ROOT).as_posix()
     tree = ast.parse(path.read_text(), filename=rel)
-    own = _defined_private_names(tree)
+    package = _package_private_names(path)
+    own = _defined_private_names(tree) | package
     imported = _imported_names(tree)
     out = []
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
             if node.level > 0 and node.module is None:
                 continue  # ``from . import _part``: a package importing its own private submodule
+            if node.level == 1 and package and (path.parent / f"{node.module}.py").is_file():
+                continue  # ``from ._types import _POS``: a private name shared inside one subpackage
             for alias in node.names:
                 if alias.name.startswith("_") and not alias.name.startswith("__"):
                     out.append(f"{rel}:{node.lineno}: imports private {alias.name!r} from {node.module}")
@@ -133,3 +150,11 @@ def test_every_package_is_installed() -> None:
                 found.add(".".join((name, *rel)))
     missing = sorted(found - listed)
     assert not missing, f"packages missing from [tool.setuptools] packages: {missing}"
+
+
+def test_package_privacy_stops_at_the_package() -> None:
+    """Private names are shared inside one subpackage only: not with top-level modules or other packages."""
+    motion = _package_private_names(ROOT / "agentsdk" / "motion" / "_executor.py")
+    assert {"_settle", "_POS", "_Exec"} <= motion
+    assert _package_private_names(ROOT / "agentsdk" / "robot.py") == set()
+    assert "_settle" not in _package_private_names(ROOT / "agentsdk" / "safety" / "_filter.py")

@@ -29,7 +29,7 @@ import yaml
 import agentsdk
 from agentsdk import BackendFault, BackendStartError, EStopActive, JointCommand, Robot, SafetyFault, SafetyState
 from agentsdk.backends.can.emulator import MotorEmulator
-from agentsdk.backends.can.mit import DISABLE
+from agentsdk.backends.can.mit import DISABLE, ENABLE
 from agentsdk.cli import main as cli_main
 from agentsdk.testing import BackendConformance
 
@@ -107,6 +107,7 @@ async def can_robot(robot: str | Path = "mit_leg", **options: Any) -> AsyncItera
     """Emulator + ``connect("can", robot=...)`` on one fresh virtual channel."""
     channel = unique_channel()
     options.setdefault("max_missed_replies", MAX_MISSED)
+    options.setdefault("open_timeout", 2.0)  # the emulator thread shares a loaded host's GIL; the enable is resent
     with emulator(channel, robot) as emu:
         async with agentsdk.connect("can", robot=robot, interface="virtual", channel=channel, **options) as bot:
             yield bot, emu, channel
@@ -200,7 +201,8 @@ async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant(tmp_path: P
         leg = mit_leg_at(tmp_path / str(on), 500.0, gravity_compensation=on)
         channel = unique_channel()
         with emulator(channel, leg, plant="mujoco"):
-            async with agentsdk.connect("can", robot=leg, interface="virtual", channel=channel,
+            # the plant's first physics step can take longer than 0.2 s on a loaded host: the enable is resent
+            async with agentsdk.connect("can", robot=leg, interface="virtual", channel=channel, open_timeout=5.0,
                                         max_missed_replies=MAX_MISSED) as robot:
                 drift[on] = await hold_drift(robot)
                 sent = robot.controller.gravity_torque
@@ -283,6 +285,26 @@ async def test_silent_motor_at_open_fails_naming_it_and_disables_the_others() ->
         assert emu.counters(1).specials >= 2  # enabled, then disabled again
         assert emu.counters(2).specials == 0  # silent: heard nothing
         assert 1 in disabled_ids(frames())
+
+
+async def test_open_resends_the_enable_frame_to_a_motor_that_answers_late() -> None:
+    """A motor (or emulator) that starts listening after the first enable frame is enabled by a resend
+    within ``open_timeout``; the default 0.2 s still fails fast for a motor that never answers."""
+    channel = unique_channel()
+    with emulator(channel) as emu, sniffer(channel) as frames:
+        emu.set_faults(2, silent=True)
+        loop = asyncio.get_running_loop()
+        wake = loop.call_later(0.5, lambda: emu.set_faults(2, silent=False))
+        try:
+            async with agentsdk.connect("can", robot="mit_leg", interface="virtual", channel=channel,
+                                        open_timeout=5.0, max_missed_replies=MAX_MISSED, update_rate=100) as robot:
+                assert robot.control_period == pytest.approx(0.01)
+                assert emu.counters(2).specials >= 1
+                await run_cycles(robot, 5)
+        finally:
+            wake.cancel()
+        enables = [m for m in frames() if m.arbitration_id == 2 and bytes(m.data) == ENABLE]
+        assert len(enables) >= 3, len(enables)  # resent every 0.2 s while motor 2 was silent
 
 
 async def test_silent_motor_mid_run_faults_naming_it_and_disables_all() -> None:

@@ -14,11 +14,12 @@ pays a host-level context switch per guest process switch: a raw 3-motor round t
 deadline cannot be met and the backend rightly faults. The suite therefore runs a copy
 of mit_leg's robot.yaml at ``AGENTSDK_VCAN_RATE`` Hz (default 50: 20 ms cycles, 16 ms
 reply deadline; at 100 Hz a loaded host missed a third of the cycles in UML, where every clock
-read and socket call is a trap into the guest kernel), with the motors' command timeout kept at
-2.5 periods (:data:`MOTOR_TIMEOUT`); set it to 500 on a machine with a native vcan0
-to run the robot.yaml unchanged. Every emulator and host process is
-terminated in a ``finally``; frames are observed with independent ``can.Bus("vcan0")``
-handles and their kernel receive timestamps.
+read and socket call is a trap into the guest kernel), with the motors' command timeout at
+0.25 s (:data:`MOTOR_TIMEOUT`: CI's VM stalls for longer than mit_leg's 25 ms, and a motor that
+goes limp mid-move coasts past its limit); set ``AGENTSDK_VCAN_RATE=500`` and
+``AGENTSDK_VCAN_MOTOR_TIMEOUT=0.025`` on a machine with a native vcan0 to run the robot.yaml
+unchanged. Every emulator and host process is terminated in a ``finally``; frames are observed
+with independent ``can.Bus("vcan0")`` handles and their kernel receive timestamps.
 
 Motor-side timeout after ``kill -9`` of the host: the emulator process has no status
 channel, so the test observes the bus. While the host streams velocity commands the
@@ -62,17 +63,21 @@ HAS_VCAN = Path("/sys/class/net/vcan0").exists()
 pytestmark = [
     pytest.mark.vcan,
     pytest.mark.skipif(not HAS_VCAN, reason="no vcan0 (run via scripts/run-in-vcan.sh)"),
+    # process start-up (imports through hostfs, every stat a trap into the guest kernel) takes tens of
+    # seconds on a slow CI machine's VM: the suite's default 120 s is for tests in one process
+    pytest.mark.timeout(600),
 ]
 
 #: mit_leg's motors: CAN id -> joint
 MOTORS = {1: "hip_abduction", 2: "hip_pitch", 3: "knee"}
-#: hang guard for process start-up (Python + numpy imports under user-mode Linux)
-STARTUP_LIMIT = 60.0
+#: hang guard for process start-up (Python + numpy + MuJoCo imports under user-mode Linux; CI's VM is slow)
+STARTUP_LIMIT = 150.0
 #: control rate of the robot under test (see the module docstring)
 VCAN_RATE = float(os.environ.get("AGENTSDK_VCAN_RATE", "50"))
-#: the motors' own command timeout (firmware setting) in the copy: mit_leg's 25 ms is 12 cycles at 500 Hz,
-#: at VCAN_RATE it is kept at 2.5 periods or more (a single late cycle must not make a motor go limp)
-MOTOR_TIMEOUT = max(0.025, 2.5 / VCAN_RATE)
+#: the motors' own command timeout (firmware setting) in the copy: mit_leg's 25 ms is 12 cycles at 500 Hz;
+#: in the VM 0.25 s (and at least 2.5 periods): a stall of the VM's one vCPU (tens of ms on a slow CI
+#: machine) must not make a motor go limp mid-move, where the free rotor coasts past the joint's limit
+MOTOR_TIMEOUT = float(os.environ.get("AGENTSDK_VCAN_MOTOR_TIMEOUT", max(0.25, 2.5 / VCAN_RATE)))
 
 
 @pytest.fixture(scope="module")
@@ -313,14 +318,18 @@ async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant_over_vcan0(
 
 
 # --------------------------------------------------------------------------- CLI
+@pytest.mark.timeout(360)
 def test_agentsdk_run_wave_on_vcan0(leg: str) -> None:
     # no -o options: interface socketcan and channel vcan0 come from the robot.yaml
-    with emulator_process(leg), recorder() as rec:
+    with emulator_process(leg) as emu, recorder() as rec:
         host = agentsdk_run(ROOT / "behaviors" / "wave.py", leg)
         try:
-            rc = host.popen.wait(120)
-            out = host.output()
+            rc = host.popen.wait(240)  # 7.5 s of wave; process start-up takes tens of seconds in a slow VM
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"wave.py did not end within 240 s:\n{host.output()[-4000:]}\n"
+                        f"emulator:\n{emu.output()[-2000:]}")
         finally:
+            out = host.output()
             host.stop()
         assert rc == 0, out
         assert f"ran wave.py on {leg} (can)" in out
@@ -474,7 +483,12 @@ async def main(robot):
     knee = 1.9 if q["knee"] < 1.35 else 0.8
     hip = 0.3 if q["hip_pitch"] < 0.0 else -0.4
     motion = robot.follow(Trajectory(["hip_pitch", "knee"], [TrajectoryPoint(2.0, [hip, knee])]))
-    await robot.clock.sleep(0.6)   # robot time: well into the move, whatever the machine's load
+    # well into the move, measured: a starved VM lags the plan (the test also checks it moved)
+    await robot.clock.sleep(0.4)
+    for _ in range(60):
+        if max(abs(v) for v in (await robot.read()).velocity) > 0.4:
+            break
+        await robot.clock.sleep(0.02)
     print("MOVING", flush=True)
     await motion   # the README's own pattern
 """
@@ -505,7 +519,7 @@ def test_signal_stops_the_motors_at_rest_before_disabling_them(tmp_path: Path, l
                                 "-o", "max_missed_replies=100")
             try:
                 host.wait_for("MOVING")
-                time.sleep(0.2 + 0.05 * (k % 4))
+                time.sleep(0.05 * (k % 4))
                 host.popen.send_signal(sig)
                 rc = host.popen.wait(60)
                 out = host.output()
@@ -591,6 +605,7 @@ async def test_set_zero_on_vcan0_refused_with_torque_on_then_zeroes_without_movi
 
 
 # ------------------------------------------------------------ the README's CAN quickstart (issue 10, item 13)
+@pytest.mark.timeout(400)
 def test_readme_can_quickstart_runs_as_written() -> None:
     """Before: the quickstart failed 3 runs in 4 in user-mode Linux and its ``kill $EMU`` hid it (exit 0).
 
@@ -606,5 +621,5 @@ def test_readme_can_quickstart_runs_as_written() -> None:
     assert match, block
     env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     proc = subprocess.run(["bash", "-c", match.group(1)], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=180, check=False)
+                          timeout=300, check=False)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]

@@ -45,6 +45,7 @@ from agentsdk.loop import Phase
 pytestmark = [
     pytest.mark.vcan,
     pytest.mark.skipif(not HAS_VCAN, reason="no vcan0 (run via scripts/run-in-vcan.sh)"),
+    pytest.mark.timeout(600),  # processes start slowly in a slow CI machine's VM (see test_can_vcan.py)
 ]
 
 @pytest.fixture(scope="module")

@@ -329,3 +329,26 @@ async def test_limits_narrowed_past_the_start_pose_are_refused(tmp_path: Path) -
     ok = robot_yaml(tmp_path, joint_limits={"joint1": {"min_position": 1.0}}, initial_positions={"joint1": 1.5})
     async with agentsdk.connect("mock", robot=ok) as robot:
         assert robot.joints[0].lower == 1.0
+
+
+@pytest.mark.parametrize("rate", [0.0, -5.0, math.nan, math.inf, 1e9])
+async def test_connect_update_rate_is_validated_like_robot_yaml(rate: float) -> None:
+    """``connect(update_rate=...)`` / ``agentsdk run --update-rate``: the robot.yaml range, named."""
+    with pytest.raises(ConfigurationError, match="update_rate"):
+        async with agentsdk.connect("mock", update_rate=rate):
+            pytest.fail("connect must fail")
+
+
+async def test_connect_update_rate_sets_the_control_period() -> None:
+    async with agentsdk.connect("mock", update_rate=125) as robot:
+        assert robot.control_period == pytest.approx(0.008)
+        await robot.clock.sleep(0.1)
+
+
+def test_cli_run_update_rate_reaches_the_robot(tmp_path: Path) -> None:
+    behavior = tmp_path / "rate.py"
+    behavior.write_text("async def main(robot):\n    print('PERIOD', robot.control_period)\n")
+    proc = subprocess.run([sys.executable, "-m", "agentsdk", "run", str(behavior), "--backend", "mock",
+                           "--update-rate", "250", "-q"], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert "PERIOD 0.004" in proc.stdout

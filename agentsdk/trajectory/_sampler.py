@@ -274,6 +274,8 @@ class TrajectorySampler:
         # each segment's coefficient matrix is a view made once
         flat: Any = self._B.reshape(-1)  # numpy arrays are buffers; its stubs do not say so
         self._Bm: Any = memoryview(flat)
+        flat[0] = flat[7] = 1.0  # B's constant entries, written once
+        flat[14] = 2.0
         self._segs = list(self._c)
         self._end_state = np.vstack([P[-1], v_end, a_end])
         if len(self._c):  # the state at the start of the first segment
@@ -313,19 +315,16 @@ class TrajectorySampler:
         t2 = tau * tau
         t3 = t2 * tau
         # B = [[1, tau, t2, t3, t3 tau, t3 t2], [0, 1, 2 tau, 3 t2, 4 t3, 5 t3 tau], [0, 0, 2, 6 tau, 12 t2, 20 t3]]
-        m = self._Bm
-        m[0] = 1.0
+        m = self._Bm  # (entries 0, 7 and 14 are constant: set once)
         m[1] = tau
         m[2] = t2
         m[3] = t3
         m[4] = t3 * tau
         m[5] = t3 * t2
-        m[7] = 1.0
         m[8] = 2.0 * tau
         m[9] = 3.0 * t2
         m[10] = 4.0 * t3
         m[11] = 5.0 * t3 * tau
-        m[14] = 2.0
         m[15] = 6.0 * tau
         m[16] = 12.0 * t2
         m[17] = 20.0 * t3

@@ -85,6 +85,8 @@ log = logging.getLogger("agentsdk.can")
 
 #: receive poll interval (s) of python-can's reader thread on buses without a file descriptor
 _RX_POLL = 0.05
+#: the enable frame is resent this often while a motor has not answered it (``open_timeout`` bounds the whole wait)
+_ENABLE_RETRY = 0.2
 #: how long a motor may take to answer after a zero frame (CubeMars pauses ~1 s)
 _ZERO_TIMEOUT = 2.0
 #: bus cycles with a reply a zero frame waits for before the state is taken to be in the new frame
@@ -110,7 +112,7 @@ class CanOptions(CanBusConfig):
     reply_deadline: float = Field(default=0.8, gt=0.0, le=1.0)
     #: consecutive cycles without a reply before a motor is declared lost (-> FAULT)
     max_missed_replies: int = Field(default=5, ge=1, le=1000)
-    #: seconds to wait for each motor's reply to the enable frame at open (and to special frames)
+    #: seconds to wait for each motor's reply to the enable frame at open, resent every 0.2 s (and to special frames)
     open_timeout: float = Field(default=0.2, gt=0.0, le=10.0)
     #: extra keyword arguments for ``can.Bus`` (e.g. ``receive_own_messages``)
     bus_kwargs: dict[str, Any] = Field(default_factory=dict)
@@ -354,7 +356,7 @@ class CanBackend(Backend):
         enabled: list[int] = []
         try:
             for k, m in enumerate(self._motors):
-                if not await self._special_and_wait(k, ENABLE, opts.open_timeout):
+                if not await self._enable_motor(k, opts.open_timeout):
                     raise BackendStartError(
                         f"motor id {m.id} (joint {self.names[k]!r}) did not answer the enable frame within "
                         f"{opts.open_timeout:g} s on {opts.interface}:{opts.channel}; "
@@ -375,6 +377,20 @@ class CanBackend(Backend):
         if self._foreign_seen:
             self._disable_all()
             raise BusConflict(self._foreign_message())
+
+    async def _enable_motor(self, k: int, wait: float) -> bool:
+        """Send motor ``k`` the enable frame until it answers, for at most ``wait`` seconds.
+
+        Resent every :data:`_ENABLE_RETRY` s: a frame sent before a motor (or its emulator) was
+        listening is gone, so a longer ``open_timeout`` also covers a drive that powers up late.
+        """
+        deadline = time.monotonic() + wait
+        while True:
+            remaining = deadline - time.monotonic()
+            if await self._special_and_wait(k, ENABLE, max(1e-3, min(_ENABLE_RETRY, remaining))):
+                return True
+            if remaining <= _ENABLE_RETRY:
+                return False
 
     async def _special_and_wait(self, k: int, frame: bytes, wait: float, *, next_cycle: bool = False) -> bool:
         """Send a special frame to motor ``k`` and wait for a reply from it that left after it.
@@ -461,7 +477,7 @@ class CanBackend(Backend):
         """Enter motor mode again after an e-stop (explicit robot.enable())."""
         opts: CanOptions = self.options
         for k, m in enumerate(self._motors):
-            if not await self._special_and_wait(k, ENABLE, opts.open_timeout):
+            if not await self._enable_motor(k, opts.open_timeout):
                 raise BackendFault(f"motor id {m.id} (joint {self.names[k]!r}) did not answer the enable frame")
         self._fill_state()
 

@@ -345,6 +345,8 @@ class MujocoBackend(Backend):
         mask = self.gravity_compensation.astype(float)
         self._tau_model = np.zeros(len(self.joints))
         self._gc_mask = mask
+        #: every joint compensated: the mask multiplies by 1.0 everywhere (no bit changes), so it is skipped
+        self._gc_all = bool(mask.all())
         on = mask.any() and bool(np.any(m.opt.gravity))
         self._gravity = GravityTerm(m, self.names) if on else None
         # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from this model, armature included
@@ -413,12 +415,13 @@ class MujocoBackend(Backend):
         ctrl += tmp
         ctrl += sp.effort
         if self._gravity is not None:  # tau_model: g(q) at the measured position, allocation-free
-            tau = self._gravity.compute(self.data.qpos, self._tau_model)
-            tau *= self._gc_mask
+            tau = self._gravity.compute(self._qpos, self._tau_model)  # (views made once: no array per tick)
+            if not self._gc_all:
+                tau *= self._gc_mask
             ctrl += tau
         inverse = self._inverse
         if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics
-            ctrl += inverse.compute(self.data.qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode)
+            ctrl += inverse.compute(self._qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode, moving=True)
         en = sp.enabled
         if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0

@@ -567,8 +567,9 @@ class PybulletBackend(Backend):
         assert self._inverse is not None
         q = np.take(self._q_all, self._sel, out=self._gc_q)
         base = self.base_state().pose if self.floating_base else None
+        # (called only when the write found the reference moving: not asked again)
         return self._inverse.compute(self._model.qpos(q, base), sp.velocity, sp.acceleration, self._tau_motion,
-                                     sp.mode)
+                                     sp.mode, moving=True)
 
     def _implicit_terms(self) -> tuple[np.ndarray, np.ndarray]:
         """``M(q)`` and ``c(q, v) + g(q)`` in PyBullet's dof order, from the description's model.

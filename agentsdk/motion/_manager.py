@@ -1,0 +1,230 @@
+"""The :class:`MotionManager`: the motion layer's public face to the robot and its safety stop port."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Mapping
+
+import numpy as np
+
+from .. import scope
+from ..config import format_value
+from ..errors import InvalidValueError, LimitViolation, UnknownJointError
+from ..loop import HookHandle, Phase, Setpoint, StateView
+from ..trajectory import (
+    Trajectory,
+    plan_point_to_point,
+)
+from ._executor import _Executor
+from ._handle import Motion
+from ._records import _Exec
+from ._types import MotionPhase, ResultCode, Tolerances, _per_joint, _turns_to
+
+
+class MotionManager(_Executor):
+    """Owns the running motions of one robot; one executor per motion, run in the control tick."""
+
+    # ------------------------------------------------------------- start
+    def follow(
+        self,
+        traj: Trajectory,
+        tolerances: Tolerances | None,
+        *,
+        start_time: float | None = None,
+        allow_nonzero_velocity_at_end: bool = False,
+        stretch_to_limits: bool = False,
+    ) -> Motion:
+        """Start executing ``traj`` (validated against the joints and limits); returns its :class:`Motion`.
+
+        ``start_time`` (robot clock) schedules the start; in the past, the points that have
+        elapsed are skipped. See :meth:`agentsdk.Robot.follow`.
+        """
+        ctl = self.loop
+        if not isinstance(traj, Trajectory):
+            raise InvalidValueError(f"expected a Trajectory, got {type(traj).__name__}")
+        traj.validate(ctl.joints, allow_nonzero_velocity_at_end=bool(allow_nonzero_velocity_at_end))
+        names = tuple(traj.joint_names)
+        idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
+        for k, p in enumerate(traj.points):
+            try:
+                self.bounds.check(np.asarray(p.positions, dtype=float), idx)
+            except LimitViolation as exc:
+                raise LimitViolation(f"point {k}: {exc}") from None
+        tol = tolerances if tolerances is not None else Tolerances()
+        if not isinstance(tol, Tolerances):
+            raise InvalidValueError(f"tolerances must be a Tolerances, got {type(tol).__name__}")
+        path_tol = _per_joint(tol.path, names, "path")
+        goal_tol = _per_joint(tol.goal, names, "goal")
+        goal_time = float(tol.goal_time)
+        now = ctl.stamp
+        if start_time is None:
+            t_start = now
+        else:
+            try:
+                t_start = float(start_time)
+            except (TypeError, ValueError):
+                raise InvalidValueError(f"start_time must be a robot time in seconds, got {start_time!r}") from None
+            if not math.isfinite(t_start):
+                raise InvalidValueError(f"start_time must be a finite robot time in seconds, got {start_time!r}")
+        if t_start < now:  # JTC: a start in the past skips what has elapsed
+            traj = traj.after(now - t_start)
+            t_start = now
+        ex = _Exec(None, idx, None, t_start, path_tol, goal_tol, goal_time,
+                   goal=np.asarray(traj.positions[-1], dtype=float).copy())
+        ex.stretch = bool(stretch_to_limits)
+        ex.end_moving = traj.velocities is not None and bool(np.any(traj.velocities[-1] != 0.0))
+        wrap = self._continuous[idx]
+        ex.wrap = wrap if wrap.any() else None
+        if t_start > now:
+            # scheduled: validated now against the state predicted for its start, again when it starts
+            q0, v0, a0 = self._predicted(idx, t_start)
+            traj, _ = self._prepare(ex, traj, q0, v0, a0, t_start)
+            ex.pending_traj = traj
+            ex.phase = MotionPhase.PENDING
+            motion = Motion(self, idx, names, traj, t_start)
+            ex.motion = motion
+            self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
+            self._pending.append(ex)
+            self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+            scope.register(motion)
+            return motion
+        q0, v0, a0 = self.desired(idx)
+        traj, sampler = self._prepare(ex, traj, q0, v0, a0, t_start)
+        motion = Motion(self, idx, names, traj, t_start)
+        ex.motion = motion
+        self._preempt_offloaded()
+        self._preempt(idx)
+        self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
+        self._begin(ex, sampler, q0, v0, a0, t_start)
+        self._install(ex)
+        self._try_offload(ex, traj)
+        scope.register(motion)
+        return motion
+
+    def move_to(self, positions: Mapping[str, float], duration: float | None, tol: Tolerances | None) -> Motion:
+        """Plan a jerk-limited move from the current desired state to ``positions`` and follow it.
+
+        Continuous joints take the shortest angle to the target.
+        """
+        ctl = self.loop
+        if not isinstance(positions, Mapping) or not positions:
+            raise InvalidValueError("move_to expects a non-empty {joint name: position} mapping")
+        unknown = [n for n in positions if n not in ctl.index]
+        if unknown:
+            raise UnknownJointError(f"unknown joint {unknown[0]!r}; this robot's joints are: {', '.join(ctl.names)}")
+        names = tuple(positions)
+        idx = np.array([ctl.index[n] for n in names], dtype=np.intp)
+        try:
+            goal = np.array([float(positions[n]) for n in names])
+        except (TypeError, ValueError):
+            raise InvalidValueError(f"move_to: targets must be numbers, got {dict(positions)!r}") from None
+        if not np.isfinite(goal).all():
+            j = int(np.flatnonzero(~np.isfinite(goal))[0])
+            raise InvalidValueError(
+                f"move_to: non-finite target {format_value(goal[j])} for joint {names[j]!r}"
+            )
+        if duration is not None:
+            try:
+                duration = float(duration)
+            except (TypeError, ValueError):
+                raise InvalidValueError(f"move_to: duration must be a number of seconds, got {duration!r}") from None
+        self.bounds.check(goal, idx)
+        q0, v0, a0 = self.desired(idx)
+        wrap = self._continuous[idx]
+        if wrap.any():
+            goal = goal + np.where(wrap, _turns_to(q0, goal), 0.0)
+        joints = [ctl.joints[i] for i in idx.tolist()]
+        traj = plan_point_to_point((q0, v0, a0), goal, joints, duration=duration)
+        return self.follow(traj, tol)
+
+    def _drop_pending(self, idx: np.ndarray, code: ResultCode, msg: str) -> None:
+        for ex in list(self._pending):
+            if np.intersect1d(ex.idx, idx).size:
+                self._finish(ex, code, msg)
+
+    async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0, *,
+                            from_reference: bool = False) -> None:
+        """Decelerate every joint to rest (e-stop categories 1 and 2); returns when at rest.
+
+        Running motions end ABORTED at once (their reference is dropped) and every joint
+        stops from its measured state (or, where it tracks its setpoint within
+        :data:`TRACKING_BAND`, from that setpoint), within its deceleration limit.
+        ``from_reference`` (a sensor fault: the measurement is not to be trusted): every
+        position-mode joint stops from its desired state, whatever the measurement says.
+        ``damp_only`` (backends without position control): velocity mode at zero
+        velocity with gain ``damping`` until every joint is still.
+        """
+        loop = self.loop
+        done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        idx = np.arange(len(loop.joints))
+        handle: HookHandle | None = None
+        if damp_only:
+            self.abort_all("stopped by the safety layer")
+            loop.damp(idx, damping)
+
+            def _until_still(t: float, st: StateView, sp: Setpoint) -> bool:
+                if np.all(np.abs(st.velocity) < 1e-2) and not done.done():
+                    done.set_result(None)
+                return not done.done()
+
+            handle = loop.add_hook(Phase.COMMAND, _until_still)
+        else:
+            q, v, a = self.desired(idx)
+            if from_reference:
+                q0, v0, a0, meas = q, v, a, np.zeros(len(idx), dtype=bool)
+            else:
+                q0, v0, a0, meas = self._stop_start(idx, q, v, a, None)
+            for ex in [*set(self._owner), *self._pending]:
+                if ex is not None:
+                    self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
+            if meas.any() and self._guard is not None:
+                self._guard.rebase(idx[meas], q0[meas])
+            self._start_ramp(idx, q0, v0, a0, None, "", on_done=lambda: None if done.done() else done.set_result(None))
+        try:
+            await done
+        finally:
+            if handle is not None:
+                handle.remove()
+
+    def abort_all(self, reason: str = "robot closed") -> None:
+        """Resolve every motion ABORTED (no ramp: the caller takes over the joints)."""
+        for ex in [*set(self._owner), *self._pending]:
+            if ex is not None and ex.motion is not None:
+                self._finish(ex, ResultCode.ABORTED, f"aborted: {reason}")
+
+    def end_all(self, reason: str) -> None:
+        """End every motion (ABORTED) and every stop ramp now, leaving the setpoint where it is.
+
+        Used by ``reset()``: nothing may keep driving the joints over time afterwards.
+        """
+        for ex in [*set(self._owner), *self._pending]:
+            if ex is not None:
+                self._finish(ex, ResultCode.ABORTED if ex.motion is not None else None, f"aborted: {reason}")
+
+    def fail_all(self, exc: BaseException) -> None:
+        """Fail every motion with ``exc`` (the control loop died)."""
+        for ex in [*set(self._owner), *self._pending]:
+            if ex is None:
+                continue
+            self._release(ex)
+            if ex.motion is not None:
+                ex.motion._fail(exc)
+            ex.phase = MotionPhase.DEAD
+
+    def limiter_clipped(self, idx: np.ndarray, detail: str) -> None:
+        """The safety layer's limiter had to clip the setpoint of joints ``idx`` that a motion drives.
+
+        A planned motion is never clipped silently: the motion aborts (ABORTED) and stops from
+        the measured state; a stop ramp that reaches a joint's bounds is reported once.
+        """
+        for j in idx.tolist():
+            ex = self._owner[j]
+            if ex is None or ex.reported_clip:
+                continue
+            ex.reported_clip = True
+            if self._guard is not None:
+                self._guard.report("clip", detail, self.loop.names[j])
+            if ex.phase in (MotionPhase.FOLLOW, MotionPhase.SETTLE):
+                q, v, a = ex.des_q, ex.des_v, ex.des_a
+                self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", self.loop.stamp, q, v, a, None)

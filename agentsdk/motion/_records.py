@@ -1,0 +1,136 @@
+"""The executor's record of one motion or stop ramp and its preallocated tick buffers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..limits import StepLimiter
+from ..loop import ControlLoop, Setpoint, StateView
+from ..offload import OffloadedGoal
+from ..trajectory import (
+    Trajectory,
+)
+from ._handle import Motion
+from ._types import MotionPhase, ResultCode
+
+
+class _TickBuffers:
+    """Preallocated arrays of one executor's tick path (a tick allocates no arrays)."""
+
+    __slots__ = (
+        "a",
+        "act",
+        "actual",
+        "actual_v",
+        "all",
+        "at",
+        "bound",
+        "dev",
+        "err",
+        "gain",
+        "mask",
+        "none",
+        "o",
+        "out",
+        "q",
+        "sample",
+        "sel",
+        "sp_views",
+        "st_views",
+        "tmp",
+        "v",
+        "vt",
+    )
+
+    def __init__(self, n: int) -> None:
+        self.sample = np.zeros((3, n))
+        # row views made once (a view is a Python object: making them per tick would allocate)
+        self.q, self.vt, self.at = self.sample[0], self.sample[1], self.sample[2]
+        self.v, self.a, self.err, self.actual, self.out = (np.zeros(n) for _ in range(5))
+        self.tmp, self.o, self.dev, self.gain, self.act, self.actual_v = (np.zeros(n) for _ in range(6))
+        self.mask = np.zeros(n, dtype=bool)
+        #: ``mask.tobytes()`` with every / no joint set (a bytes compare costs less than np.count_nonzero)
+        self.all, self.none = np.ones(n, dtype=bool).tobytes(), self.mask.tobytes()
+        #: the joints as a slice when they are consecutive, else their index array
+        self.sel: Any = None
+        #: views of the setpoint, state and limiter arrays made once (basic indexing makes a view each
+        #: time), for the (setpoint, state, origin) objects they were made from
+        self.bound: tuple[Any, Any, Any] | None = None
+        self.sp_views: tuple[np.ndarray, ...] = ()
+        self.st_views: tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None] = (None, None, None)
+
+    def selection(self, idx: np.ndarray) -> Any:
+        """The joints ``idx`` as a slice when they are consecutive (basic indexing is ~4x cheaper), else ``idx``."""
+        if self.sel is None:
+            n = len(idx)
+            start = int(idx[0]) if n else 0
+            consecutive = n > 0 and bool(np.array_equal(idx, np.arange(start, start + n)))
+            self.sel = slice(start, start + n) if consecutive else idx
+        return self.sel
+
+    def bind(self, idx: np.ndarray, sp: Setpoint, st: StateView, origin: np.ndarray | None, loop: ControlLoop) -> None:
+        """Make the views of consecutive joints ``idx`` into ``sp``, ``st``, ``origin`` and the loop's gains."""
+        sel = self.selection(idx)
+        self.bound = (sp, st, origin)
+        if isinstance(sel, slice):
+            self.sp_views = (sp.mode[sel], sp.enabled[sel], sp.position[sel], sp.velocity[sel], sp.effort[sel],
+                             sp.kp[sel], sp.kd[sel], sp.target[sel], loop.gain_p[sel], loop.gain_d[sel],
+                             sp.acceleration[sel])
+            self.st_views = (st.position[sel], st.velocity[sel], None if origin is None else origin[sel])
+        else:
+            self.sp_views = ()
+            self.st_views = (None, None, None)
+
+
+@dataclass(eq=False)
+class _Exec:
+    """Executor state of one motion or stop ramp (lives in the control tick)."""
+
+    motion: Motion | None
+    idx: np.ndarray
+    sampler: Any
+    #: robot time the trajectory (or stop ramp) starts
+    t0: float
+    path_tol: np.ndarray
+    goal_tol: np.ndarray
+    goal_time: float
+    goal: np.ndarray
+    phase: MotionPhase = MotionPhase.FOLLOW
+    stop_code: ResultCode | None = None
+    stop_msg: str = ""
+    des_q: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    des_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    des_a: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    on_done: Any = None
+    #: sample time of the trajectory (advances at the speed scaling factor), and the last tick's time
+    tau: float = 0.0
+    t_last: float = 0.0
+    #: speed scaling actually applied, and its rate (1/s)
+    s: float = 1.0
+    sdot: float = 0.0
+    #: trajectory-time velocity and acceleration at ``tau`` (for the scaling ramp's bound)
+    vt: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    at: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: continuous joints of this motion (errors wrap around), or None
+    wrap: np.ndarray | None = None
+    #: the trajectory to start at ``t0`` (pending motions), its tolerance options
+    pending_traj: Trajectory | None = None
+    stretch: bool = False
+    #: the trajectory ends moving (allow_nonzero_velocity_at_end): decelerate after the end
+    end_moving: bool = False
+    reported_clip: bool = False
+    #: the safety limiter of its joints (:meth:`StepLimiter.select`), made on the first tick
+    limits: StepLimiter | None = None
+    #: its joints as a slice when they are consecutive (basic indexing: ~4x cheaper than ``idx`` per write)
+    sel: Any = None
+    #: the tick path's preallocated arrays (made on the first tick)
+    work: _TickBuffers | None = None
+    #: the goal the backend's own controller runs instead (:mod:`agentsdk.offload`), and its desired state
+    remote: OffloadedGoal | None = None
+    remote_q: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: robot time since which the joints of an ended offloaded goal are still (-1: the goal runs)
+    remote_rest: float = -1.0
+    remote_v: np.ndarray = field(default_factory=lambda: np.zeros(0))

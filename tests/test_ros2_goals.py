@@ -501,8 +501,10 @@ async def test_pick_place_runs_as_goals_against_agentsdk_serve_in_another_proces
         local = await rb._final_joints("pick_place", "mujoco")
         capsys.readouterr()
         module = load_behavior("pick_place")
-        async with agentsdk.connect("ros2", robot="arm3", namespace="/cell", domain_id=did, safety=SAFETY,
-                                    realtime=True) as robot:
+        # joint_states from another process on a loaded 2-core machine arrive bunched (gaps of tens of ms while the
+        # arm moves at up to 2.5 rad/s): the sensor plausibility check gets a 0.2 rad floor here
+        async with agentsdk.connect("ros2", robot="arm3", namespace="/cell", domain_id=did, realtime=True,
+                                    safety={**SAFETY, "sensor_jump_floor": 0.2}) as robot:
             backend: Any = robot.controller
             await module.main(robot)  # raises if a step does not end SUCCESSFUL
             await robot.clock.sleep(0.3)

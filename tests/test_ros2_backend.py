@@ -229,6 +229,7 @@ async def test_ros2_backend_drives_the_fast_dds_jtc_and_faults_when_its_joint_st
                                     stale_after=stale_after, timeout=30.0) as robot:
             backend: Any = robot.controller
             assert robot.realtime and backend.interface == "joint_trajectory"
+            assert not backend.goals_available  # no action server in rmw_cyclonedds' format: streamed
             start = (await robot.read()).position
             assert start.tolist() == pytest.approx([0.1, 0.0, -0.1], abs=1e-9)
             result = await robot.move_to({"joint1": 0.5, "joint3": 0.2}, duration=1.5)

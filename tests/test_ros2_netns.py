@@ -194,3 +194,38 @@ def test_remote_agent_over_delay_loss_and_a_partition(link: Link, tmp_path: Path
 
 def _tail(path: Path) -> str:
     return "\n".join(path.read_text(errors="replace").splitlines()[-30:])
+
+
+BACKEND_CLIENT = Path(__file__).parent / "ros2_peers" / "netns_backend_client.py"
+
+
+def test_ros2_backend_goals_over_delay_and_loss(link: Link, tmp_path: Path) -> None:
+    """``connect("ros2")`` in the other namespace, 50 ms delay and 5 % loss each way: its move_to and follow
+    go as FollowJointTrajectory goals (services over the lossy link), come back SUCCESSFUL with feedback,
+    and the served robot ends at the last target; the client's lease holds all along."""
+    domain = random.SystemRandom().randint(30, 230)
+    server_log = (tmp_path / "serve.log").open("w")
+    server = subprocess.Popen(
+        ["ip", "netns", "exec", link.a, sys.executable, "-m", "agentsdk", "serve", "--robot", "arm3",
+         "--backend", "mock", "--namespace", "/far", "--domain-id", str(domain), "--interface", link.addr_a,
+         "--peer", link.addr_b, "--lease", str(LEASE), "-o", "safety={stall_timeout: 5.0}"],
+        env=_env(), cwd=tmp_path, stdout=server_log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 120
+        while "serving" not in (tmp_path / "serve.log").read_text():
+            assert server.poll() is None and time.monotonic() < deadline, _tail(tmp_path / "serve.log")
+            time.sleep(0.2)
+        link.netem("delay", "50ms", "loss", "5%")
+        client = subprocess.run(
+            ["ip", "netns", "exec", link.b, sys.executable, str(BACKEND_CLIENT), str(domain), "/far", link.addr_b,
+             link.addr_a, str(LEASE)],
+            env=_env(), cwd=tmp_path, capture_output=True, text=True, timeout=240)
+        assert client.returncode == 0, f"{client.stderr[-3000:]}\nserver: {_tail(tmp_path / 'serve.log')}"
+    finally:
+        _stop(server)
+        server_log.close()
+    out = json.loads(client.stdout.strip().splitlines()[-1])
+    assert out["goals_available"] and out["goals_sent"] == 2, out
+    assert (out["first"], out["second"]) == ("SUCCESSFUL", "SUCCESSFUL"), out
+    assert out["feedback"] > 5 and out["safety"] == "OK", out
+    assert abs(out["position"][0] + 0.3) < 0.02 and abs(out["position"][1] + 0.2) < 0.02, out

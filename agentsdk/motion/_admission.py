@@ -81,7 +81,7 @@ class _Admission(_StopPlanner):
         q, v, a = self.desired(idx)
         for k, j in enumerate(idx.tolist()):
             ex = self._owner[j]
-            if ex is not None and ex.sampler is not None:
+            if ex is not None and ex.sampler is not None and ex.remote_rest < 0.0:
                 m = int(np.flatnonzero(ex.idx == j)[0])
                 tau = t if ex.phase == MotionPhase.STOPPING else ex.tau + ex.s * (t - ex.t_last)
                 eq, ev, ea = ex.sampler.sample(tau)

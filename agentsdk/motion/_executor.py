@@ -3,15 +3,28 @@
 from __future__ import annotations
 
 import math
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from ..errors import CommandRejected
 from ..loop import Phase, Setpoint, StateView
+from ..offload import OffloadedGoal, OffloadRequest
+from ..trajectory import Trajectory
 from ._admission import _Admission
 from ._records import _Exec, _TickBuffers
-from ._types import _BOUND_TOL, _POS, _TWO_PI, MotionPhase, MotionResult, ResultCode, _wrap_angle
+from ._types import (
+    _BOUND_TOL,
+    _POS,
+    _REMOTE_STILL,
+    _REMOTE_STILL_SPEED,
+    _TWO_PI,
+    MotionPhase,
+    MotionResult,
+    ResultCode,
+    _wrap_angle,
+)
 
 
 def _wrap_into(x: np.ndarray, wrap: np.ndarray, tmp: np.ndarray) -> None:
@@ -80,9 +93,11 @@ class _Executor(_Admission):
             return False
         if ex.motion is not None:
             ex.motion.trajectory = traj
+        self._preempt_offloaded()
         self._preempt(idx)
         self._own(ex)
         self._begin(ex, sampler, q0, v0, a0, t)
+        self._try_offload(ex, traj)
         return True
 
     def _update(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
@@ -97,6 +112,9 @@ class _Executor(_Admission):
         w = ex.work
         if w is None:
             w = ex.work = _TickBuffers(len(idx))
+        remote = ex.remote
+        if remote is not None and ex.remote_rest < 0.0 and not remote.started():
+            ex.t_last = t  # the controller has not taken the goal yet: its trajectory time has not begun
         dt = t - ex.t_last
         s = ex.s
         if dt > 0.0 and s == self._speed and ex.phase != MotionPhase.STOPPING:  # _advance's common case, inline
@@ -130,6 +148,8 @@ class _Executor(_Admission):
             _wrap_into(err, ex.wrap, w.tmp)
         m = ex.motion
         elapsed = tau - ex.t0
+        if ex.remote is not None:
+            return self._update_remote(ex, ex.remote, t, st, sp, q, v, a, err, elapsed)
         if ex.phase == MotionPhase.FOLLOW:
             np.less_equal(np.abs(err, out=w.tmp), ex.path_tol, out=w.mask)
             if w.mask.tobytes() != w.all:
@@ -310,5 +330,122 @@ class _Executor(_Admission):
                 np.take(st.position, idx, out=w.act, mode="clip")
                 np.take(st.velocity, idx, out=w.actual_v, mode="clip")
             snap.actual_q, snap.actual_v = w.act, w.actual_v
+            remote = ex.remote
+            if remote is not None and remote.desired_into(ex.remote_q, ex.remote_v):
+                # an offloaded goal: the desired state is the controller's, from its feedback
+                snap.q, snap.v = ex.remote_q, ex.remote_v
+                np.subtract(ex.remote_q, w.act, out=err)
+                if ex.wrap is not None:
+                    _wrap_into(err, ex.wrap, w.tmp)
             snap.seq += 1
             m._keep_measured(st.position)
+
+    # ------------------------------------------------------------ offload (agentsdk.offload)
+    def _try_offload(self, ex: _Exec, traj: Trajectory) -> None:
+        """Hand ``ex``'s validated trajectory to the backend's controller as one goal, where it can take it.
+
+        Only a motion that alone drives the robot (the other joints hold) and ends at rest is
+        offloaded; the executor then keeps sampling it locally (limits, setpoint) while the
+        backend streams nothing, and the controller's outcome ends it (:meth:`_update_remote`).
+        """
+        if self._offload is None or ex.motion is None or ex.end_moving:
+            return
+        if any(o is not None and o is not ex for o in self._owner):
+            return  # another motion or stop ramp drives joints: streamed
+        names, sp = self.loop.names, self.loop.setpoint
+        others = np.ones(len(names), dtype=bool)
+        others[ex.idx] = False
+        hold = MappingProxyType({names[j]: float(sp.position[j]) for j in np.flatnonzero(others).tolist()})
+        remote = self._offload.offload_trajectory(
+            OffloadRequest(traj, ex.path_tol.copy(), ex.goal_tol.copy(), ex.goal_time, hold))
+        if remote is None:
+            return
+        ex.remote, ex.s, ex.sdot = remote, 1.0, 0.0
+        ex.remote_q, ex.remote_v = np.zeros(len(ex.idx)), np.zeros(len(ex.idx))
+
+    def _preempt_offloaded(self) -> None:
+        """A new motion on any joint preempts an offloaded goal (the controller runs one trajectory at a time)."""
+        for ex in [o for o in dict.fromkeys(self._owner) if o is not None and o.remote is not None]:
+            if ex.remote_rest >= 0.0:  # its goal has ended: the joints hold where the setpoint is
+                self._finish(ex, None, "")
+                continue
+            q, v, a = self._desired_next(ex)
+            self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
+            self._start_ramp(ex.idx, q, v, a, None, "")
+
+    def _update_remote(self, ex: _Exec, remote: OffloadedGoal, t: float, st: StateView, sp: Setpoint,
+                       q: np.ndarray, v: np.ndarray, a: np.ndarray, err: np.ndarray, elapsed: float) -> bool:
+        """One tick of an offloaded motion: follow the local sample (not streamed) until the controller's outcome.
+
+        Success: the local sample runs to its end (the goal), then the joints hold there. Any other
+        outcome (or a cancel asked here): the motion's result is known at once; the controller stops
+        the robot itself, and the setpoint follows the measured position (nothing streamed) until
+        the joints have been still for :data:`_REMOTE_STILL` s, then holds there and streaming resumes.
+        """
+        outcome = remote.outcome(t)
+        if ex.remote_rest >= 0.0:  # the goal ended: wait for the controller's own stop to come to rest
+            return self._follow_remote_stop(ex, t, st, sp)
+        if outcome is not None:
+            try:
+                code = ResultCode(outcome[0])
+            except ValueError:
+                code = ResultCode.ABORTED
+            msg = outcome[1]
+            if ex.phase == MotionPhase.STOPPING and ex.stop_code is not None:
+                code, msg = ex.stop_code, ex.stop_msg  # asked here (cancel, abort, stop_early): that is the result
+            elif code is ResultCode.SUCCESSFUL:
+                if elapsed >= ex.sampler.duration:
+                    qc = self._limited(ex, q, v, a)
+                    if qc is None:
+                        return self._write_stop(ex, t, st, sp)
+                    self._write(ex, t, st, sp, qc, v, a, err)
+                    self._finish(ex, ResultCode.SUCCESSFUL, msg)
+                    self.loop.hold_at(ex.idx, qc)
+                    return False
+                outcome = None  # reached early: the local sample catches up before the motion ends
+            if outcome is not None:
+                self._resolve(ex, code, msg)
+                ex.motion = None
+                ex.phase = MotionPhase.STOPPING
+                ex.remote_rest = t
+                return self._follow_remote_stop(ex, t, st, sp)
+        if ex.phase == MotionPhase.FOLLOW and elapsed >= ex.sampler.duration:
+            ex.phase = MotionPhase.SETTLE  # the controller's goal tolerance and goal time decide
+        qc = self._limited(ex, q, v, a)
+        if qc is None:
+            return self._write_stop(ex, t, st, sp)
+        self._write(ex, t, st, sp, qc, v, a, err)
+        return True
+
+    def _follow_remote_stop(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
+        """The setpoint of an ended offloaded goal's joints is their measured position until they are still."""
+        idx = ex.idx
+        n = len(idx)
+        w = ex.work
+        if w is None:
+            w = ex.work = _TickBuffers(n)
+        qm = np.take(st.position, idx, out=w.actual, mode="clip")
+        if np.count_nonzero(np.isfinite(qm, out=w.mask)) != n:
+            np.copyto(qm, ex.des_q)  # a failing sensor: hold the last setpoint
+        # still: the measured position stays within _REMOTE_STILL_SPEED * _REMOTE_STILL of where the window
+        # began (a velocity is not needed: some controllers report none, and encoder noise stays well below)
+        ref = ex.remote_q  # no feedback is published any more (the motion has its result): free buffers
+        if ex.remote_rest == t:
+            ref[...] = qm
+        moved = float(np.abs(np.subtract(qm, ref, out=w.dev), out=w.dev).max(initial=0.0))
+        zero = ex.remote_v
+        zero.fill(0.0)
+        qc = self._limited(ex, qm, zero, zero)
+        assert qc is not None  # a stopping executor is limited, never aborted
+        err = np.subtract(qm, qc, out=w.err)
+        # ... and the setpoint has reached it (the step limiter moves it at most max_position_step a tick)
+        if (moved > _REMOTE_STILL_SPEED * _REMOTE_STILL
+                or float(np.abs(err, out=w.tmp).max(initial=0.0)) > 1e-9):
+            ex.remote_rest = t
+            ref[...] = qm
+        self._write(ex, t, st, sp, qc, zero, zero, err)
+        if t - ex.remote_rest >= _REMOTE_STILL:
+            self._finish(ex, None, "")
+            self.loop.hold_at(idx, qc)
+            return False
+        return True

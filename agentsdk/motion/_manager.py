@@ -93,10 +93,12 @@ class MotionManager(_Executor):
         traj, sampler = self._prepare(ex, traj, q0, v0, a0, t_start)
         motion = Motion(self, idx, names, traj, t_start)
         ex.motion = motion
+        self._preempt_offloaded()
         self._preempt(idx)
         self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
         self._begin(ex, sampler, q0, v0, a0, t_start)
         self._install(ex)
+        self._try_offload(ex, traj)
         scope.register(motion)
         return motion
 

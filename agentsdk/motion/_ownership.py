@@ -13,6 +13,7 @@ import numpy as np
 from ..errors import ConfigurationError, InvalidValueError
 from ..limits import PositionBounds, StepGuard, StepLimiter
 from ..loop import ControlLoop
+from ..offload import TrajectoryOffload
 from ._handle import Motion
 from ._records import _Exec
 from ._types import _POS, _SCALE_ACC_MARGIN, MotionPhase, MotionResult, ResultCode, _wrap_angle
@@ -60,6 +61,9 @@ class _Ownership:
         self.kinematics_source: Callable[[], Kinematics] | None = None
         #: the robot's sensors (set by the Robot), for ``motion.feedback(sensors=...)``
         self.sensors_source: Callable[[], Any] | None = None
+        backend = getattr(loop, "backend", None)
+        #: the backend's controller runs whole trajectories (goals) instead of streamed setpoints
+        self._offload = backend if isinstance(backend, TrajectoryOffload) else None
 
     def kinematics(self) -> Kinematics:
         """The robot's :class:`~agentsdk.kinematics.Kinematics` (raises if it has none)."""
@@ -119,6 +123,9 @@ class _Ownership:
         desired motion continues seamlessly; starting it from the last tick's state would
         repeat that position for one tick (a stall of v*dt while the desired velocity says v).
         """
+        if ex.remote_rest >= 0.0:  # an ended offloaded goal: the setpoint follows the measured position, at rest
+            zero = np.zeros(len(ex.idx))
+            return ex.des_q.copy(), zero, zero.copy()
         tau, s, sdot = self._advance(ex, self.loop.stamp)
         q, vt, at = ex.sampler.sample(tau)
         if ex.phase == MotionPhase.STOPPING or (s == 1.0 and sdot == 0.0):
@@ -142,7 +149,7 @@ class _Ownership:
         if ex.phase == MotionPhase.STOPPING:
             return ex.tau + dt, 1.0, 0.0
         s = ex.s
-        f = self._speed
+        f = self._speed if ex.remote is None else 1.0  # an offloaded goal runs at the controller's timing
         if s == f:
             return ex.tau + s * dt, s, 0.0
         d = f - s
@@ -168,6 +175,9 @@ class _Ownership:
         self.owned_mask[ex.idx] = True
 
     def _release(self, ex: _Exec) -> None:
+        remote, ex.remote = ex.remote, None
+        if remote is not None:
+            remote.release()  # cancels the goal if it still runs; the backend streams again
         for j in ex.idx.tolist():
             if self._owner[j] is ex:
                 self._owner[j] = None

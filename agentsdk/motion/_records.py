@@ -9,6 +9,7 @@ import numpy as np
 
 from ..limits import StepLimiter
 from ..loop import ControlLoop, Setpoint, StateView
+from ..offload import OffloadedGoal
 from ..trajectory import (
     Trajectory,
 )
@@ -127,3 +128,9 @@ class _Exec:
     sel: Any = None
     #: the tick path's preallocated arrays (made on the first tick)
     work: _TickBuffers | None = None
+    #: the goal the backend's own controller runs instead (:mod:`agentsdk.offload`), and its desired state
+    remote: OffloadedGoal | None = None
+    remote_q: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    #: robot time since which the joints of an ended offloaded goal are still (-1: the goal runs)
+    remote_rest: float = -1.0
+    remote_v: np.ndarray = field(default_factory=lambda: np.zeros(0))

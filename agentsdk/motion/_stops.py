@@ -84,6 +84,8 @@ class _StopPlanner(_Ownership):
         """
         if ex.phase in (MotionPhase.STOPPING, MotionPhase.DEAD):
             return
+        if ex.remote is not None:
+            ex.remote.cancel()  # the controller stops its goal; its outcome ends the motion (_update_remote)
         if measured is not None and measured.any() and self._guard is not None:
             self._guard.rebase(ex.idx[measured], q[measured])
         ex.sampler = self._plan_stop_sampler(ex.idx, q, v, a, t0)

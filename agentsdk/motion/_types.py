@@ -43,6 +43,10 @@ _MAX_STRETCH_ITERATIONS = 12
 
 #: the ``poses`` of a feedback message nobody asked link poses for (shared, immutable)
 _NO_POSES: Mapping[str, Pose] = MappingProxyType({})
+#: an ended offloaded goal's joints are at rest when their mean speed stays below this (rad/s or m/s) ...
+_REMOTE_STILL_SPEED = 1e-2
+#: ... for this long (s): then the setpoint holds there and the backend streams again
+_REMOTE_STILL = 0.1
 
 
 #: a planned position beyond the bounds by more than this is not float noise (rad or m)
@@ -55,6 +59,8 @@ class ResultCode(enum.IntEnum):
     SUCCESSFUL = 0
     INVALID_GOAL = -1
     INVALID_JOINTS = -2
+    #: a controller refused a goal stamped too far in the past (offloaded goals, :mod:`agentsdk.offload`)
+    OLD_HEADER_TIMESTAMP = -3
     PATH_TOLERANCE_VIOLATED = -4
     GOAL_TOLERANCE_VIOLATED = -5
     #: motion.cancel() or the awaiting task was cancelled: decelerated and holding

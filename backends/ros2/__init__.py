@@ -23,6 +23,11 @@ another host. What the backend uses, under ``namespace``:
   - ``"forward_command"`` (a ``forward_command_controller``'s ``<controller>/commands``,
     ``std_msgs/Float64MultiArray`` in ``command_joints`` order);
 
+* ``<controller>/follow_joint_trajectory`` (``follow_goals``): a ``follow()``/``move_to`` trajectory,
+  validated and limit-checked here, is sent as one ``FollowJointTrajectory`` goal when the action
+  server speaks rmw_cyclonedds' request format (:mod:`agentsdk.ros2.goals`, the
+  :class:`agentsdk.offload.TrajectoryOffload` capability): nothing is streamed while it runs, its
+  feedback and result come back to the motion; else, and against a lockstep served robot, streamed;
 * ``clock`` (``<namespace>/clock``: remap a simulator's ``/clock`` there): followed when the remote runs in
   simulated time (lockstep): a tick ends when the remote's time has advanced by one period.
 
@@ -76,19 +81,18 @@ from agentsdk.ros2.dds import (
     normalize_namespace,
     participant,
     resolve_domain_id,
-    service_wire_type,
-    wrap,
 )
+from agentsdk.ros2.goals import FollowJointTrajectoryClient, GoalHandle
 from agentsdk.ros2.lease import Heartbeat
 from agentsdk.ros2.msgs import (
     CancelGoal_Request,
     Clock,
     Duration,
+    FollowJointTrajectory_SendGoal_Request,
     Header,
     JointState,
     JointTrajectory,
     JointTrajectoryPoint,
-    RequestHeader,
     String,
     Time,
 )
@@ -99,6 +103,7 @@ from .msgs import Float64MultiArray
 if TYPE_CHECKING:
     from agentsdk.config import RobotConfig
     from agentsdk.description import RobotDescription
+    from agentsdk.offload import OffloadRequest
     from agentsdk.types import JointInfo
 
 __all__ = ["Ros2Backend", "Ros2Options"]
@@ -139,6 +144,9 @@ class Ros2Options(BaseModel):
     command_joints: tuple[str, ...] | None = None
     #: dead-man lease (s) held with an agentsdk server while connected (heartbeats; None: no lease)
     lease: float | None = Field(default=1.0, gt=0.0)
+    #: send follow()/move_to trajectories as FollowJointTrajectory goals when the controller serves the action
+    #: (in rmw_cyclonedds' request format); False: always stream setpoints
+    follow_goals: bool = True
 
 
 class Ros2Backend(Backend):
@@ -192,7 +200,17 @@ class Ros2Backend(Backend):
         self._waiter: asyncio.Future[None] | None = None
         self._wait_seq = 0
         self._wait_time = math.inf
-        self._cancel_seq = 0
+        self._enabled = False  # the latest write's: any joint enabled
+        #: a goal to send once the served robot answers the sync of that sequence number
+        self._deferred: tuple[int, GoalHandle] | None = None
+        self._goals: FollowJointTrajectoryClient | None = None
+        #: the robot's joints an offloaded goal holds (indices, positions), and the goal
+        self._hold: tuple[np.ndarray, np.ndarray, GoalHandle] | None = None
+        self._hold_dev = np.zeros(0)
+        #: True once the controller's FollowJointTrajectory action server was found (follow_goals)
+        self.goals_available = False
+        #: FollowJointTrajectory goals sent
+        self.goals_sent = 0
         self.last_write = -math.inf
         self.last_write_age = 0.0
         #: commands sent, replies received, and joint_states samples received
@@ -261,7 +279,7 @@ class Ros2Backend(Backend):
         self._fwd_layout = FixedLayout(lambda values, _s: Float64MultiArray(data=[float(x) for x in values]), k, 0)
         self._fwd_values = np.zeros(k)
         self._hold_bytes = bytes(JointTrajectory(Header(), names, []).serialize())
-        for t in (JointState, Clock, CancelGoal_Request):
+        for t in (JointState, Clock, CancelGoal_Request, FollowJointTrajectory_SendGoal_Request):
             t.deserialize(t().serialize())  # compile the serialisers here, not on the event loop
         node = DdsNode(self.domain_id, self.namespace, loop)
         try:
@@ -271,8 +289,7 @@ class Ros2Backend(Backend):
             self._cmd_w = node.writer(COMMAND_TOPIC, JointState, QOS_STREAM)
             self._jtc_w = node.writer(f"{self.controller}/joint_trajectory", JointTrajectory, QOS_DEFAULT)
             self._fwd_w = node.writer(f"{self.controller}/commands", Float64MultiArray, QOS_DEFAULT)
-            self._cancel_w = node.writer(f"{self.controller}/follow_joint_trajectory/_action/cancel_goalRequest",
-                                         service_wire_type(CancelGoal_Request), QOS_DEFAULT, prefix="rq/")
+            self._goals = FollowJointTrajectoryClient(node, self.controller)
             node.announce(f"agentsdk_ros2_{self._session[:8]}")
         except BaseException:
             node.close()
@@ -301,6 +318,13 @@ class Ros2Backend(Backend):
             raise BackendStartError(
                 f"ros2: lockstep needs the remote's simulated time, but nothing publishes {self._ns('clock')}; "
                 "connect with realtime=True (the remote runs in wall-clock time)")
+        if self.options.follow_goals:
+            # the action server's endpoints are discovered with the robot's participant: a short grace at most
+            grace = loop.time() + _AUTO_GRACE
+            while not self.goals_available and loop.time() < min(grace, deadline):
+                self.goals_available = self._goals is not None and self._goals.available()
+                if not self.goals_available:
+                    await asyncio.sleep(0.02)
         if self.interface == "agentsdk":
             await self._sync(deadline)
         elif not self.realtime:
@@ -309,8 +333,9 @@ class Ros2Backend(Backend):
                     raise BackendStartError(f"ros2: no {self._ns('clock')} sample within {self.timeout:g} s")
                 await asyncio.sleep(0.02)
             self._offset = self._clock
-        log.debug("ros2: %s on %s via %s (%s)", self.description.name, self.namespace or "/", self.interface,
-                  "realtime" if self.realtime else "lockstep")
+        log.debug("ros2: %s on %s via %s (%s), trajectories %s", self.description.name, self.namespace or "/",
+                  self.interface, "realtime" if self.realtime else "lockstep",
+                  "as FollowJointTrajectory goals" if self.goals_available else "streamed")
 
     async def _sync(self, deadline: float, error: type[Exception] = BackendStartError) -> None:
         """Ask the agentsdk robot for its state until it answers (the first commands may precede matching)."""
@@ -378,6 +403,12 @@ class Ros2Backend(Backend):
                 f"ros2: joint_states on {self._ns('joint_states')} are {self._clock - self._state_stamp:.3f} s "
                 f"(robot time) old (bound stale_after {self.stale_after:g} s); no command is sent on stale state")
         self._enabled = bool(sp.enabled.any())
+        goals = self._goals
+        if goals is not None and goals.active:
+            self._check_hold(sp, goals.active[-1])
+            return  # the controller runs the goal: nothing is streamed meanwhile
+        if goals is not None and self.interface == "agentsdk" and goals.draining():
+            return  # a served robot still stops a cancelled goal (its stream would be refused): not yet
         if self.interface == "agentsdk":
             self._cmd_enc.encode(0.0, sp.position, sp.velocity, sp.effort)
             if self.realtime and self._enabled:
@@ -401,7 +432,8 @@ class Ros2Backend(Backend):
         target = self._offset + self._local_t + dt
         self._local_t += dt
         if self.interface == "agentsdk":
-            seq = self._send_command(target) if self._enabled else self._send_sync(target)
+            streaming = self._enabled and not (self._goals is not None and self._goals.active)
+            seq = self._send_command(target) if streaming else self._send_sync(target)
             fut = self._expect(seq, math.inf)
         else:
             if self._clock >= target - 1e-9:
@@ -470,18 +502,68 @@ class Ros2Backend(Backend):
 
     def _send_hold(self) -> None:
         """Hold (an empty trajectory: JTC keeps its current position) and cancel every goal (thread-safe)."""
-        node = self._node
-        if node is None:
+        node, goals = self._node, self._goals
+        if node is None or goals is None:
             return
         with self._lock:
             try:
                 write_raw(self._jtc_w, self._hold_bytes)
-                self._cancel_seq += 1
-                guid = int.from_bytes(self._cancel_w.guid.bytes[:8], "little")
-                self._cancel_w.write(wrap(CancelGoal_Request, RequestHeader(guid, self._cancel_seq),
-                                          CancelGoal_Request()))
+                goals.cancel(None)
             except Exception as exc:  # the participant is closing: nothing left to tell
                 log.debug("ros2: hold not sent: %s", exc)
+
+    # ------------------------------------------------------------------ trajectory offload (agentsdk.offload)
+    def offload_trajectory(self, request: OffloadRequest) -> GoalHandle | None:
+        """Send a validated trajectory as one FollowJointTrajectory goal (None: it is streamed instead).
+
+        Only when the controller's action server was found (``follow_goals``), the robot is
+        enabled and not faulted. The goal holds the robot's other joints where they are; a
+        setpoint of one of them that moves meanwhile (something else commands the robot)
+        cancels the goal (PREEMPTED).
+        """
+        goals = self._goals
+        if (goals is None or not self.goals_available or self._node is None or self._error is not None
+                or not self._enabled or not goals.available()):
+            return None
+        if not any(p.time_from_start > 0.0 for p in request.trajectory.points):
+            return None  # nothing after the start state: nothing for a controller to run
+        if self.interface == "agentsdk" and not self.realtime:
+            # a served lockstep robot runs a goal at its own pace (its time advances while a goal runs), not
+            # one control period per step of this robot: streamed, its lockstep stays exact
+            return None
+        gt = request.goal_time if math.isfinite(request.goal_time) else 0.0
+        deadline = request.trajectory.duration + gt + self.timeout
+        # a served agentsdk robot applies its stream's commands in order, a goal on arrival: the goal is sent once
+        # the robot has answered a sync sent now, after every command before it (none refused as "driven by a goal")
+        defer = self.interface == "agentsdk"
+        handle = goals.send(request, deadline, defer=defer)
+        if defer:
+            # released unfinished (e-stop, abort): the served robot decelerates the goal itself and refuses stream
+            # commands on its joints until it has; nothing is streamed until its result (at most `timeout`)
+            handle.drain = self.timeout
+        if defer:
+            self._deferred = (self._send_sync(0.0), handle)
+        hold_idx = np.array([self.index[n] for n in request.hold], dtype=np.intp)
+        self._hold = (hold_idx, np.array([float(x) for x in request.hold.values()]), handle)
+        self._hold_dev = np.zeros(len(hold_idx))
+        self.goals_sent += 1
+        return handle
+
+    def _check_hold(self, sp: SetpointView, handle: GoalHandle) -> None:
+        """A setpoint of a joint the goal holds moved, or torque went off: the goal is preempted."""
+        hold = self._hold
+        if not sp.enabled.all():
+            handle.preempt("preempted: the robot's torque went off")
+        if hold is None or hold[2] is not handle or not len(hold[0]):
+            return
+        idx, q, _ = hold
+        dev = self._hold_dev  # preallocated: the tick allocates nothing
+        np.take(sp.position, idx, out=dev)
+        np.subtract(dev, q, out=dev)
+        np.abs(dev, out=dev)
+        if float(dev.max()) > 1e-9:
+            k = int(np.argmax(dev))
+            handle.preempt(f"preempted: joint {self.names[int(idx[k])]!r} was commanded while the goal held it")
 
     def _expect(self, seq: int | None, remote_time: float) -> asyncio.Future[None]:
         """A future resolved by the answer to command ``seq`` or by the remote clock reaching ``remote_time``."""
@@ -525,6 +607,10 @@ class Ros2Backend(Backend):
             self._take_state(msg)
         elif not self._seen.all():  # the sync's answer: the first state
             self._take_state(msg)
+        deferred = self._deferred
+        if deferred is not None and seq >= deferred[0] and self._goals is not None:
+            self._deferred = None
+            self._goals.dispatch(deferred[1])
         fut = self._waiter
         if fut is not None and not fut.done() and seq >= self._wait_seq:
             fut.set_result(None)

@@ -291,10 +291,19 @@ async def test_open_resends_the_enable_frame_to_a_motor_that_answers_late() -> N
     """A motor (or emulator) that starts listening after the first enable frame is enabled by a resend
     within ``open_timeout``; the default 0.2 s still fails fast for a motor that never answers."""
     channel = unique_channel()
-    with emulator(channel) as emu, sniffer(channel) as frames:
+
+    async def answer_late(frames: Callable[[], list[can.Message]]) -> None:
+        # motor 2 starts answering 0.5 s after the first enable frame reached it (the connect's own
+        # start-up, before any frame, takes longer than that on a loaded machine)
+        # (nothing to wait on: the frames come from another bus)
+        while not any(m.arbitration_id == 2 and bytes(m.data) == ENABLE for m in frames()):  # noqa: ASYNC110
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.5)
+        emu.set_faults(2, silent=False)
+
+    with emulator(channel) as emu, sniffer(channel) as frames, sniffer(channel) as watch:
         emu.set_faults(2, silent=True)
-        loop = asyncio.get_running_loop()
-        wake = loop.call_later(0.5, lambda: emu.set_faults(2, silent=False))
+        waker = asyncio.create_task(answer_late(watch))
         try:
             async with agentsdk.connect("can", robot="mit_leg", interface="virtual", channel=channel,
                                         open_timeout=5.0, max_missed_replies=MAX_MISSED, update_rate=100) as robot:
@@ -302,7 +311,9 @@ async def test_open_resends_the_enable_frame_to_a_motor_that_answers_late() -> N
                 assert emu.counters(2).specials >= 1
                 await run_cycles(robot, 5)
         finally:
-            wake.cancel()
+            waker.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await waker
         enables = [m for m in frames() if m.arbitration_id == 2 and bytes(m.data) == ENABLE]
         assert len(enables) >= 3, len(enables)  # resent every 0.2 s while motor 2 was silent
 

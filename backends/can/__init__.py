@@ -3,8 +3,8 @@
 One bus cycle per control period: one command frame per motor, then the
 replies are gathered until a deadline (``reply_deadline`` of the period). On socketcan the
 event loop watches the bus socket itself (``loop.add_reader``) and drains every
-queued frame with one ``recvmmsg`` per wake-up, and commands are plain
-non-blocking sends (:mod:`.rawsock`: python-can's per-frame ``select``, interface
+queued frame with one ``recvmmsg`` per wake-up, and a cycle's commands go out
+with one non-blocking ``sendmmsg`` (:mod:`.rawsock`: python-can's per-frame ``select``, interface
 name lookup and clock reads were most of the host's CPU per cycle where system
 calls are expensive, e.g. user-mode Linux); other interfaces use python-can's
 :class:`can.Notifier` (a reader thread on buses without a file descriptor, e.g.
@@ -54,6 +54,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Sequence
@@ -81,7 +82,7 @@ from agentsdk.types import MODES
 from .claims import Claim, claim
 from .config import CanBusConfig
 from .mit import DISABLE, ENABLE, ZERO, encode_command_into, is_special, reply_error_code, reply_state
-from .rawsock import FrameReader, build_frame, frame_reader, send_frame
+from .rawsock import FrameReader, FrameWriter, frame_reader, frame_writer
 
 __all__ = ["CanBackend", "CanController", "CanOptions", "MotorStats"]
 
@@ -237,8 +238,7 @@ class CanBackend(Backend):
         self._all_in: asyncio.Future[bool] | None = None
         #: socketcan: the bus's raw socket, read in batches (None: python-can's Notifier receives)
         self._reader: FrameReader | None = None
-        self._sock: Any = None
-        self._frames: list[bytearray] = []
+        self._writer: FrameWriter | None = None
         self._bus: can.BusABC | None = None
         self._estop_bus: can.BusABC | None = None
         self._estop_lock = threading.Lock()
@@ -375,10 +375,9 @@ class CanBackend(Backend):
         self._loop = asyncio.get_running_loop()
         self._any_reply = asyncio.Event()
         reader = frame_reader(self._bus, self._on_raw) if opts.interface == "socketcan" else None
-        if reader is not None:  # batched receive and plain sends on the bus's own socket (see rawsock)
+        if reader is not None:  # batched receive and sends on the bus's own socket (see rawsock)
+            self._writer = frame_writer(self._bus, self._motor_ids)
             self._reader = reader
-            self._sock = getattr(self._bus, "socket")  # noqa: B009 - python-can's socketcan bus attribute
-            self._frames = [build_frame(m.id, msg.data) for m, msg in zip(self._motors, self._msgs, strict=True)]
             self._loop.add_reader(reader.fd, self._on_readable)
         else:
             # a reader thread (buses without a file descriptor) polls at this interval: it ends that fast on close
@@ -484,6 +483,7 @@ class CanBackend(Backend):
     async def _close(self) -> None:
         try:
             reader, self._reader = self._reader, None
+            self._writer = None
             if reader is not None and self._loop is not None and not self._loop.is_closed():
                 self._loop.remove_reader(reader.fd)
             notifier, self._notifier = self._notifier, None
@@ -780,23 +780,26 @@ class CanBackend(Backend):
             # the commands go out back to back, before any reply is handled (each counted before
             # its send: the reply may be handled first)
             own_echo = self._own_echo
-            sock, frames = self._sock, self._frames
+            writer = self._writer
             for k, msg in enumerate(self._msgs):
                 stats[k].commands += 1
                 if own_echo:
                     self._echo_pending[k] += 1
+                if writer is not None:
+                    writer.set_data(k, msg.data)
+                    continue
                 try:
-                    if sock is not None:  # socketcan: one non-blocking send() (see rawsock)
-                        frame = frames[k]
-                        frame[8:] = msg.data
-                        send_frame(sock, frame)
-                    else:
-                        bus.send(msg, timeout=0.0)
-                except (can.CanOperationError, OSError) as exc:  # TX buffer full: the bus is saturated
-                    stats[k].commands -= 1
-                    if own_echo:
-                        self._echo_pending[k] -= 1
+                    bus.send(msg, timeout=0.0)
+                except can.CanOperationError as exc:  # TX buffer full: the bus is saturated
+                    self._unsent(k)
                     raise BackendFault(f"CAN transmit failed for motor id {self._motors[k].id}: {exc}") from exc
+            if writer is not None:  # socketcan: every command in one sendmmsg (see rawsock)
+                sent, err = writer.send()
+                if sent < self._n:
+                    for k in range(sent, self._n):
+                        self._unsent(k)
+                    why = os.strerror(err) if err else "not queued"
+                    raise BackendFault(f"CAN transmit failed for motor id {self._motors[sent].id}: {why}")
             # every reply or the deadline: a future and one timer handle (asyncio.timeout and an Event
             # cost a clock read and several running-loop look-ups, each a getpid() on Python 3.11)
             if self._n_got < self._n:
@@ -837,6 +840,12 @@ class CanBackend(Backend):
                     raise BackendFault(
                         f"motor id {s.motor_id} (joint {s.joint!r}) reports error: {self._profile.error_name(code)}"
                     )
+
+    def _unsent(self, k: int) -> None:
+        """Motor ``k``'s command was counted but not sent: take it back."""
+        self.stats[k].commands -= 1
+        if self._own_echo:
+            self._echo_pending[k] -= 1
 
     def _missing_message(self, s: MotorStats, dt: float) -> str:
         where = f"motor id {s.motor_id} (joint {s.joint!r})"

@@ -1,4 +1,4 @@
-"""Batched SocketCAN receive and plain sends: one system call per event-loop wake-up, not six per frame.
+"""Batched SocketCAN receive and send: one system call per event-loop wake-up and per cycle's commands.
 
 python-can's socketcan bus costs, per received frame, a ``select``, a ``recvmsg``, an ``ioctl``
 (CPython resolves the interface name of every ``recvmsg`` source address) and two clock reads,
@@ -7,11 +7,12 @@ kernel (clock reads are vDSO calls there) but not where every system call traps 
 kernel: in user-mode Linux (the vcan test suite, CI's VM) those calls were most of the CAN
 host's CPU time per control cycle. :class:`FrameReader` drains every frame the socket holds with
 one ``recvmmsg(MSG_DONTWAIT)`` (libc through ctypes, no source address, the kernel's
-``SO_TIMESTAMPNS`` receive time from the control message), and :func:`send_frame` is one
-non-blocking ``send``. Both work on the socket of an open ``can.interfaces.socketcan`` bus, whose
-filters and options (``SO_TIMESTAMPNS``, ``receive_own_messages``) stay in force.
-:func:`frame_reader` returns None where this does not apply (not Linux, no libc ``recvmmsg``,
-a bus without a raw socket): the backend then uses python-can's own receive path.
+``SO_TIMESTAMPNS`` receive time from the control message), and :class:`FrameWriter`
+sends a cycle's command frames with one non-blocking ``sendmmsg``. Both work on the socket
+of an open ``can.interfaces.socketcan`` bus, whose filters and options (``SO_TIMESTAMPNS``,
+``receive_own_messages``) stay in force. :func:`frame_reader` and :func:`frame_writer` return
+None where this does not apply (not Linux, no libc ``recvmmsg``/``sendmmsg``, a bus without a
+raw socket): the backend then receives and sends through python-can.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["FrameReader", "build_frame", "frame_reader", "send_frame"]
+__all__ = ["FrameReader", "FrameWriter", "frame_reader", "frame_writer"]
 
 #: struct can_frame / canfd_frame header: can_id (with the EFF/RTR/ERR flags), length, flags, 2 reserved
 _HEADER = struct.Struct("=IBB2x")
@@ -70,23 +71,24 @@ _CONTROL = _CMSG_HDR + ctypes.sizeof(_Timespec)  # CMSG_SPACE(sizeof(struct time
 _TIMESPEC = struct.Struct("@ll")
 _CMSG = struct.Struct("@Nii")
 
-_RECVMMSG: Any = None
+_LIBC: dict[str, Any] = {}
 
 
-def _recvmmsg() -> Any:
-    """The C library's ``recvmmsg`` (bound once), or False where there is none."""
-    global _RECVMMSG
-    if _RECVMMSG is None:
-        _RECVMMSG = False
+def _libc_fn(name: str) -> Any:
+    """The C library's ``recvmmsg``/``sendmmsg`` (bound once), or False where there is none."""
+    fn = _LIBC.get(name)
+    if fn is None:
+        fn = False
         if sys.platform.startswith("linux"):
             try:
-                fn = ctypes.CDLL(None, use_errno=True).recvmmsg
-                fn.argtypes = [ctypes.c_int, ctypes.POINTER(_MMsgHdr), ctypes.c_uint, ctypes.c_int, ctypes.c_void_p]
+                fn = getattr(ctypes.CDLL(None, use_errno=True), name)
+                args = [ctypes.c_int, ctypes.POINTER(_MMsgHdr), ctypes.c_uint, ctypes.c_int]
+                fn.argtypes = [*args, ctypes.c_void_p] if name == "recvmmsg" else args
                 fn.restype = ctypes.c_int
-                _RECVMMSG = fn
             except (OSError, AttributeError):
-                pass
-    return _RECVMMSG
+                fn = False
+        _LIBC[name] = fn
+    return fn
 
 
 #: handler(can_id with its EFF/RTR/ERR flag bits, data, kernel receive time on the wall clock or 0.0)
@@ -161,26 +163,56 @@ class FrameReader:
                 return
 
 
+class FrameWriter:
+    """The command frames of one cycle (one classic 8-byte frame per CAN id), sent with one ``sendmmsg``."""
+
+    def __init__(self, fd: int, can_ids: list[int], sendmmsg: Any) -> None:
+        self.fd = fd
+        self._sendmmsg = sendmmsg
+        n = len(can_ids)
+        self.count = n
+        self._buf = (ctypes.c_ubyte * (16 * n))()
+        self._view = memoryview(self._buf).cast("B")
+        self._iov = (_IOVec * n)()
+        self._vec = (_MMsgHdr * n)()
+        base = ctypes.addressof(self._buf)
+        for k, can_id in enumerate(can_ids):
+            _HEADER.pack_into(self._view, 16 * k, can_id, 8, 0)
+            self._iov[k].iov_base = base + 16 * k
+            self._iov[k].iov_len = 16
+            hdr = self._vec[k].msg_hdr
+            hdr.msg_iov = ctypes.pointer(self._iov[k])
+            hdr.msg_iovlen = 1
+
+    def set_data(self, k: int, data: bytes | bytearray) -> None:
+        """The 8 data bytes of frame ``k`` (a copy into the frame buffer, no allocation)."""
+        self._view[16 * k + 8:16 * k + 16] = data
+
+    def send(self) -> tuple[int, int]:
+        """Send every frame without blocking, in order: (frames sent, errno of the first one not sent or 0)."""
+        sent = self._sendmmsg(self.fd, self._vec, self.count, _MSG_DONTWAIT)
+        if sent < 0:
+            return 0, ctypes.get_errno()
+        if sent < self.count:  # the kernel stops at the first frame it could not queue: ask why
+            more = self._sendmmsg(self.fd, ctypes.byref(self._vec[sent]), 1, _MSG_DONTWAIT)
+            return sent + max(more, 0), (ctypes.get_errno() if more < 0 else 0)
+        return sent, 0
+
+
+def _raw_can_socket(bus: Any) -> socket.socket | None:
+    sock = getattr(bus, "socket", None)
+    if not isinstance(sock, socket.socket) or sock.family != getattr(socket, "AF_CAN", -1):
+        return None
+    return sock if sock.type == socket.SOCK_RAW else None
+
+
 def frame_reader(bus: Any, handler: FrameHandler) -> FrameReader | None:
     """A :class:`FrameReader` on a python-can socketcan bus's raw socket, or None where it does not apply."""
-    sock = getattr(bus, "socket", None)
-    fn = _recvmmsg()
-    if not fn or not isinstance(sock, socket.socket) or sock.family != getattr(socket, "AF_CAN", -1):
-        return None
-    if sock.type != socket.SOCK_RAW:
-        return None
-    return FrameReader(sock.fileno(), handler, fn)
+    sock, fn = _raw_can_socket(bus), _libc_fn("recvmmsg")
+    return FrameReader(sock.fileno(), handler, fn) if sock is not None and fn else None
 
 
-def build_frame(can_id: int, data: bytes | bytearray) -> bytearray:
-    """A classic ``struct can_frame`` (16 bytes) for ``can_id`` (11-bit) and up to 8 data bytes."""
-    frame = bytearray(16)
-    _HEADER.pack_into(frame, 0, can_id, len(data), 0)
-    frame[8:8 + len(data)] = data
-    return frame
-
-
-def send_frame(sock: socket.socket, frame: bytearray) -> None:
-    """Send one frame without blocking: one system call. Raises ``OSError`` (``ENOBUFS``/``EAGAIN``: TX queue full)."""
-    if sock.send(frame, _MSG_DONTWAIT) != len(frame):
-        raise OSError(errno.EIO, "CAN frame only partly sent")
+def frame_writer(bus: Any, can_ids: list[int]) -> FrameWriter | None:
+    """A :class:`FrameWriter` for ``can_ids`` (11-bit) on a socketcan bus's raw socket, or None where not applicable."""
+    sock, fn = _raw_can_socket(bus), _libc_fn("sendmmsg")
+    return FrameWriter(sock.fileno(), can_ids, fn) if sock is not None and fn else None

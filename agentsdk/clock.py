@@ -185,6 +185,11 @@ class RealtimeClock(Clock):
         """Seconds since this clock was created (``time.monotonic`` based)."""
         return time.monotonic() - self._t0
 
+    @property
+    def origin(self) -> float:
+        """``time.monotonic()`` at robot time 0: robot time ``t`` is monotonic time ``origin + t``."""
+        return self._t0
+
     async def sleep_until(self, deadline: float) -> None:
         """Sleep until ``deadline`` (clock seconds) on the timerfd, no spin (else ``asyncio.sleep`` precision)."""
         deadline = _check_deadline(deadline)

@@ -452,11 +452,11 @@ class ControlLoop:
             f"{float(q[bad])}, velocity {float(v[bad])}, effort {float(e[bad])}): sensor fault"
         )
 
-    def _read(self) -> None:
+    def _read(self, t: float | None = None) -> None:
         q, v, e = self.backend.read()
         gate = self.sensor_gate
         if gate is not None:
-            gate.accept(q, v, e, self.clock.now())
+            gate.accept(q, v, e, self.clock.now() if t is None else t)
             return
         st = self._state
         st.position[:] = q
@@ -488,8 +488,11 @@ class ControlLoop:
         await self.backend.step(self.period)
 
     def _after_tick(self) -> None:
-        self._read()
-        self.stamp = self.clock.now()
+        # one clock read per tick for the gate, the stamp, the hooks and the pacing (a read is a
+        # system call where there is no vDSO, e.g. user-mode Linux)
+        t = self.clock.now()
+        self._read(t)
+        self.stamp = t
         self.ticks += 1
         t, stv, spv = self.stamp, self._state.view, self._sp.view
         for fn in self._observe.fns:
@@ -585,7 +588,7 @@ class ControlLoop:
                 await self._tick()
                 self._after_tick()
                 deadline += period
-                late = clock.now() - deadline
+                late = self.stamp - deadline  # (read at the end of the tick)
                 if late > period:
                     # skip the missed periods instead of bursting to catch up
                     skipped = math.floor(late / period)

@@ -4,7 +4,15 @@ If the event loop stops beating for ``timeout`` seconds of wall time (a blocking
 coroutine), the thread calls ``on_stall`` itself, from the watchdog thread, with the time of the
 last heartbeat and where the loop thread was; the safety layer removes torque and latches its
 e-stop there (:mod:`agentsdk.safety`). While ``idle()`` is true (torque off, robot closed) there
-is nothing to protect and the thread only polls.
+is nothing to protect and the thread only looks every ``timeout / 2``.
+
+The beats cost the loop as little as possible (every wake-up and clock read is a system call
+where there is no vDSO, e.g. user-mode Linux): a realtime control loop beats on every tick with
+the time it read anyway (:meth:`StallWatchdog.tick_beats`), and a timer on the event loop beats
+only every ``timeout / 10`` then (every ``min(5 ms, timeout / 10)`` without ticks). The thread
+sleeps until the newest beat it saw would be ``timeout`` old, so it wakes about once per
+``timeout``, never per cycle. A stall is detected ``timeout`` after the last beat, and the last
+beat before a stall is at most one control period (or the timer's interval) old.
 """
 
 from __future__ import annotations
@@ -50,6 +58,24 @@ class StallWatchdog:
         self._thread_stop = threading.Event()
         self._aloop: asyncio.AbstractEventLoop | None = None
         self._loop_thread_id = threading.get_ident()
+        #: interval of the event-loop timer's beats (longer once the control loop's ticks beat)
+        self._interval = min(0.005, timeout / 10)
+
+    def tick_beats(self, origin: float) -> Callable[[float, object, object], None]:
+        """An OBSERVE hook for a realtime control loop: each tick is a beat, at robot time ``t``
+        (``origin + t`` on ``time.monotonic``, the time the tick read anyway: no clock read here).
+
+        With it, the event loop's own heartbeat timer runs every ``timeout / 10`` only (it keeps
+        beating while the loop runs without ticking).
+        """
+        self._interval = self.timeout / 10
+
+        def beat(t: float, _state: object, _setpoint: object) -> None:
+            b = origin + t
+            if b > self._beat:
+                self._beat = b
+
+        return beat
 
     def start(self) -> None:
         """Start the heartbeat on the running event loop and the watcher thread."""
@@ -88,7 +114,7 @@ class StallWatchdog:
         aloop = self._aloop
         if aloop is None or self._thread_stop.is_set():
             return
-        interval = min(0.005, self.timeout / 10)
+        interval = self._interval
 
         def _beat() -> None:
             self._beat = time.monotonic()
@@ -98,15 +124,18 @@ class StallWatchdog:
 
     def _watch(self) -> None:
         timeout = self.timeout
-        poll = min(0.002, timeout / 20)
-        wait = poll
+        # while idle: a look every timeout / 2 (a 2 ms poll cost the loop thread a GIL hand-off
+        # each time); a stall that begins just after torque comes on is still caught ``timeout``
+        # after the last beat, since the next look comes before that
+        idle_wait = min(timeout / 2, 1.0)
+        wait = idle_wait
         # The thread sleeps until the heartbeat it last saw would be ``timeout`` old (not a poll
         # every few ms: with several robots in a process, each thread's wake-ups cost the loop
-        # thread a GIL hand-off); it polls only while idle (nothing to watch then).
+        # thread a GIL hand-off).
         while not self._thread_stop.wait(wait):
             last = self._beat
             now = time.monotonic()
-            wait = poll
+            wait = idle_wait
             # watched as long as torque is on: a category 2 stop holds with torque on
             if self._idle():
                 continue

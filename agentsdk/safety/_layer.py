@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..checks import MeasuredPositionCheck, SafetyCheck
+from ..clock import RealtimeClock
 from ..commands import resolve_command
 from ..errors import (
     CommandRejected,
@@ -87,6 +88,8 @@ class SafetyLayer(_Watchdogs):
                 emergency_stop=lambda: loop.emergency_stop(0),
                 on_stall=self._on_stall,
             )
+            if isinstance(loop.clock, RealtimeClock):  # every tick beats, at the time the tick read anyway
+                loop.add_hook(Phase.OBSERVE, self._stall.tick_beats(loop.clock.origin))
             self._stall.start()
 
     async def shutdown(self) -> None:

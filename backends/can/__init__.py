@@ -1,12 +1,15 @@
 """CAN motor-bus backend: MIT mini-cheetah protocol motors over python-can.
 
 One bus cycle per control period: one command frame per motor, then the
-replies are gathered until a deadline (``reply_deadline`` of the period). The
-receive side is python-can's :class:`can.Notifier` on the running event loop
-(``loop.add_reader`` on socketcan's file descriptor; a reader thread on buses
-without one, e.g. ``virtual``); only the latest reply per motor is kept (no
-unbounded queue). Missing or late replies are counted per motor
-(:attr:`CanBackend.stats`); ``max_missed_replies`` consecutive misses or a
+replies are gathered until a deadline (``reply_deadline`` of the period). On socketcan the
+event loop watches the bus socket itself (``loop.add_reader``) and drains every
+queued frame with one ``recvmmsg`` per wake-up, and a cycle's commands go out
+with one non-blocking ``sendmmsg`` (:mod:`.rawsock`: python-can's per-frame ``select``, interface
+name lookup and clock reads were most of the host's CPU per cycle where system
+calls are expensive, e.g. user-mode Linux); other interfaces use python-can's
+:class:`can.Notifier` (a reader thread on buses without a file descriptor, e.g.
+``virtual``). Only the latest reply per motor is kept (no unbounded queue).
+Missing or late replies are counted per motor (:attr:`CanBackend.stats`); ``max_missed_replies`` consecutive misses or a
 motor error code (over-temperature...) end in a :class:`BackendFault` naming the
 motor, which the safety layer turns into FAULT with every motor disabled.
 Replies naming a motor id we never addressed are counted
@@ -51,6 +54,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Sequence
@@ -78,6 +82,7 @@ from agentsdk.types import MODES
 from .claims import Claim, claim
 from .config import CanBusConfig
 from .mit import DISABLE, ENABLE, ZERO, encode_command_into, is_special, reply_error_code, reply_state
+from .rawsock import FrameReader, FrameWriter, frame_reader, frame_writer
 
 __all__ = ["CanBackend", "CanController", "CanOptions", "MotorStats"]
 
@@ -87,6 +92,8 @@ log = logging.getLogger("agentsdk.can")
 _RX_POLL = 0.05
 #: the enable frame is resent this often while a motor has not answered it (``open_timeout`` bounds the whole wait)
 _ENABLE_RETRY = 0.2
+#: SocketCAN's flag bits in a can_id: extended (29-bit) id, remote request, error frame
+_EFF_FLAG, _RTR_FLAG, _ERR_FLAG = 0x80000000, 0x40000000, 0x20000000
 #: how long a motor may take to answer after a zero frame (CubeMars pauses ~1 s)
 _ZERO_TIMEOUT = 2.0
 #: bus cycles with a reply a zero frame waits for before the state is taken to be in the new frame
@@ -98,6 +105,19 @@ _SURPLUS_LIMIT = 3
 #: motor side answers a backlog in a burst) stay within it (more than max_missed_replies consecutive
 #: cycles without a reply is a lost motor anyway)
 _SURPLUS_FLOOR = 20
+
+
+def _deadline(fut: asyncio.Future[bool]) -> None:
+    """The reply deadline of a cycle passed (an event loop timer).
+
+    asyncio's timers are only ~1 ms precise on Linux (epoll rounds its timeout up to
+    whole milliseconds), so a cycle with a missing reply may run up to ~1 ms past its
+    deadline. Spinning on the loop for the last part (as RealtimeClock does) would
+    make that precise, but it was measured to starve a motor emulator sharing the CPU
+    (one-vCPU VM: 23 % of replies missed at 640 Hz with it, 0.1 % without).
+    """
+    if not fut.done():
+        fut.set_result(False)
 
 
 class CanOptions(CanBusConfig):
@@ -201,7 +221,7 @@ class CanBackend(Backend):
         n = len(self.joints)
         self._n = n
         # the newest reply per motor: python-can's own data bytearray (decoded when read), its fault code
-        self._rx: list[bytearray | None] = [None] * n
+        self._rx: list[bytes | bytearray | None] = [None] * n
         self._err: list[int] = [0] * n
         profile = self._profile
         self._accepted_dlcs = profile.accepted_dlcs
@@ -214,7 +234,11 @@ class CanBackend(Backend):
         self._got: list[bool] = [False] * n
         self._none_got: list[bool] = [False] * n
         self._n_got = 0
-        self._all_in: asyncio.Event | None = None
+        #: resolved (True) when every motor answered this cycle's command, (False) at the reply deadline
+        self._all_in: asyncio.Future[bool] | None = None
+        #: socketcan: the bus's raw socket, read in batches (None: python-can's Notifier receives)
+        self._reader: FrameReader | None = None
+        self._writer: FrameWriter | None = None
         self._bus: can.BusABC | None = None
         self._estop_bus: can.BusABC | None = None
         self._estop_lock = threading.Lock()
@@ -349,10 +373,15 @@ class CanBackend(Backend):
         else:
             self._estop_bus.set_filters([{"can_id": 0x7FF, "can_mask": 0x7FF, "extended": False}])
         self._loop = asyncio.get_running_loop()
-        self._all_in = asyncio.Event()
         self._any_reply = asyncio.Event()
-        # a reader thread (buses without a file descriptor) polls at this interval: it ends that fast on close
-        self._notifier = can.Notifier(self._bus, [self._on_frame], timeout=_RX_POLL, loop=self._loop)
+        reader = frame_reader(self._bus, self._on_raw) if opts.interface == "socketcan" else None
+        if reader is not None:  # batched receive and sends on the bus's own socket (see rawsock)
+            self._writer = frame_writer(self._bus, self._motor_ids)
+            self._reader = reader
+            self._loop.add_reader(reader.fd, self._on_readable)
+        else:
+            # a reader thread (buses without a file descriptor) polls at this interval: it ends that fast on close
+            self._notifier = can.Notifier(self._bus, [self._on_frame], timeout=_RX_POLL, loop=self._loop)
         enabled: list[int] = []
         try:
             for k, m in enumerate(self._motors):
@@ -453,6 +482,10 @@ class CanBackend(Backend):
 
     async def _close(self) -> None:
         try:
+            reader, self._reader = self._reader, None
+            self._writer = None
+            if reader is not None and self._loop is not None and not self._loop.is_closed():
+                self._loop.remove_reader(reader.fd)
             notifier, self._notifier = self._notifier, None
             if notifier is not None and not self._threaded_rx:
                 notifier.stop(timeout=0.0)  # removes the loop's fd reader; nothing to join (must run on the loop)
@@ -517,20 +550,47 @@ class CanBackend(Backend):
                 raise BackendFault(f"motor of joint {joint!r} did not acknowledge the zero frame")
 
     # ----------------------------------------------------------- receiving
+    def _on_readable(self) -> None:
+        """The bus socket is readable (event loop reader, socketcan): drain it, one system call per batch."""
+        reader = self._reader
+        if reader is None:
+            return
+        try:
+            reader.drain()
+        except OSError as exc:  # the interface went down...: stop watching, the next cycle faults
+            if self._loop is not None:
+                self._loop.remove_reader(reader.fd)
+            self._reader = None
+            opts: CanOptions = self.options
+            self._fault_msg = f"CAN receive failed on {opts.interface}:{opts.channel}: {exc}"
+            log.error("%s", self._fault_msg)
+
     def _on_frame(self, msg: can.Message) -> None:
         """Notifier callback; python-can calls it on the event loop (add_reader, or
         call_soon_threadsafe from its reader thread on buses without a file descriptor).
+        """
+        can_id = msg.arbitration_id
+        if msg.is_extended_id:
+            can_id |= _EFF_FLAG
+        if msg.is_remote_frame:
+            can_id |= _RTR_FLAG
+        if msg.is_error_frame:
+            can_id |= _ERR_FLAG
+        self._on_raw(can_id, msg.data, msg.timestamp)
+
+    def _on_raw(self, can_id: int, data: bytes | bytearray, stamp: float) -> None:
+        """One received frame: ``can_id`` with its EFF/RTR/ERR flag bits, ``stamp`` its receive time
+        (wall clock; 0.0 when the interface gave none).
 
         Per frame: no decoding (the newest data is kept and decoded once per cycle in
-        ``read``), no Python objects beyond python-can's own message, no clock read when
-        the frame's receive timestamp is on this host's clock.
+        ``read``), no Python objects beyond the data bytes, no clock read when the frame's
+        receive timestamp is on this host's clock.
         """
-        if msg.arbitration_id != self._master_id:
-            self._frame_for_a_motor(msg)
+        if can_id != self._master_id:  # (a flag bit set is never the master id)
+            self._frame_for_a_motor(can_id, data)
             return
-        if msg.is_error_frame or msg.is_remote_frame or msg.dlc < 6:
+        if len(data) < 6:
             return
-        data = msg.data
         k = self._by_reply_id.get(data[0] & self._id_mask)
         if k is None:
             self.unexpected_replies += 1
@@ -540,21 +600,21 @@ class CanBackend(Backend):
             return
         if len(data) not in self._accepted_dlcs:  # malformed frame: count it, never crash the loop
             self.unexpected_replies += 1
-            log.debug("reply with an unexpected DLC for profile %s: %s", self._profile.name, msg)
+            log.debug("reply with an unexpected DLC for profile %s: %s", self._profile.name, bytes(data).hex(" "))
             return
         st = self.stats[k]
         st.replies += 1
         if self._host_stamps:
-            ts = msg.timestamp
+            ts = stamp
             ws = self._window_start
             if not self._window_open or ws - 1.0 < ts < ws + 1.0:
                 st.last_reply_time = ts - self._clock_offset
             else:  # the stamps left this host's clock: read the clock per frame from now on
                 self._host_stamps = False
-                ts = self._reply_time(msg)
+                ts = self._reply_time(stamp)
                 st.last_reply_time = time.monotonic()
         else:
-            ts = self._reply_time(msg)
+            ts = self._reply_time(stamp)
             st.last_reply_time = time.monotonic()
         temp = self._temp_offset
         if temp is not None and len(data) >= 7:
@@ -581,15 +641,19 @@ class CanBackend(Backend):
         self._err[k] = err
         got[k] = True
         self._n_got += 1
-        if self._n_got == self._n and self._all_in is not None:
-            self._all_in.set()
+        if self._n_got == self._n:
+            fut = self._all_in
+            if fut is not None and not fut.done():
+                fut.set_result(True)
 
-    def _frame_for_a_motor(self, msg: can.Message) -> None:
+    def _frame_for_a_motor(self, can_id: int, data: bytes | bytearray) -> None:
         """A frame addressed to one of our motors reached our receive handle: ours, or a foreign commander's."""
-        k = self._by_motor_id.get(msg.arbitration_id)
-        if k is None or msg.is_error_frame or msg.is_extended_id:
+        if can_id & (_EFF_FLAG | _ERR_FLAG):
             return
-        if msg.data == DISABLE and self._estop_seen[k] < self._estop_sent[k]:
+        k = self._by_motor_id.get(can_id & ~_RTR_FLAG)
+        if k is None:
+            return
+        if data == DISABLE and self._estop_seen[k] < self._estop_sent[k]:
             self._estop_seen[k] += 1  # our emergency handle's
             return
         if self._echo_pending[k] > 0:
@@ -598,8 +662,9 @@ class CanBackend(Backend):
         self.stats[k].foreign_commands += 1
         if not self._foreign_seen:
             self._foreign_seen = True
-            kind = is_special(msg.data) or "command"
-            log.error("a %s frame for motor id %d that this robot did not send: %s", kind, msg.arbitration_id, msg)
+            kind = is_special(bytes(data)) or "command"
+            log.error("a %s frame for motor id %d that this robot did not send: %s", kind, can_id & ~_RTR_FLAG,
+                      bytes(data).hex(" "))
 
     def _foreign_message(self) -> str:
         opts: CanOptions = self.options
@@ -644,12 +709,11 @@ class CanBackend(Backend):
                     "id), or another controller commands it (motors disabled)"
                 )
 
-    def _reply_time(self, msg: can.Message) -> float:
-        """When the reply reached the bus (wall clock): its timestamp if that is plausibly
+    def _reply_time(self, ts: float) -> float:
+        """When the reply reached the bus (wall clock): its timestamp ``ts`` if that is plausibly
         on our clock (socketcan, virtual), else now (interfaces with device timestamps).
         """
         now = time.time()
-        ts = msg.timestamp
         if now - 1.0 < ts <= now + 0.001:
             self._stamps_seen += 1
             return ts
@@ -697,15 +761,14 @@ class CanBackend(Backend):
                 encode_command_into(msg.data, min(max(p, r.p_min), r.p_max), 0.0, 0.0, 0.0, 0.0, r, policy="clamp")
 
     async def _step(self, dt: float) -> None:
-        bus, ev = self._bus, self._all_in
-        assert bus is not None and ev is not None
+        bus, loop = self._bus, self._loop
+        assert bus is not None and loop is not None
         if self._fault_msg is not None:
             raise BackendFault(self._fault_msg)
         if self._foreign_seen:
             raise BusConflict(self._foreign_message())
         if self._drain_estop:
             self._drain_estop_bus()
-        ev.clear()
         self._cycling = True
         got = self._got
         got[:] = self._none_got
@@ -717,16 +780,38 @@ class CanBackend(Backend):
             # the commands go out back to back, before any reply is handled (each counted before
             # its send: the reply may be handled first)
             own_echo = self._own_echo
+            writer = self._writer
             for k, msg in enumerate(self._msgs):
                 stats[k].commands += 1
                 if own_echo:
                     self._echo_pending[k] += 1
+                if writer is not None:
+                    writer.set_data(k, msg.data)
+                    continue
                 try:
                     bus.send(msg, timeout=0.0)
                 except can.CanOperationError as exc:  # TX buffer full: the bus is saturated
-                    stats[k].commands -= 1
+                    self._unsent(k)
                     raise BackendFault(f"CAN transmit failed for motor id {self._motors[k].id}: {exc}") from exc
-            await self._wait_replies(ev, dt * self.options.reply_deadline)
+            if writer is not None:  # socketcan: every command in one sendmmsg (see rawsock)
+                sent, err = writer.send()
+                if sent < self._n:
+                    for k in range(sent, self._n):
+                        self._unsent(k)
+                    why = os.strerror(err) if err else "not queued"
+                    raise BackendFault(f"CAN transmit failed for motor id {self._motors[sent].id}: {why}")
+            # every reply or the deadline: a future and one timer handle (asyncio.timeout and an Event
+            # cost a clock read and several running-loop look-ups, each a getpid() on Python 3.11)
+            if self._n_got < self._n:
+                fut: asyncio.Future[bool] = loop.create_future()
+                self._all_in = fut
+                timer = loop.call_at(loop.time() + dt * self.options.reply_deadline, _deadline, fut)
+                try:
+                    if not await fut:
+                        await asyncio.sleep(0)  # frames the loop already holds are still this cycle's
+                finally:
+                    timer.cancel()
+                    self._all_in = None
         finally:
             self._window_open = False
         if self._foreign_seen:
@@ -756,6 +841,12 @@ class CanBackend(Backend):
                         f"motor id {s.motor_id} (joint {s.joint!r}) reports error: {self._profile.error_name(code)}"
                     )
 
+    def _unsent(self, k: int) -> None:
+        """Motor ``k``'s command was counted but not sent: take it back."""
+        self.stats[k].commands -= 1
+        if self._own_echo:
+            self._echo_pending[k] -= 1
+
     def _missing_message(self, s: MotorStats, dt: float) -> str:
         where = f"motor id {s.motor_id} (joint {s.joint!r})"
         counts = f"({s.missed} missed, {s.late} late of {s.commands} commands)"
@@ -770,21 +861,6 @@ class CanBackend(Backend):
             ids = ", ".join(f"{i} ({n}x)" for i, n in sorted(self._unexpected_ids.items()))
             hint = f"; meanwhile replies named motor id(s) not in backends.can.motors: {ids} (wrong CAN id?)"
         return f"{where} lost: no reply for {s.consecutive_missed} consecutive cycles {counts}{hint}"
-
-    async def _wait_replies(self, ev: asyncio.Event, window: float) -> None:
-        """Wait until every reply is in or ``window`` seconds have passed.
-
-        asyncio's timers are only ~1 ms precise on Linux (epoll rounds its timeout up to
-        whole milliseconds), so a cycle with a missing reply may run up to ~1 ms past its
-        deadline. Spinning on the loop for the last part (as RealtimeClock does) would
-        make that precise, but it was measured to starve a motor emulator sharing the CPU
-        (one-vCPU VM: 23 % of replies missed at 640 Hz with it, 0.1 % without).
-        """
-        try:
-            async with asyncio.timeout(window):
-                await ev.wait()
-        except TimeoutError:
-            await asyncio.sleep(0)  # frames the loop already holds are still this cycle's
 
     def _drain_estop_bus(self) -> None:
         bus = self._estop_bus

@@ -67,7 +67,7 @@ async def host(robot_yaml: str, seconds: float) -> dict[str, Any]:
         await robot.command(JointCommand("position", here))  # hold where the motors are, torque on
         await robot.clock.sleep(0.5)  # warm up: first ticks, allocations, caches
         stats = robot.controller.stats  # type: ignore[attr-defined]
-        period = robot._loop.period  # (no public period on Robot)
+        period = robot.control_period
         missed0 = sum(s.missed for s in stats)
         late0 = sum(s.late for s in stats)
         ticks0, skipped0 = robot.ticks, robot.missed_deadlines

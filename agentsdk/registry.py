@@ -41,6 +41,9 @@ BUILTIN_BACKENDS = {
 }
 
 
+#: the distribution a missing module comes from, where their names differ (``import can``: python-can)
+_DISTRIBUTIONS = {"can": "python-can"}
+
 def _entry_points() -> dict[str, str]:
     found = {ep.name: ep.value for ep in entry_points(group=GROUP)}
     return {**BUILTIN_BACKENDS, **found}
@@ -92,8 +95,9 @@ def load_backend(name: str) -> type[Backend]:
         module = importlib.import_module(module_name)
     except ImportError as exc:
         hint = _HINTS.get(name, f"install the package that provides {module_name!r}")
+        missing = _DISTRIBUTIONS.get(exc.name or "", exc.name or str(exc))
         raise BackendUnavailableError(
-            f"backend {name!r} is not available: {exc.name or exc} is not installed ({hint})"
+            f"backend {name!r} is not available: {missing} is not installed ({hint})"
         ) from exc
     except Exception as exc:
         # a broken plugin (any error while importing it) is isolated and named; the others still load

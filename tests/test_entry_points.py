@@ -69,15 +69,17 @@ def test_check_reports_a_broken_plugin(broken_plugin: str) -> None:
     assert any("mujoco" in line and "✓" in line for line in report.lines), report.lines
 
 
-def test_a_missing_optional_dependency_gives_the_install_command() -> None:
+@pytest.mark.parametrize(("backend", "module", "distribution"),
+                         [("pybullet", "pybullet", "pybullet"), ("can", "can", "python-can")])
+def test_a_missing_optional_dependency_gives_the_install_command(backend: str, module: str, distribution: str) -> None:
     import subprocess
 
     code = (
-        "import sys; sys.modules['pybullet'] = None\n"  # as if the pybullet extra were not installed
+        f"import sys; sys.modules[{module!r}] = None\n"  # as if the extra were not installed
         "import asyncio, agentsdk\n"
         "async def fails():\n"
         "    try:\n"
-        "        await agentsdk.connect('pybullet', robot='arm3')\n"
+        f"        await agentsdk.connect({backend!r}, robot='arm3')\n"
         "    except agentsdk.BackendUnavailableError as exc:\n"
         "        print('ERR', exc)\n"
         "asyncio.run(fails())\n"
@@ -87,5 +89,6 @@ def test_a_missing_optional_dependency_gives_the_install_command() -> None:
         "asyncio.run(main()); print('MUJOCO OK')\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True).stdout
-    assert "ERR backend 'pybullet' is not available" in out and "pip install 'agentsdk[pybullet]'" in out, out
+    assert f"ERR backend {backend!r} is not available: {distribution} is not installed" in out, out
+    assert f"pip install 'agentsdk[{backend}]'" in out, out
     assert "MUJOCO OK" in out

@@ -29,7 +29,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import pytest
 
@@ -131,14 +131,19 @@ def _stop(proc: subprocess.Popen[Any]) -> None:
             proc.wait(timeout=10)
 
 
-def test_remote_agent_over_delay_loss_and_a_partition(link: Link, tmp_path: Path) -> None:
-    domain = random.SystemRandom().randint(30, 230)
-    server_log = (tmp_path / "serve.log").open("w")
-    server = subprocess.Popen(
+def _serve_far(link: Link, tmp_path: Path, domain: int, log: IO[str]) -> subprocess.Popen[bytes]:
+    """``agentsdk serve`` of a mock arm3 as ``/far`` in namespace A, bound to its link address, peer B, a lease."""
+    return subprocess.Popen(
         ["ip", "netns", "exec", link.a, sys.executable, "-m", "agentsdk", "serve", "--robot", "arm3",
          "--backend", "mock", "--namespace", "/far", "--domain-id", str(domain), "--interface", link.addr_a,
          "--peer", link.addr_b, "--lease", str(LEASE), "-o", "safety={stall_timeout: 5.0}"],
-        env=_env(), cwd=tmp_path, stdout=server_log, stderr=subprocess.STDOUT)
+        env=_env(), cwd=tmp_path, stdout=log, stderr=subprocess.STDOUT)
+
+
+def test_remote_agent_over_delay_loss_and_a_partition(link: Link, tmp_path: Path) -> None:
+    domain = random.SystemRandom().randint(30, 230)
+    server_log = (tmp_path / "serve.log").open("w")
+    server = _serve_far(link, tmp_path, domain, server_log)
     client: subprocess.Popen[str] | None = None
     steps: dict[str, dict[str, Any]] = {}
     try:
@@ -205,11 +210,7 @@ def test_ros2_backend_goals_over_delay_and_loss(link: Link, tmp_path: Path) -> N
     and the served robot ends at the last target; the client's lease holds all along."""
     domain = random.SystemRandom().randint(30, 230)
     server_log = (tmp_path / "serve.log").open("w")
-    server = subprocess.Popen(
-        ["ip", "netns", "exec", link.a, sys.executable, "-m", "agentsdk", "serve", "--robot", "arm3",
-         "--backend", "mock", "--namespace", "/far", "--domain-id", str(domain), "--interface", link.addr_a,
-         "--peer", link.addr_b, "--lease", str(LEASE), "-o", "safety={stall_timeout: 5.0}"],
-        env=_env(), cwd=tmp_path, stdout=server_log, stderr=subprocess.STDOUT)
+    server = _serve_far(link, tmp_path, domain, server_log)
     try:
         deadline = time.monotonic() + 120
         while "serving" not in (tmp_path / "serve.log").read_text():

@@ -20,6 +20,7 @@ from ..backend import SetpointView
 from ..errors import ConfigurationError
 from ..loop import Phase, StateView
 from ..statemachine import StateMachine
+from ..threads import run_blocking
 from ._channels import FORMAT, SAFETY_EVENTS, TRANSITIONS, stamp_ns
 from ._images import IMAGE_FORMATS, ImageTap, camera_names
 from ._reader import RunData, read_recording
@@ -358,6 +359,18 @@ class Recorder:
         fields = (rec.machine, rec.source or "", rec.target or "", rec.event or "", rec.note or "",
                   getattr(rec, "configuration", "") or "", math.nan if duration is None else float(duration))
         self._side.append((stamp_ns(rec.time), TRANSITIONS, fields))
+
+    async def flush(self) -> None:
+        """Write every tick recorded so far to the file; the recording goes on.
+
+        Waits in a worker thread, so the control loop keeps running (and recording)
+        meanwhile. When it returns, the file holds the run up to the call: a crash
+        afterwards loses nothing before it, and another process can read it.
+        """
+        if self._finished:
+            return
+        self._handoff()
+        await run_blocking(self._writer.wait_written, self._writer.submitted, name="agentsdk-recorder-flush")
 
     # ----------------------------------------------------------- finish
     def finish(self) -> None:

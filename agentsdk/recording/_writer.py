@@ -542,6 +542,8 @@ class WriterThread:
         self.tree: TfTree | None = None
         self.final_counts: dict[str, int] = {}
         self.pending = 0  # jobs queued and not yet written
+        self.submitted = 0  # jobs queued so far
+        self.done = 0  # jobs written (or dropped after an error) so far
         self._idle = threading.Condition()
         self.thread = threading.Thread(target=self._run, name="agentsdk-recorder-writer", daemon=True)
         self.thread.start()
@@ -549,12 +551,18 @@ class WriterThread:
     def submit(self, job: Job) -> None:
         with self._idle:
             self.pending += 1
+            self.submitted += 1
         self.jobs.put(job)
 
     def wait_idle(self) -> None:
         """Block until every submitted job is written and flushed (not from a running control loop)."""
         with self._idle:
             self._idle.wait_for(lambda: self.pending == 0 or not self.thread.is_alive())
+
+    def wait_written(self, upto: int) -> None:
+        """Block until the first ``upto`` submitted jobs are written (later ones may still be queued)."""
+        with self._idle:
+            self._idle.wait_for(lambda: self.done >= upto or not self.thread.is_alive())
 
     def stop(self) -> None:
         """Write what is queued, then end the thread (joins it)."""
@@ -588,6 +596,7 @@ class WriterThread:
                     self.free.put(job.block)
                 with self._idle:
                     self.pending -= 1
+                    self.done += 1
                     self._idle.notify_all()
 
     def _describe(self) -> None:

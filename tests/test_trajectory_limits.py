@@ -277,3 +277,44 @@ def test_tolerance_nan_no_longer_disables_the_path_check() -> None:
     """Issue 10 item 4: ``Tolerances(path={j: nan})`` silently disabled the path check."""
     with pytest.raises(InvalidValueError, match=r"path \('joint1'\) tolerance must be > 0"):
         Tolerances(path={"joint1": math.nan})
+
+
+@pytest.mark.parametrize("start", [(0.42439251, 0.82285978, -8.0), (-0.23012203, -1.93438846, 8.0)])
+async def test_a_move_planned_late_in_a_run_from_a_braking_state_passes_its_own_limit_check(
+    start: tuple[float, float, float],
+) -> None:
+    # A move_to issued while a cancelled motion still brakes at max_acceleration starts with a
+    # jerk phase of a few µs. The sampler used to take segment durations as differences of absolute
+    # robot times, whose rounding (~eps * t) its quintic turned into an acceleration error of
+    # 6 |v| eps t / T^2: 8.009 against a limit of 8 at t = 91 s, and move_to raised LimitViolation.
+    from agentsdk.trajectory import plan_point_to_point
+
+    async with agentsdk.connect("mock", robot="arm3", safety=SAFETY) as robot:
+        j = robot.joints[0]
+    assert j.max_acceleration == abs(start[2])
+    q0, v0, a0 = start
+    for q1 in np.linspace(-1.0, 1.0, 21):
+        traj = plan_point_to_point(([q0], [v0], [a0]), [float(q1)], [j])
+        for t0 in (0.0, 91.362, 3600.0 * 24):
+            sampler = TrajectorySampler(traj, start_time=t0, start_positions=[q0], start_velocities=[v0],
+                                        start_accelerations=[a0])
+            check_motion_limits(sampler, [j.lower], [j.upper], [j.max_velocity], [j.max_acceleration])
+            # the same motion whenever it starts: the peaks do not depend on the clock's reading
+            ref = TrajectorySampler(traj, start_time=0.0, start_positions=[q0], start_velocities=[v0],
+                                    start_accelerations=[a0]).peaks()
+            assert np.allclose(sampler.peaks().a_peak, ref.a_peak, rtol=1e-9, atol=1e-9)
+
+
+async def test_move_to_right_after_a_cancel_is_admitted_at_any_time_of_the_run() -> None:
+    rng = np.random.default_rng(7)
+    async with agentsdk.connect("mock", robot="arm3", safety=SAFETY) as robot:
+        await robot.clock.sleep(90.0)  # the robot's clock reads ~90 s: the rounding above grows with it
+        for _ in range(40):
+            task = asyncio.ensure_future(robot.move_to({"joint1": float(rng.uniform(-1, 1)),
+                                                        "joint2": float(rng.uniform(-0.5, 0.5))}))
+            await robot.clock.sleep(float(rng.uniform(0.01, 0.4)))
+            task.cancel()  # the robot brakes at max_acceleration (unless the move already ended)
+            await asyncio.gather(task, return_exceptions=True)
+            await robot.clock.sleep(float(rng.choice([0.0, 0.002, 0.004, 0.01])))
+            result = await robot.move_to({"joint1": float(rng.uniform(-1, 1))})
+            assert result.code == ResultCode.SUCCESSFUL, result

@@ -119,6 +119,7 @@ class TrajectorySampler:
     __slots__ = (
         "_B",
         "_Bm",
+        "_T",
         "_c",
         "_end_state",
         "_has_start",
@@ -216,7 +217,10 @@ class TrajectorySampler:
         seg_coeffs: list[FloatArray] = []
         knots = [self.start_time] if has_start else []
         knots.extend(t_pts.tolist())
-        T = np.diff(t_pts)
+        # segment durations from the relative times: a difference of absolute robot times carries their
+        # rounding (~eps * t, 4e-14 s at t = 190 s), which a short segment's quintic turns into an
+        # acceleration error ~ 6 |v| eps t / T^2 (0.05 rad/s^2 on a 2.5 µs segment of a planned profile)
+        T = np.diff(pts.times)
 
         if pts.accelerations is not None:
             V = np.asarray(pts.velocities)
@@ -238,7 +242,7 @@ class TrajectorySampler:
         else:  # C2 cubic spline through (start,) points, clamped to v_s at the start and 0 at the end;
             # all segments quintic: the cubic spline exactly, except the first (from a_s) and the
             # last (which arrives with zero acceleration, so holding the end is smooth)
-            tk = np.array(knots)
+            tk = np.concatenate(([0.0], pts.times)) if has_start else np.asarray(pts.times, dtype=np.float64)
             Qk = np.vstack([q_s[None, :], P]) if has_start else P
             M = _clamped_spline_velocities(tk, Qk, v_s, np.zeros(n))
             if len(tk) > 1:
@@ -268,6 +272,7 @@ class TrajectorySampler:
             seg_coeffs.append(body)
         self._c = np.concatenate(seg_coeffs, axis=0) if seg_coeffs else np.zeros((0, 6, n))
         self._knots = knots
+        self._T = np.concatenate(([pts.points[0].time_from_start], T)) if has_start else T
         self._has_start = has_start
         self._B = np.zeros((3, 6))
         # the tick path allocates nothing: B's entries are written through a flat memoryview, and
@@ -357,7 +362,7 @@ class TrajectorySampler:
         if n_seg == 0:
             empty = np.zeros((0, n))
             return MotionPeaks(np.array(self._knots[:1] or [self.start_time]), empty, empty, empty, empty, empty, empty)
-        T = np.diff(np.array(self._knots, dtype=np.float64))
+        T = self._T
         with np.errstate(all="ignore"):
             kk = np.arange(6, dtype=np.float64)
             cq = c

@@ -31,10 +31,9 @@ from typing import TYPE_CHECKING, TextIO
 import numpy as np
 
 from .errors import ConfigurationError, InvalidValueError
-from .jog import JOG_STEP, Jogger
+from .jog import JOG_STEP, Jogger, StepReport
 
 if TYPE_CHECKING:
-    from .motion import MotionResult
     from .robot import Robot
 
 __all__ = ["EVENT_SIZE", "GamepadMapping", "GamepadState", "JsEvent", "encode_event", "find_gamepad",
@@ -162,7 +161,6 @@ async def jog_with_gamepad(
     gone = asyncio.Event()
     changed = asyncio.Event()
     pending = b""
-    steps = 0
 
     def _readable() -> None:
         nonlocal pending
@@ -181,14 +179,7 @@ async def jog_with_gamepad(
             state.update(event)
         changed.set()
 
-    def _done(result: MotionResult | BaseException) -> None:
-        nonlocal steps
-        if isinstance(result, BaseException):
-            print(f"jog failed: {result}", file=out, flush=True)
-        elif result.ok:
-            steps += 1
-        else:
-            print(f"jog refused: {result.message}", file=out, flush=True)
+    report = StepReport(out)
 
     loop.add_reader(fd, _readable)
     try:
@@ -197,7 +188,7 @@ async def jog_with_gamepad(
             if not direction.any():
                 jogger.release()  # dead-man released or sticks centred: hold
             elif not jogger.busy:
-                jogger.submit(lambda d=direction: jogger.cartesian(JOG_STEP * d), _done)  # type: ignore[misc]
+                jogger.submit(lambda d=direction: jogger.cartesian(JOG_STEP * d), report)  # type: ignore[misc]
             changed.clear()
             try:  # the next event, or the next period (a held stick keeps stepping)
                 async with asyncio.timeout(period):
@@ -209,4 +200,4 @@ async def jog_with_gamepad(
         loop.remove_reader(fd)
         os.close(fd)
         await jogger.aclose()
-    return steps
+    return report.steps

@@ -32,7 +32,7 @@ from __future__ import annotations
 import asyncio
 from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Any, Literal, TextIO
 
 import numpy as np
 import numpy.typing as npt
@@ -43,7 +43,9 @@ if TYPE_CHECKING:
     from .motion import MotionResult
     from .robot import Robot
 
-__all__ = ["CARTESIAN_KEYS", "JOG_STEP", "JOINT_STEP", "SHIFTED_DIGITS", "JogAction", "Jogger", "key_action"]
+__all__ = [
+    "CARTESIAN_KEYS", "JOG_STEP", "JOINT_STEP", "SHIFTED_DIGITS", "JogAction", "Jogger", "StepReport", "key_action",
+]
 
 #: one Cartesian jog step (m) and one joint jog step (rad, or m for a prismatic joint)
 JOG_STEP = 0.01
@@ -186,3 +188,28 @@ class Jogger:
         """Release (the robot holds) and wait until the step has stopped."""
         self.release()
         await self.wait()
+
+
+class StepReport:
+    """The ``done`` callback of a console jog (:meth:`Jogger.submit`): counts the steps done, prints why one was not.
+
+    ``after_step`` (optional) gives a line printed after each step done (the keyboard prints where the
+    end effector is).
+    """
+
+    def __init__(self, out: TextIO, after_step: Callable[[], str] | None = None) -> None:
+        self.out = out
+        self.after_step = after_step
+        #: steps that ended SUCCESSFUL
+        self.steps = 0
+
+    def __call__(self, result: MotionResult | BaseException) -> None:
+        """Take the outcome of one step."""
+        if isinstance(result, BaseException):
+            print(f"jog failed: {result}", file=self.out, flush=True)
+        elif result.ok:
+            self.steps += 1
+            if self.after_step is not None:
+                print(self.after_step(), file=self.out, flush=True)
+        else:
+            print(f"jog refused: {result.message}", file=self.out, flush=True)

@@ -20,10 +20,9 @@ from collections.abc import Iterator
 from typing import TYPE_CHECKING, TextIO
 
 from .errors import ConfigurationError
-from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, Jogger, key_action
+from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, Jogger, StepReport, key_action
 
 if TYPE_CHECKING:
-    from .motion import MotionResult
     from .robot import Robot
 
 __all__ = ["QUIT_KEYS", "jog_with_keys", "split_keys", "terminal_mode"]
@@ -77,7 +76,6 @@ async def jog_with_keys(robot: Robot, fd: int | None = None, out: TextIO | None 
     jogger = Jogger(robot)
     loop = asyncio.get_running_loop()
     keys: asyncio.Queue[str] = asyncio.Queue()
-    steps = 0
 
     def _readable() -> None:
         try:
@@ -93,15 +91,7 @@ async def jog_with_keys(robot: Robot, fd: int | None = None, out: TextIO | None 
         for key in split_keys(data.decode("utf-8", "replace")):
             keys.put_nowait(key)
 
-    def _done(result: MotionResult | BaseException) -> None:
-        nonlocal steps
-        if isinstance(result, BaseException):
-            print(f"jog failed: {result}", file=out, flush=True)
-        elif result.ok:
-            steps += 1
-            print(_where(jogger), file=out, flush=True)
-        else:
-            print(f"jog refused: {result.message}", file=out, flush=True)
+    report = StepReport(out, lambda: _where(jogger))
 
     with terminal_mode(fd):
         print(_help(jogger), file=out, flush=True)
@@ -118,8 +108,8 @@ async def jog_with_keys(robot: Robot, fd: int | None = None, out: TextIO | None 
                 action = key_action(key, len(robot.joints))
                 if action is None:
                     continue
-                jogger.submit(lambda a=action: jogger.run(a), _done)  # type: ignore[misc]
+                jogger.submit(lambda a=action: jogger.run(a), report)  # type: ignore[misc]
         finally:
             loop.remove_reader(fd)
             await jogger.aclose()  # release = hold
-    return steps
+    return report.steps

@@ -74,8 +74,9 @@ class StepGravity:
     order) gets ``g(q)`` of every body moving with it, clamped with its servo torque to
     ``±max_effort[k]``; a mimic follower gets its own share (its leader carries it through the
     joint equality, as the host term adds it to the leader), clamped with its leader's torque
-    off. Other hinge and slide joints get none (their actuator force is clamped to 0: they have
-    no actuator). :meth:`set_enabled` and :meth:`torque_off` switch joints' torque off and on.
+    off. Other joints of those bodies' chains get none (their actuator force is clamped to 0:
+    they have no actuator); bodies and joints that move with no commanded joint are left as the
+    model has them. :meth:`set_enabled` and :meth:`torque_off` switch joints' torque off and on.
     """
 
     def __init__(self, joints: Sequence[str], followers: Mapping[str, str], max_effort: np.ndarray) -> None:
@@ -87,25 +88,37 @@ class StepGravity:
     def configure(self, spec: mujoco.MjSpec) -> None:
         """Give the carried bodies ``gravcomp = 1`` and route it through the joints' actuator force limits."""
         carried = set(self.joints) | set(self.followers)
-        for body, chain in _chains(spec):
-            body.gravcomp = 1.0 if any(j.name in carried for j in chain) else 0.0
-        for joint in spec.joints:
-            if joint.type not in (_HINGE, _SLIDE):
-                continue
-            joint.actgravcomp = 1
-            if joint.name in self.joints:
-                effort = float(self.max_effort[self.joints.index(joint.name)])
-                if np.isfinite(effort):
-                    joint.actfrclimited, joint.actfrcrange = _LIMITED, [-effort, effort]
-                else:
-                    joint.actfrclimited = _UNLIMITED
-            elif joint.name in self.followers:
-                joint.actfrclimited = _UNLIMITED
-            else:  # no actuator: its actuator force is its gravity share alone, which the law leaves out
-                joint.actfrclimited, joint.actfrcrange = _LIMITED, [0.0, 0.0]
+
+        def visit(body: mujoco.MjsBody, moving: bool) -> bool:
+            """Set up ``body``'s subtree; True when a carried body is in it (its joints then route g(q))."""
+            moving = moving or any(j.name in carried for j in body.joints)
+            if moving:
+                body.gravcomp = 1.0  # (a body moving with no commanded joint keeps the model's own value)
+            below = [visit(child, moving) for child in body.bodies]
+            if moving or any(below):
+                for joint in body.joints:  # hinge and slide only (step_gravity_obstacle)
+                    self._route(joint)
+            return moving or any(below)
+
+        for top in spec.worldbody.bodies:
+            visit(top, False)
         for name in self.joints:  # the joint's limit clamps servo + g(q); the servo's own range would clamp twice
             act = spec.actuator(f"{name}_servo")
             act.forcelimited = _UNLIMITED
+
+    def _route(self, joint: mujoco.MjsJoint) -> None:
+        """``joint``'s share of the compensation into its actuator force, clamped as the law says."""
+        joint.actgravcomp = 1
+        if joint.name in self.joints:
+            effort = float(self.max_effort[self.joints.index(joint.name)])
+            if np.isfinite(effort):
+                joint.actfrclimited, joint.actfrcrange = _LIMITED, [-effort, effort]
+            else:
+                joint.actfrclimited = _UNLIMITED
+        elif joint.name in self.followers:
+            joint.actfrclimited = _UNLIMITED
+        else:  # no actuator: its actuator force is its gravity share alone, which the law leaves out
+            joint.actfrclimited, joint.actfrcrange = _LIMITED, [0.0, 0.0]
 
     def bind(self, model: mujoco.MjModel) -> None:
         """Take the compiled model: the joint rows switched per commanded joint and their nominal limits."""

@@ -201,3 +201,44 @@ async def test_the_feed_forward_depends_on_the_setpoint_not_the_measured_state()
         probe.qacc[:] = s @ sp.acceleration.astype(np.float32).astype(float)
         mujoco.mj_inverse(m, probe)
         np.testing.assert_allclose(term, s.T @ probe.qfrc_inverse, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("name", ["arm3", "humanoid", "panda"])
+async def test_a_planned_motion_runs_as_one_rollout_bit_for_bit(name: str) -> None:
+    """No model term depends on the measured state: the controls of K ticks computed from their setpoints
+    alone, run as one ``mujoco.rollout`` call, give tick-by-tick's states bit for bit (issue 28's block)."""
+    from mujoco import rollout
+
+    async with agentsdk.connect("mujoco", robot=SIMULATOR_ROUTED[name], safety=SAFETY) as robot:
+        b = robot.controller
+        m, d = b.model, b.data
+        n, ticks, nsub = len(b.names), 150, b._nsub
+        kp = np.array([g.p for g in robot.gains.values()])
+        kd = np.array([g.d for g in robot.gains.values()])
+        q0 = d.qpos[b._qadr].copy()
+        goal = np.clip(q0 + np.random.default_rng(4).uniform(-0.3, 0.3, n), b.lower, b.upper)
+        duration = ticks * b.period
+        stream = []
+        for k in range(ticks):  # a quintic from q0 to the goal: position, velocity and acceleration
+            s = (k + 1) / ticks
+            p, dp = 10 * s**3 - 15 * s**4 + 6 * s**5, (30 * s**2 - 60 * s**3 + 30 * s**4) / duration
+            ddp = (60 * s - 180 * s**2 + 120 * s**3) / duration**2
+            stream.append(_setpoint(n, position=q0 + p * (goal - q0), velocity=dp * (goal - q0),
+                                    acceleration=ddp * (goal - q0), kp=kp, kd=kd, target=goal))
+        full = mujoco.mjtState.mjSTATE_FULLPHYSICS
+        start = np.empty(mujoco.mj_stateSize(m, full))
+        mujoco.mj_getState(m, d, start, full)
+        warmstart = d.qacc_warmstart.copy()
+        expected = np.empty((ticks, start.size))
+        for k, sp in enumerate(stream):  # tick by tick, as the loop runs them
+            b.write(sp)
+            await b.step(b.period)
+            mujoco.mj_getState(m, d, expected[k], full)
+        controls = np.empty((ticks * nsub, m.nu))
+        for k, sp in enumerate(stream):  # the same setpoints from anywhere: the controls do not change
+            d.qpos[b._qadr] = q0 - 0.1
+            b.write(sp)
+            controls[k * nsub : (k + 1) * nsub] = d.ctrl
+        states, _ = rollout.rollout(m, mujoco.MjData(m), start, controls, initial_warmstart=warmstart)
+        np.testing.assert_array_equal(states[0][nsub - 1 :: nsub], expected)
+        assert np.abs(expected[-1, 1 : 1 + m.nq][b._qadr] - q0).max() > 0.05  # it moved

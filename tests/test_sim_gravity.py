@@ -242,3 +242,51 @@ async def test_a_planned_motion_runs_as_one_rollout_bit_for_bit(name: str) -> No
         states, _ = rollout.rollout(m, mujoco.MjData(m), start, controls, initial_warmstart=warmstart)
         np.testing.assert_array_equal(states[0][nsub - 1 :: nsub], expected)
         assert np.abs(expected[-1, 1 : 1 + m.nq][b._qadr] - q0).max() > 0.05  # it moved
+
+
+_MJCF = """<mujoco model="passive">
+  <compiler angle="radian"/>
+  <worldbody>
+    <body name="l1" pos="0 0 0.5">
+      <joint name="j1" axis="0 1 0" range="-2 2" actuatorfrcrange="-40 40"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="2"/>
+      <body name="lp" pos="0.3 0 0">
+        <joint axis="0 0 1" range="-1 1" damping="0.5"/>
+        <geom type="capsule" fromto="0 0 0 0.1 0 0" size="0.03" mass="0.5"/>
+        <body name="l2" pos="0.1 0 0">
+          <joint name="j2" axis="0 1 0" range="-2 2" actuatorfrcrange="-20 20"/>
+          <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
+          {tip}
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <keyframe><key name="home" qpos="0.3 0.2 -0.4{tip_q}"/></keyframe>
+</mujoco>"""
+_BALL_TIP = """<body name="bob" pos="0.3 0 0"><joint type="ball"/>
+            <geom type="sphere" pos="0 0 -0.1" size="0.03" mass="0.3"/></body>"""
+
+
+async def test_an_mjcf_passive_joint_gets_none_and_a_ball_joint_keeps_the_host_term(tmp_path: Path) -> None:
+    """A passive (unnamed) hinge between commanded joints is left out, as the host term leaves it out;
+    a ball joint below a commanded joint (its share cannot be clamped away) keeps the host term."""
+    plain = tmp_path / "plain.xml"
+    plain.write_text(_MJCF.format(tip="", tip_q=""), encoding="utf-8")
+    async with agentsdk.connect("mujoco", robot=str(plain), safety=SAFETY) as robot:
+        b = robot.controller
+        assert list(b.names) == ["j1", "j2"]
+        assert b.gravity_route == "simulator", b.gravity_route_reason
+        m = b.model
+        host, s_t, g = GravityTerm(m, b.names), coupling_matrix(m, b.names).T, np.zeros(2)
+        for q in _random_poses(robot, 10, seed=8):
+            d = _place(robot, q)
+            d.qpos[1] = 0.7  # the passive joint anywhere
+            mujoco.mj_forward(m, d)
+            np.testing.assert_allclose(s_t @ d.qfrc_gravcomp, host.compute(d.qpos, g), rtol=0, atol=1e-12)
+            assert d.qfrc_actuator[1] == 0.0  # the passive joint: no torque
+        assert b.simulator_report()["joints"][1][3] == 20.0  # the effort limit is the joint's
+    ball = tmp_path / "ball.xml"
+    ball.write_text(_MJCF.format(tip=_BALL_TIP, tip_q=" 1 0 0 0"), encoding="utf-8")
+    async with agentsdk.connect("mujoco", robot=str(ball), safety=SAFETY) as robot:
+        assert robot.controller.gravity_route == "host"
+        assert "ball joint" in robot.controller.gravity_route_reason

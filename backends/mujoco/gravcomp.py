@@ -84,10 +84,13 @@ class StepGravity:
         #: {follower joint: its leader}, leaders among ``joints``
         self.followers = dict(followers)
         self.max_effort = np.asarray(max_effort, dtype=float)
+        #: the other joints of the carried chains (set up by configure)
+        self._passive: list[mujoco.MjsJoint] = []
 
     def configure(self, spec: mujoco.MjSpec) -> None:
         """Give the carried bodies ``gravcomp = 1`` and route it through the joints' actuator force limits."""
         carried = set(self.joints) | set(self.followers)
+        self._passive.clear()
 
         def visit(body: mujoco.MjsBody, moving: bool) -> bool:
             """Set up ``body``'s subtree; True when a carried body is in it (its joints then route g(q))."""
@@ -118,7 +121,7 @@ class StepGravity:
         elif joint.name in self.followers:
             joint.actfrclimited = _UNLIMITED
         else:  # no actuator: its actuator force is its gravity share alone, which the law leaves out
-            joint.actfrclimited, joint.actfrcrange = _LIMITED, [0.0, 0.0]
+            self._passive.append(joint)  # clamped to [0, 0] in bind (the compiler wants a range; may be unnamed)
 
     def bind(self, model: mujoco.MjModel) -> None:
         """Take the compiled model: the joint rows switched per commanded joint and their nominal limits."""
@@ -128,6 +131,9 @@ class StepGravity:
         for name in self.joints:
             ids = [model.joint(name).id] + [model.joint(f).id for f, leader in self.followers.items() if leader == name]
             self._rows.append(np.array(ids, dtype=np.intp))
+        for joint in self._passive:  # (a spec element's id is the compiled model's)
+            self._limited[joint.id] = 1
+            self._range[joint.id] = 0.0
         self._nominal_limited = np.array(model.jnt_actfrclimited, copy=True)
         self._nominal_range = np.array(model.jnt_actfrcrange, copy=True)
         #: the ``enabled`` bytes the limits were last set for (empty: set them at the next write)

@@ -38,7 +38,8 @@ model's gravity torque::
 where ``tau_model = g(q)`` at the measured position for the joints whose
 :attr:`Backend.gravity_compensation` flag is set (robot.yaml ``gravity_compensation``,
 on by default), computed by the backend from its own model (see
-:mod:`agentsdk.dynamics`) once per control period, and 0 for the others; when
+:mod:`agentsdk.dynamics`) once per control period (the MuJoCo backend lets MuJoCo add it inside
+every physics step where that expresses the law exactly), and 0 for the others; when
 :attr:`Backend.inverse_dynamics` is set (robot.yaml ``inverse_dynamics``, on by default)
 it also holds the inverse dynamics of the desired motion, ``M(q) a_des + C(q, v_des) v_des``
 plus the joints' damping and friction at ``v_des``, with ``v_des``/``a_des`` the setpoint's

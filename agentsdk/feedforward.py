@@ -11,17 +11,18 @@ controller feeds the desired motion's inverse dynamics forward instead
     tau_model = M(q) a_des + C(q, v_des) v_des + b v_des + friction(v_des, a_des) + g(q)
 
 with ``v_des`` and ``a_des`` the reference's velocity and acceleration (the setpoint's
-``velocity`` and ``acceleration``: the trajectory executor writes both every tick), ``q``
-the measured position, and the joints' damping ``b`` and dry friction, which the motion meets
-as well (on corpus arms with URDF ``<dynamics damping friction>`` they, not the inertia,
-dominate the lag). :class:`InverseDynamicsTerm` computes the motion part (``g(q)`` stays the
-gravity term, so robot.yaml ``gravity_compensation`` keeps its meaning per joint) with
-MuJoCo's inverse dynamics (``mj_inverse``) on a private copy of the model the backend
-simulates (the MuJoCo backend's compiled model: armature and soft ``frictionloss`` as it
-simulates them) or of the description's host model (:class:`agentsdk.dynamics.DynamicsModel`:
-PyBullet, whose ``calculateInverseDynamics`` is wrong with URDF fixed joints, and CAN; dry
-Coulomb friction). At rest (``v_des = a_des = 0``) the term is exactly 0 and is not
-computed, so holds are unchanged.
+``velocity`` and ``acceleration``: the trajectory executor writes both every tick), ``q`` the
+measured position (the MuJoCo backend passes the desired one, the setpoint's ``position``, so
+that its term is a function of the setpoint stream alone), and the joints' damping ``b`` and dry
+friction, which the motion meets as well (on corpus arms with URDF ``<dynamics damping
+friction>`` they, not the inertia, dominate the lag). :class:`InverseDynamicsTerm` computes the
+motion part (``g(q)`` stays the gravity term, so robot.yaml ``gravity_compensation`` keeps its
+meaning per joint) with MuJoCo's inverse dynamics (``mj_inverse``) on a private copy of the
+model the backend simulates (the MuJoCo backend's compiled model: armature and soft
+``frictionloss`` as it simulates them) or of the description's host model
+(:class:`agentsdk.dynamics.DynamicsModel`: PyBullet, whose ``calculateInverseDynamics`` is wrong
+with URDF fixed joints, and CAN; dry Coulomb friction). At rest (``v_des = a_des = 0``) the term
+is exactly 0 and is not computed, so holds are unchanged.
 
 Switched per robot by robot.yaml ``inverse_dynamics`` (default true) or the backend option of
 the same name (``connect("mujoco", robot, inverse_dynamics=False)``).

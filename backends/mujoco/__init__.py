@@ -6,10 +6,22 @@ yields exactly the SDK's servo law ``kp*(q_des - q) + kd*(v_des - v) + effort_ff
 evaluated by MuJoCo at every physics step (with the damping term integrated
 implicitly by ``implicitfast``), clamped to the URDF effort limit.
 
-Gravity compensation (``tau_model`` of the servo law, :mod:`agentsdk.dynamics`): once per
-control period ``g(q)`` at the measured position is computed from this backend's own compiled
-model (``mj_rne`` at rest on a private ``MjData``, a floating base's attitude included) and
-added to ``ctrl``, so the actuator's force limit clamps the whole law.
+Gravity compensation (``tau_model`` of the servo law, :mod:`agentsdk.dynamics`): computed by
+MuJoCo inside the step (:mod:`backends.mujoco.gravcomp`: ``body_gravcomp`` routed through the
+joints' actuator forces, ``g(q)`` of the state MuJoCo integrates at every physics step, clamped
+with the servo torque to the effort limit), so a tick adds no host work for it. Where MuJoCo's
+mechanism cannot express the law exactly (a floating base, a joint below a ball joint, gravity
+compensation switched off for some joints only) ``g(q)`` is computed on the host instead, once
+per control period at the measured position, from this backend's own compiled model (``mj_rne``
+at rest on a private ``MjData``, a floating base's attitude included) and added to ``ctrl``, so
+the actuator's force limit clamps the whole law. :attr:`MujocoBackend.gravity_route` says which.
+The joint effort read back (``state.effort``) is the joint's actuator torque, gravity
+compensation included, either way.
+
+The inverse-dynamics feed-forward (robot.yaml ``inverse_dynamics``) is evaluated at the desired
+state, ``M(q_des) a_des + C(q_des, v_des) v_des`` plus the joints' damping and friction (the
+commanded joints at the setpoint's ``position``, mimic followers placed from it, every other
+coordinate at the start pose), so it is a function of the setpoint stream alone.
 
 Floating base (robot.yaml ``floating_base: true``): the root body gets a free joint, a ground
 plane is added (friction robot.yaml ``ground_friction``, the robot's geoms given the same
@@ -52,7 +64,7 @@ from agentsdk.description.mjcf import colliding_body_pairs
 from agentsdk.description.mjcf_scene import ground_geoms, has_ground, standing_offset, start_qpos, touching_at_start
 from agentsdk.description.mjspec import build_spec, mjcf_spec_without_actuators
 from agentsdk.description.model import quat_from_rpy
-from agentsdk.dynamics import GravityTerm
+from agentsdk.dynamics import GravityTerm, coupling_matrix
 from agentsdk.errors import AgentSDKError, BackendStartError, SimulationDiverged
 from agentsdk.feedforward import InverseDynamicsTerm
 from agentsdk.pose import BaseState, Pose
@@ -60,6 +72,7 @@ from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
+from .gravcomp import StepGravity, step_gravity_obstacle
 from .sensors import SERVED, MujocoSensors
 
 __all__ = ["MujocoBackend", "MujocoController", "MujocoOptions"]
@@ -199,6 +212,9 @@ class MujocoBackend(Backend):
                 act.forcerange = [-j.max_effort, j.max_effort]
             else:
                 act.forcelimited = mujoco.mjtLimited.mjLIMITED_FALSE
+        self._step_gravity = self._plan_gravity(spec)
+        if self._step_gravity is not None:
+            self._step_gravity.configure(spec)
         try:
             self.model = spec.compile()
         except Exception as exc:
@@ -206,6 +222,8 @@ class MujocoBackend(Backend):
         self.data = mujoco.MjData(self.model)
         self._sensors.bind(self.model, self.data)
         m = self.model
+        if self._step_gravity is not None:
+            self._step_gravity.bind(m)
         jids = [m.joint(j.name).id for j in self.joints]
         self._qadr = np.array([m.jnt_qposadr[i] for i in jids], dtype=np.intp)
         self._dadr = np.array([m.jnt_dofadr[i] for i in jids], dtype=np.intp)
@@ -227,6 +245,22 @@ class MujocoBackend(Backend):
         self._bias_kp = self._bias[:, 1]
         self._bias_kd = self._bias[:, 2]
         self._force = d.actuator_force
+        #: effort read back as S.T @ qfrc_actuator (MuJoCo's gravity compensation: the joint's actuator
+        #: force, a mimic follower's share carried by its leader); None: the servo actuators' force
+        self._effort_map: np.ndarray | None = None
+        if self._step_gravity is not None:
+            s_t = np.ascontiguousarray(coupling_matrix(m, self.names).T)
+            view = _gather_view(d.qfrc_actuator, self._dadr)
+            if view is not None and np.count_nonzero(s_t) == n:
+                self._force = view  # one dof per joint, consecutive, no follower: a view, nothing per tick
+            else:
+                self._effort_map = s_t
+                self._qfrc_actuator = d.qfrc_actuator
+                self._effort = np.zeros(n)
+        # the desired state the inverse-dynamics term is evaluated at: the start pose, the commanded
+        # joints and their mimic followers written from the setpoint (followers: (qadr, leader, c1, c0))
+        self._qdes = np.zeros(m.nq)
+        self._qdes_followers = _followers_of(m, self.names)
         self._qacc = d.qacc
         q, v = _gather_view(d.qpos, self._qadr), _gather_view(d.qvel, self._dadr)
         self._gather = q is None or v is None
@@ -336,7 +370,10 @@ class MujocoBackend(Backend):
         for k, j in enumerate(self.joints):
             jid = m.joint(j.name).id
             lo, hi = (float(m.jnt_range[jid, 0]), float(m.jnt_range[jid, 1])) if m.jnt_limited[jid] else (-inf, inf)
-            effort = float(m.actuator_forcerange[k, 1]) if m.actuator_forcelimited[k] else inf
+            if self._step_gravity is not None:  # the limit is the joint's (servo and gravity torque together)
+                effort = self._step_gravity.effort_limit(k)
+            else:
+                effort = float(m.actuator_forcerange[k, 1]) if m.actuator_forcelimited[k] else inf
             joints.append([j.name, lo, hi, effort])
         names = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}" for b in range(m.nbody)]
         names[0] = "world"
@@ -346,16 +383,40 @@ class MujocoBackend(Backend):
         return {"joints": joints, "masses": masses, "pairs": sorted(pairs)}
 
     # ------------------------------------------------------------ gravity compensation
+    #: how ``g(q)`` enters the servo law: ``"simulator"`` (MuJoCo, inside the step), ``"host"`` (computed
+    #: per control period and added to the control) or ``"off"`` (no joint compensated, or no gravity)
+    gravity_route: Literal["simulator", "host", "off"] = "off"
+    #: why the host computes ``g(q)`` (``gravity_route == "host"``), else ""
+    gravity_route_reason = ""
+
+    def _plan_gravity(self, spec: mujoco.MjSpec) -> StepGravity | None:
+        """MuJoCo's own gravity compensation when it expresses the law exactly, else None (host or off)."""
+        mask = self.gravity_compensation
+        if not mask.any() or not any(self.options.gravity):
+            self.gravity_route = "off"
+            return None
+        followers = {
+            str(e.name1): str(e.name2) for e in spec.equalities
+            if e.type == mujoco.mjtEq.mjEQ_JOINT and e.active and e.name2 in self.index and e.name1 not in self.index
+        }
+        reason = "" if mask.all() else "gravity compensation is off for some joints only"
+        reason = reason or step_gravity_obstacle(spec, [*self.names, *followers]) or ""
+        if reason:
+            self.gravity_route, self.gravity_route_reason = "host", reason
+            log.debug("%s: g(q) computed on the host: %s", self.config.label, reason)
+            return None
+        self.gravity_route = "simulator"
+        return StepGravity(self.names, followers, np.array([j.max_effort for j in self.joints], dtype=float))
+
     def _setup_gravity_compensation(self) -> None:
-        """``tau_model = g(q)`` from this model for the joints with gravity compensation (none: off)."""
+        """``tau_model = g(q)`` on the host for the joints with gravity compensation (None: MuJoCo's or off)."""
         m = self.model
         mask = self.gravity_compensation.astype(float)
         self._tau_model = np.zeros(len(self.joints))
         self._gc_mask = mask
         #: every joint compensated: the mask multiplies by 1.0 everywhere (no bit changes), so it is skipped
         self._gc_all = bool(mask.all())
-        on = mask.any() and bool(np.any(m.opt.gravity))
-        self._gravity = GravityTerm(m, self.names) if on else None
+        self._gravity = GravityTerm(m, self.names) if self.gravity_route == "host" else None
         # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from this model, armature included
         self._inverse = InverseDynamicsTerm(m, self.names, friction="mujoco") if self.inverse_dynamics else None
         self._tau_motion = np.zeros(len(self.joints))
@@ -403,6 +464,7 @@ class MujocoBackend(Backend):
         for follower, leader, multiplier, offset in self._mimic:
             d.qpos[follower] = multiplier * d.qpos[leader] + offset
         mujoco.mj_forward(m, d)
+        self._qdes[:] = d.qpos  # the desired state's coordinates that no setpoint moves: the start pose
         self._warn[:] = [d.warning[int(c)].number for c in self._warn_codes]
         self._warn_bytes = self._warnings().tobytes()
 
@@ -428,9 +490,17 @@ class MujocoBackend(Backend):
             ctrl += tau
         inverse = self._inverse
         if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics
-            ctrl += inverse.compute(self._qpos, sp.velocity, sp.acceleration, self._tau_motion, sp.mode, moving=True)
+            qdes = self._qdes  # at the desired state: a function of the setpoint stream alone
+            np.put(qdes, self._qadr, sp.position)
+            for adr, leader, c1, c0 in self._qdes_followers:
+                qdes[adr] = c0 + c1 * sp.position[leader]
+            ctrl += inverse.compute(qdes, sp.velocity, sp.acceleration, self._tau_motion, sp.mode, moving=True)
         en = sp.enabled
-        if en.tobytes() != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
+        enabled = en.tobytes()
+        step_gravity = self._step_gravity
+        if step_gravity is not None:  # MuJoCo's g(q): off with the joint's torque (bytes compare when unchanged)
+            step_gravity.set_enabled(en, enabled)
+        if enabled != self._all_enabled:  # bytes compare: ~5x cheaper than np.count_nonzero
             ctrl[~en] = 0.0
             self._bias_kp[:] = np.where(en, -sp.kp, 0.0)
             self._bias_kd[:] = np.where(en, -sp.kd, 0.0)
@@ -490,6 +560,8 @@ class MujocoBackend(Backend):
         if self._gather:  # joints not consecutive in qpos / qvel (else _q, _v are views)
             self._qpos.take(self._qadr, out=self._q)
             self._qvel.take(self._dadr, out=self._v)
+        if self._effort_map is not None:  # MuJoCo's gravity compensation with mimic followers or scattered dofs
+            return self._q, self._v, np.dot(self._effort_map, self._qfrc_actuator, out=self._effort)
         return self._q, self._v, self._force
 
     def _read_sensors(self, channels: Sequence[SensorChannel]) -> None:
@@ -501,6 +573,8 @@ class MujocoBackend(Backend):
         self._ctrl[:] = 0.0
         self._bias_kp[:] = 0.0
         self._bias_kd[:] = 0.0
+        if self._step_gravity is not None:  # MuJoCo's gravity compensation off with the servos
+            self._step_gravity.torque_off()
 
     async def _recover(self) -> None:
         self._reset_state()
@@ -542,6 +616,24 @@ def _add_free_joint(spec: mujoco.MjSpec, robot: str) -> str:
         if len(key.qpos):
             key.qpos = [*body.pos, *body.quat, *key.qpos]
     return str(body.name)
+
+
+def _followers_of(model: mujoco.MjModel, joints: Sequence[str]) -> list[tuple[int, int, float, float]]:
+    """``(qpos address, leader index in joints, c1, c0)`` of every joint following a commanded one.
+
+    A joint equality ``q_follower = c0 + c1 * q_leader`` (URDF mimic joints as built, MJCF joint
+    equalities), as :func:`agentsdk.dynamics.coupling_matrix` reads it.
+    """
+    index = {name: k for k, name in enumerate(joints)}
+    out: list[tuple[int, int, float, float]] = []
+    for e in range(model.neq):
+        if int(model.eq_type[e]) != int(mujoco.mjtEq.mjEQ_JOINT) or not model.eq_active0[e] or model.eq_obj2id[e] < 0:
+            continue
+        follower, leader = model.joint(int(model.eq_obj1id[e])).name, model.joint(int(model.eq_obj2id[e])).name
+        if leader in index and follower not in index:
+            out.append((int(model.jnt_qposadr[model.joint(follower).id]), index[leader],
+                        float(model.eq_data[e, 1]), float(model.eq_data[e, 0])))
+    return out
 
 
 def _gather_view(arr: np.ndarray, idx: np.ndarray) -> np.ndarray | None:

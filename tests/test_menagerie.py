@@ -46,14 +46,11 @@ ARMS = (
     "unitree_z1/z1.xml",
 )
 #: Apollo's main file (every geom contype = conaffinity = 0: its scene pairs the soles with the floor) stands on
-#: the added ground through explicit pairs and its joints hold (< 0.007 rad), but with the default gains (from
-#: the model, with the load: knees 16800 N·m/rad where its actuators have 606) the rigid robot rests on the
-#: corners of its soles, tilted 2.5 deg at the "stand" keyframe, pitches forward and falls at 1.75 s. With its
-#: actuators' kp/kv as robot.yaml gains it stands 5 s (1.022 -> 1.004 m), as in its own scene.xml
-APOLLO = pytest.param(
-    "apptronik_apollo/apptronik_apollo.xml",
-    marks=pytest.mark.xfail(strict=True, reason="default gains too stiff for Apollo's tilted soles (see APOLLO)"),
-)
+#: the added ground through explicit pairs, with its actuators' kp/kv as the default gains (the description's own
+#: servos, see Backend.servo_gains): with gains sized from the model and the load (knees 16800 N·m/rad where its
+#: actuators have 606) the rigid robot rested on the corners of its soles, tilted 2.5 deg at the "stand" keyframe,
+#: pitched forward and fell at 1.75 s
+APOLLO = "apptronik_apollo/apptronik_apollo.xml"
 LEGGED = (
     "unitree_go2/go2.xml",
     "anybotics_anymal_c/anymal_c.xml",

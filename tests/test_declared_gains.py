@@ -168,3 +168,17 @@ async def test_declared_gains_too_stiff_for_the_timestep_are_lowered(tmp_path: P
         assert robot.gains["j"].d == 1.0
         result = await robot.move_to({"j": 0.3})
         assert result.ok, result
+
+
+def test_check_says_where_the_gains_came_from(arm: Path, tmp_path: Path) -> None:
+    from agentsdk.check import check_robot
+
+    report = check_robot(arm, backends=["mujoco"])
+    text = "\n".join(report.lines)
+    assert "servo gains on mujoco (the description's position actuators (kp, kv; lowered only where a " \
+           "simulator's timestep requires) for 3; from the model, agentsdk.dynamics.model_gains for 1;" in text
+    assert "j1 p=300 d=12" in text
+    yaml = tmp_path / "robot.yaml"
+    yaml.write_text(f"description: {arm}\ngains:\n  default: {{p: 50.0, d: 2.0}}\n")
+    text = "\n".join(check_robot(yaml, backends=["mujoco"]).lines)
+    assert "servo gains on mujoco (robot.yaml; p N·m/rad" in text

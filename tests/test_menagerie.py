@@ -62,8 +62,12 @@ LEGGED = (
     "unitree_a1/a1.xml",
     "google_barkour_vb/barkour_vb.xml",
     "pal_talos/talos.xml",
-    # not unitree_h1/h1.xml: it has no keyframe, and at q = 0 its joints hold (error < 0.006 rad) while the
-    # rigid robot tips over backwards within 1.5 s (its centre of mass is not over its feet): balance, not servo
+    # not unitree_h1/h1.xml: balance, not servo. Its main file has no keyframe (its scene.xml has "home", knees
+    # bent). Its feet are capsule lines (heel contact at x = 0.004 m, toes at 0.155-0.179 m) and at q = 0 its
+    # centre of mass is 1.2 cm in front of the heel: the joints hold (error < 0.007 rad) while the base pitches
+    # backwards from the start, the centre of mass passes behind the heel at 0.3 s and it falls at 1.5 s. From
+    # the scene's "home" pose (2.4 cm in front of the heel) it falls too: no start pose makes it stand
+    # without a balance controller
 )
 
 

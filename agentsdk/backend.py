@@ -324,16 +324,46 @@ class Backend(ABC):
         )
 
     @functools.cached_property
+    def gain_sources(self) -> tuple[str, ...]:
+        """Where each joint's servo gains come from (see :attr:`servo_gains`).
+
+        ``"robot.yaml"``, ``"description"`` (the position servo the description declares for the
+        joint, :attr:`RobotDescription.declared_gains`) or ``"model"`` (:func:`~agentsdk.dynamics.model_gains`).
+        """
+        declared = self.description.declared_gains
+        return tuple(
+            "robot.yaml" if self.config.gains_for(j.name) is not None
+            else "description" if j.name in declared else "model"
+            for j in self.joints
+        )
+
+    @functools.cached_property
     def servo_gains(self) -> tuple[Gains, ...]:
-        """Servo gains per joint: robot.yaml ``gains`` (the joint's, else ``default``), else from the model."""
+        """Servo gains per joint: robot.yaml ``gains``, else the description's own servo's, else from the model.
+
+        robot.yaml: the joint's entry, else ``default``. The description's: an MJCF position
+        actuator's ``kp``/``kv`` (the robot author's gains, as a ros2_control user takes the
+        controller YAML the robot ships), lowered only where the simulator's timestep could not
+        integrate them (:func:`agentsdk.dynamics.declared_gains`).
+        """
         explicit = [self.config.gains_for(j.name) for j in self.joints]
         if all(g is not None for g in explicit):
             return tuple(g for g in explicit if g is not None)
         report = self.model_gain_report
+        declared = self.description.declared_gains
+        if any(j.name in declared for j in self.joints):
+            from .dynamics import declared_gains
+
+            damping = np.array([self.description.joint_record(j.name).damping for j in self.joints])
+            own = declared_gains([declared.get(j.name) for j in self.joints], report, damping, self.servo_timestep,
+                                 self.config.model_gains.damping_ratio)
+            explicit = [g if g is not None else own[k] for k, g in enumerate(explicit)]
+            if all(g is not None for g in explicit):
+                return tuple(g for g in explicit if g is not None)
         bad = [
             f"{j.name} (kp {p:g}, kd {d:g})"
-            for j, p, d in zip(self.joints, report.kp, report.kd, strict=True)
-            if not (math.isfinite(p) and math.isfinite(d) and 0 <= p <= MAX_GAIN and 0 <= d <= MAX_GAIN)
+            for j, p, d, g in zip(self.joints, report.kp, report.kd, explicit, strict=True)
+            if g is None and not (math.isfinite(p) and math.isfinite(d) and 0 <= p <= MAX_GAIN and 0 <= d <= MAX_GAIN)
         ]
         if bad:  # a degenerate mass model (an inertia of 1e30 beside one of 1e-4): no usable servo
             raise DescriptionError(

@@ -15,8 +15,14 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .errors import AgentSDKError, BackendUnavailableError
+
+if TYPE_CHECKING:
+    from .config import RobotConfig
+    from .description.model import RobotDescription
+    from .types import JointInfo
 
 __all__ = ["CheckReport", "check_robot"]
 
@@ -91,6 +97,25 @@ def _following_peak(r: dict[str, object], key: str = "following_peak") -> str:
         return ""
     k = max(range(len(peak)), key=lambda i: float(peak[i]))
     return f"{float(peak[k]):.2g} rad or m, {names[k]}"
+
+
+def _gain_source(desc: RobotDescription, config: RobotConfig, joints: Sequence[JointInfo]) -> str:
+    """Where the servo gains come from (the rule of :attr:`agentsdk.backend.Backend.servo_gains`), in words."""
+    explicit = [j.name for j in joints if config.gains_for(j.name) is not None]
+    declared = [j.name for j in joints if j.name not in explicit and j.name in desc.declared_gains]
+    model = len(joints) - len(explicit) - len(declared)
+    parts = []
+    if explicit:
+        parts.append("robot.yaml" + ("" if len(explicit) == len(joints) else f" for {len(explicit)}"))
+    if declared:
+        parts.append(
+            "the description's position actuators (kp, kv; lowered only where a simulator's timestep requires)"
+            + ("" if len(declared) == len(joints) else f" for {len(declared)}")
+        )
+    if model:
+        every = model == len(joints)
+        parts.append("from the model, agentsdk.dynamics.model_gains" + ("" if every else f" for {model}"))
+    return "; ".join(parts)
 
 
 def check_robot(
@@ -228,16 +253,10 @@ def check_robot(
         else:
             out.append(f"  {backend:9s} ✗ {r.get('error_type')}")
             report.problems.append(f"{backend}: {' '.join(str(r.get('error')).split())}")
-    explicit = {j.name for j in joints if config.gains_for(j.name) is not None}
+    source = _gain_source(desc, config, joints)
     for backend, r in zip(chosen, results, strict=True):
         if not r.get("gains"):
             continue
-        if len(explicit) == len(joints):
-            source = "robot.yaml"
-        elif explicit:
-            source = "robot.yaml, the others from the model"
-        else:
-            source = "from the model, agentsdk.dynamics.model_gains"
         out.append("")
         out.append(f"servo gains on {backend} ({source}; p N·m/rad, d N·m·s/rad):")
         gain_pairs = zip(r["joints"], r["gains"], strict=True)

@@ -6,7 +6,7 @@ Example::
     xacro_args: {link1_length: "0.3"}
     update_rate: 500                    # Hz, like controller_manager.update_rate
     gains:                              # joint servo gains, like ros2_control pid gains
-      default: {p: 400.0, d: 10.0}      # (joints without gains get them from the model, see model_gains)
+      default: {p: 400.0, d: 10.0}      # (joints without: an MJCF position actuator's, else from the model)
       joint3: {p: 20.0, d: 0.5}
     model_gains: {bandwidth: 10.0, damping_ratio: 1.0}   # Hz; see agentsdk.dynamics.model_gains
     gravity_compensation: true          # or per joint: {default: true, gripper: false}

@@ -44,7 +44,7 @@ from .types import FloatArray, JointInfo
 if TYPE_CHECKING:
     from .description import RobotDescription
 
-__all__ = ["DynamicsModel", "GainReport", "GravityTerm", "coupling_matrix", "model_gains"]
+__all__ = ["DynamicsModel", "GainReport", "GravityTerm", "coupling_matrix", "declared_gains", "model_gains"]
 
 
 #: error at which a model-based servo commands the full effort limit (rad, or m for prismatic joints)
@@ -384,3 +384,39 @@ def model_gains(
         kd[j] = 2.0 * z * math.sqrt(p * inertia[j])
         bound.append(why)
     return GainReport(kp, kd, inertia, free, tuple(bound))
+
+
+def declared_gains(
+    declared: Sequence[tuple[float, float] | None],
+    report: GainReport,
+    damping: np.ndarray,
+    timestep: float | None,
+    damping_ratio: float = 1.0,
+) -> list[Gains | None]:
+    """The description's own servo gains (``(kp, kd)`` per joint, None where it declares none), as used.
+
+    They are used as declared, with two exceptions:
+
+    * a servo declared without damping (``kd = 0``: MJCF ``<position>``'s default ``kv``, i.e. none
+      given) on a joint whose own damping ``b`` leaves it below ``damping_ratio`` gets
+      ``kd = 2 z sqrt(kp I) - b`` (``I`` from ``report``, as :func:`model_gains` sizes ``kd``):
+      an undamped servo rings for ever on a rigid model;
+    * ``kp`` is lowered to the discrete-time bound of :func:`model_gains`,
+      ``kp h**2 <= STABILITY_FRACTION (4 I_f + 2 h (kd + b))`` with ``I_f`` from ``report`` (the
+      inertia the joint moves with every other joint free), where the simulator's ``timestep``
+      could not integrate them (a model written for a smaller step, or a second simulator).
+    """
+    out: list[Gains | None] = []
+    for j, pair in enumerate(declared):
+        if pair is None:
+            out.append(None)
+            continue
+        kp, kd = pair
+        b = float(damping[j])
+        if kd == 0.0:
+            kd = max(0.0, 2.0 * damping_ratio * math.sqrt(kp * float(report.inertia[j])) - b)
+        if timestep is not None:
+            h = timestep
+            kp = min(kp, STABILITY_FRACTION * (4.0 * float(report.inertia_free[j]) + 2.0 * h * (kd + b)) / (h * h))
+        out.append(Gains(p=kp, d=kd))
+    return out

@@ -135,9 +135,10 @@ class Robot:
     def gains(self) -> Mapping[str, Gains]:
         """The servo gains in effect per joint (``p``, ``d`` and velocity-mode ``v``), read-only.
 
-        robot.yaml ``gains`` where given, else computed from the model (see
-        :func:`agentsdk.dynamics.model_gains`; ``robot.controller.model_gain_report`` says what
-        bounded each).
+        robot.yaml ``gains`` where given, else the position servo the description declares (an MJCF
+        position actuator's ``kp``/``kv``), else computed from the model (see
+        :func:`agentsdk.dynamics.model_gains`; ``robot.controller.gain_sources`` says which per joint,
+        ``robot.controller.model_gain_report`` what bounded the model's).
         """
         loop = self._loop
         return MappingProxyType({

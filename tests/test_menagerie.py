@@ -46,14 +46,11 @@ ARMS = (
     "unitree_z1/z1.xml",
 )
 #: Apollo's main file (every geom contype = conaffinity = 0: its scene pairs the soles with the floor) stands on
-#: the added ground through explicit pairs and its joints hold (< 0.007 rad), but with the default gains (from
-#: the model, with the load: knees 16800 N·m/rad where its actuators have 606) the rigid robot rests on the
-#: corners of its soles, tilted 2.5 deg at the "stand" keyframe, pitches forward and falls at 1.75 s. With its
-#: actuators' kp/kv as robot.yaml gains it stands 5 s (1.022 -> 1.004 m), as in its own scene.xml
-APOLLO = pytest.param(
-    "apptronik_apollo/apptronik_apollo.xml",
-    marks=pytest.mark.xfail(strict=True, reason="default gains too stiff for Apollo's tilted soles (see APOLLO)"),
-)
+#: the added ground through explicit pairs, with its actuators' kp/kv as the default gains (the description's own
+#: servos, see Backend.servo_gains): with gains sized from the model and the load (knees 16800 N·m/rad where its
+#: actuators have 606) the rigid robot rested on the corners of its soles, tilted 2.5 deg at the "stand" keyframe,
+#: pitched forward and fell at 1.75 s
+APOLLO = "apptronik_apollo/apptronik_apollo.xml"
 LEGGED = (
     "unitree_go2/go2.xml",
     "anybotics_anymal_c/anymal_c.xml",
@@ -65,8 +62,12 @@ LEGGED = (
     "unitree_a1/a1.xml",
     "google_barkour_vb/barkour_vb.xml",
     "pal_talos/talos.xml",
-    # not unitree_h1/h1.xml: it has no keyframe, and at q = 0 its joints hold (error < 0.006 rad) while the
-    # rigid robot tips over backwards within 1.5 s (its centre of mass is not over its feet): balance, not servo
+    # not unitree_h1/h1.xml: balance, not servo. Its main file has no keyframe (its scene.xml has "home", knees
+    # bent). Its feet are capsule lines (heel contact at x = 0.004 m, toes at 0.155-0.179 m) and at q = 0 its
+    # centre of mass is 1.2 cm in front of the heel: the joints hold (error < 0.007 rad) while the base pitches
+    # backwards from the start, the centre of mass passes behind the heel at 0.3 s and it falls at 1.5 s. From
+    # the scene's "home" pose (2.4 cm in front of the heel) it falls too: no start pose makes it stand
+    # without a balance controller
 )
 
 

@@ -394,7 +394,19 @@ def _load_mjcf(path: Path) -> RobotDescription:
         default_positions=dict(states[default_state]) if default_state else {},
         named_states=states,
         default_state=default_state,
+        declared_gains=_declared_gains(m, {j.name for j in joints}),
     )
+
+
+def _declared_gains(m: Any, names: set[str]) -> dict[str, tuple[float, float]]:
+    """The commanded joints' position-servo gains the model declares (:mod:`.actuators`)."""
+    import mujoco
+
+    from .actuators import declared_servo_gains
+
+    by_id = declared_servo_gains(m)
+    named = ((mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_JOINT, jid), g) for jid, g in by_id.items())
+    return {name: g for name, g in named if name in names}
 
 
 def _keyframes(m: Any, names: set[str]) -> dict[str, dict[str, float]]:

@@ -274,6 +274,9 @@ class RobotDescription:
     named_states: Mapping[str, Mapping[str, float]] = field(default_factory=dict, repr=False)
     #: the named pose ``default_positions`` comes from (an MJCF keyframe), or None
     default_state: str | None = None
+    #: servo gains the description declares per joint, ``{joint: (kp, kd)}`` in N·m/rad and N·m·s/rad
+    #: (an MJCF position actuator's, see :mod:`agentsdk.description.actuators`): the robot author's gains
+    declared_gains: Mapping[str, tuple[float, float]] = field(default_factory=dict, repr=False)
 
     @property
     def free_root(self) -> str | None:

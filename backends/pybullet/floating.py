@@ -8,10 +8,11 @@ torque away. This step therefore adds the generalized constraint force PyBullet
 applied in the previous substep (contacts, joint limits, mimic couplings), measured
 as what the model needs to explain the motion::
 
-    F_ext = M(q) (v - v_prev) / h + c(q, v) + g(q) - f_prev
+    F_ext = (M(q) - A) (v - v_prev) / h + c(q, v) + g(q) - f_prev
 
-(``f_prev``: the joint forces applied then, zero on the base's six dofs), low-pass
-filtered (:data:`EXT_FILTER`: a touchdown's impulse is spread over a few substeps)
+(``f_prev``: the joint forces applied then, zero on the base's six dofs; ``M - A``: PyBullet's
+rigid bodies, without the rotors' inertia ``A`` it does not simulate), weighted by
+:data:`EXT_FILTER` against the previous estimate,
 and kept only on the base and on the joints that carry a link in contact (elsewhere
 the measurement holds nothing but model error, which fed back on a light finger
 would grow from substep to substep), and
@@ -43,8 +44,11 @@ from .friction import friction_torque
 
 __all__ = ["EXT_FILTER", "FloatingStep", "free_body_name"]
 
-#: weight of the newest measurement in the low-pass filtered constraint force (per substep)
-EXT_FILTER = 0.3
+#: weight of the newest measurement in the constraint force estimate (per substep; below 1 a low-pass). 1: the
+#: estimate lags one substep already, and a filter's further lag rings on a light link with a heavy rotor (the
+#: quadruped fixture with rotors 20 times its shins' inertia held its knees within 0.03 rad at 1, swung 0.02-0.1
+#: rad at 0.3); a 10 cm drop, G1's fingers, Apollo and the corpus quadrupeds stand either way
+EXT_FILTER = 1.0
 
 
 def free_body_name(model: mujoco.MjModel) -> str | None:
@@ -210,9 +214,13 @@ class FloatingStep:
             np.subtract(qvel, self._qvel_prev, out=meas)
             meas /= h
             np.matmul(mass, meas, out=self._out)
+            # PyBullet moved rigid bodies without rotors: their inertia explains the motion, not M + A (measured
+            # with A, the rotors' A qacc came back as a constraint force with the gain -A/M_rigid: a light ankle
+            # link on a heavy rotor diverged within a few substeps: A/M_rigid > 5.7 with a filter weight of 0.3)
+            self._out -= self._armature * meas
             self._out += bias
             self._out -= self._applied
-            # low-pass: a standing robot's weight passes, a touchdown's impulse is spread over a few substeps
+            # (a weight below 1 low-passes: a standing robot's weight passes, an impulse is spread over substeps)
             self._out -= ext
             self._out *= EXT_FILTER
             ext += self._out

@@ -250,7 +250,7 @@ class Backend(ABC):
         """Construct the backend from its ready :class:`~agentsdk.backendspec.BackendSpec` (:meth:`make_spec`).
 
         The form ``Backend(config, description, joints, realtime=..., **options)`` of earlier
-        releases still works for one release and warns (``DeprecationWarning``): the spec is then
+        releases still works, deprecated (it warns with a ``DeprecationWarning``): the spec is then
         derived here. Build backends with :meth:`create` (or ``cls(cls.make_spec(...))``).
         """
         if isinstance(spec, BackendSpec):

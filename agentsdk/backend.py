@@ -22,8 +22,7 @@ Hooks receive values and return values; none of them sees the loop's buffers::
         def _read(self) -> JointReading: ...                # (position, velocity, effort) arrays
         def _emergency_stop(self, category: int) -> None: ...  # sync, thread-safe, no event loop
 
-Optional hooks: ``async _enable()`` (re-arm actuators after an e-stop) and
-``async _recover()`` (bring a faulted backend back; default: not recoverable).
+Optional hooks: ``async _enable()`` (re-arm after an e-stop), ``async _recover()`` (default: not recoverable).
 
 Sensors (:mod:`agentsdk.sensors`): a backend declares the kinds it can sample in
 ``sensor_kinds`` and implements ``_read_sensors(channels)``, which writes each due channel's
@@ -35,43 +34,37 @@ model's gravity torque::
 
     effort = kp * (q_des - q) + kd * (v_des - v) + effort_ff + tau_model     (clamped to +-max_effort)
 
-where ``tau_model = g(q)`` at the measured position for the joints whose
-:attr:`Backend.gravity_compensation` flag is set (robot.yaml ``gravity_compensation``,
-on by default), computed by the backend from its own model (see
-:mod:`agentsdk.dynamics`) once per control period (the MuJoCo backend lets MuJoCo add it inside
-every physics step where that expresses the law exactly), and 0 for the others; when
-:attr:`Backend.inverse_dynamics` is set (robot.yaml ``inverse_dynamics``, on by default)
-it also holds the inverse dynamics of the desired motion, ``M(q) a_des + C(q, v_des) v_des``
-plus the joints' damping and friction at ``v_des``, with ``v_des``/``a_des`` the setpoint's
-``velocity``/``acceleration`` (:class:`agentsdk.feedforward.InverseDynamicsTerm`; none for an
-effort-mode joint). A joint
-whose ``enabled`` flag is False produces no torque (no gravity compensation either). Position,
-velocity and effort commands are all expressed in this law (velocity: kp = 0;
-effort: kp = kd = 0), so a backend needs one code path. The loop enforces the
-torque-off rule itself: after an emergency stop every setpoint it writes has
-``enabled`` all False until the robot is deliberately re-enabled, and if an
-emergency stop from another thread lands while ``_write`` runs, the loop calls
-``_emergency_stop(0)`` again before stepping.
+where ``tau_model`` is ``g(q)`` at the measured position for the joints whose
+:attr:`Backend.gravity_compensation` flag is set (robot.yaml ``gravity_compensation``, on by
+default; see :mod:`agentsdk.dynamics`; the MuJoCo backend lets MuJoCo add it inside every physics
+step where that expresses the law exactly), plus, when :attr:`Backend.inverse_dynamics` is set
+(on by default), the inverse dynamics of the desired motion ``M a_des + C v_des`` with the joints'
+damping and friction at ``v_des`` (:class:`agentsdk.feedforward.InverseDynamicsTerm`; none for an
+effort-mode joint). A joint whose ``enabled`` flag is False produces no torque (no gravity
+compensation either). Position, velocity and effort commands are all expressed in this law
+(velocity: kp = 0; effort: kp = kd = 0), so a backend needs one code path. The loop enforces the
+torque-off rule itself: after an emergency stop every setpoint it writes has ``enabled`` all False
+until the robot is deliberately re-enabled, and if an emergency stop from another thread lands
+while ``_write`` runs, the loop calls ``_emergency_stop(0)`` again before stepping.
 
-Read-only information a backend may use: :attr:`Backend.description`,
-:attr:`~Backend.config`, :attr:`~Backend.joints` (with limits, after robot.yaml
-overrides), :attr:`~Backend.names`, :attr:`~Backend.index`,
-:attr:`~Backend.period`, :attr:`~Backend.realtime`, :attr:`~Backend.options`
-(validated by :attr:`~Backend.options_model`), :attr:`~Backend.initial_positions`
-(decided once for every backend, :mod:`agentsdk.description.start`; a simulator starts
-exactly there), :attr:`~Backend.gravity_compensation`, :attr:`~Backend.inverse_dynamics`,
-:attr:`~Backend.servo_gains`
-(robot.yaml gains, else from the model), :attr:`~Backend.dynamics` (the description's
-rigid-body model, for backends without a simulator), and the limit arrays
-:attr:`~Backend.lower`, :attr:`~Backend.upper`, :attr:`~Backend.max_velocity`,
-:attr:`~Backend.max_effort`.
+A backend is constructed from one ready value, its :class:`~agentsdk.backendspec.BackendSpec`
+(``Backend(spec)``; :meth:`Backend.create` derives it with :meth:`Backend.make_spec` first): options,
+joints and limits, start pose, servo gains, gravity flags and the robot's one host-side model. A
+subclass's ``__init__(self, spec)`` calls ``super().__init__(spec)``; the earlier
+``(config, description, joints, **options)`` form still works and warns.
+Read-only information a backend may use (the spec's values): :attr:`Backend.description`,
+:attr:`~Backend.config`, :attr:`~Backend.joints` (limits after robot.yaml overrides),
+:attr:`~Backend.names`, :attr:`~Backend.index`, :attr:`~Backend.period`, :attr:`~Backend.realtime`,
+:attr:`~Backend.options` (validated by :attr:`~Backend.options_model`),
+:attr:`~Backend.initial_positions` (a simulator starts exactly there),
+:attr:`~Backend.gravity_compensation`, :attr:`~Backend.inverse_dynamics`, :attr:`~Backend.servo_gains`
+(robot.yaml's, the description's or the model's), :attr:`~Backend.dynamics` (the rigid-body model on the
+robot's host model, for backends without a simulator), and the limit arrays :attr:`~Backend.lower`,
+:attr:`~Backend.upper`, :attr:`~Backend.max_velocity`, :attr:`~Backend.max_effort`.
 
-A simulator sets :attr:`~Backend.servo_timestep` (its physics step: the model-based
-gains stay within what it integrates stably) and, for a floating base, overrides
-:meth:`~Backend.base_state`.
-
-Capabilities are read from the instance: a backend may set ``self.capabilities``
-in ``__init__`` (e.g. a configuration that supports fewer modes).
+A simulator overrides :attr:`~Backend.servo_timestep` (its physics step: the model-based gains
+stay within what it integrates stably) and, for a floating base, :meth:`~Backend.base_state`.
+Capabilities are read from the instance (``__init__`` may narrow ``self.capabilities``).
 """
 
 from __future__ import annotations
@@ -81,7 +74,7 @@ import contextlib
 import enum
 import functools
 import logging
-import math
+import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Awaitable, Iterator, Sequence
 from dataclasses import dataclass
@@ -90,14 +83,13 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 import numpy as np
 from pydantic import BaseModel, ValidationError
 
-from .backendspec import BackendSpec
-from .config import MAX_GAIN, Gains
-from .errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError, DescriptionError
+from .backendspec import BackendSpec, takes_spec
+from .errors import AgentSDKError, BackendFault, BackendStartError, ConfigurationError
 from .pose import BaseState, Pose
 from .types import MODES, CommandMode, FloatArray, JointInfo
 
 if TYPE_CHECKING:
-    from .config import RobotConfig
+    from .config import Gains, RobotConfig
     from .description import RobotDescription
     from .description.start import StartPose
     from .dynamics import DynamicsModel, GainReport
@@ -228,62 +220,109 @@ class Backend(ABC):
     #: sensor kinds the backend samples in ``_read_sensors`` (joint sensors are served by the loop for every backend)
     sensor_kinds: ClassVar[frozenset[str]] = frozenset()
 
+    # the read-only values a backend is built from (set from its spec, see ``_adopt``)
+    config: RobotConfig
+    description: RobotDescription
+    joints: tuple[JointInfo, ...]
+    realtime: bool
+    names: tuple[str, ...]
+    index: dict[str, int]
+    period: float
+    options: Any
+
     def __init__(
         self,
+        spec: BackendSpec | RobotConfig,
+        description: RobotDescription | None = None,
+        joints: tuple[JointInfo, ...] | None = None,
+        *,
+        realtime: bool | None = None,
+        **options: Any,
+    ) -> None:
+        """Construct the backend from its ready :class:`~agentsdk.backendspec.BackendSpec` (:meth:`make_spec`).
+
+        The form ``Backend(config, description, joints, realtime=..., **options)`` of earlier
+        releases still works, deprecated (it warns with a ``DeprecationWarning``): the spec is then
+        derived here. Build backends with :meth:`create` (or ``cls(cls.make_spec(...))``).
+        """
+        if isinstance(spec, BackendSpec):
+            if description is not None or joints is not None or realtime is not None or options:
+                raise TypeError(f"{type(self).__name__}(spec) takes the BackendSpec alone")
+        else:
+            if description is None or joints is None:
+                raise TypeError(f"{type(self).__name__}() takes a BackendSpec (see Backend.make_spec)")
+            warnings.warn(
+                f"{type(self).__name__}: constructing a backend from (config, description, joints, **options) is "
+                "deprecated; a backend is constructed from its BackendSpec: Backend.create(config, description, "
+                "joints, **options), or cls(cls.make_spec(...)); a subclass __init__ takes (self, spec) and calls "
+                "super().__init__(spec)",
+                DeprecationWarning,
+                stacklevel=2,
+            )
+            spec = BackendSpec.derive(self, spec, description, joints, realtime, options)
+        self._adopt(spec)
+
+    @classmethod
+    def make_spec(
+        cls,
         config: RobotConfig,
         description: RobotDescription,
         joints: tuple[JointInfo, ...],
         *,
         realtime: bool | None = None,
         **options: Any,
-    ) -> None:
-        caps = self.capabilities
-        if realtime is None:
-            realtime = not caps.lockstep
-        if realtime and not caps.realtime:
-            raise ConfigurationError(f"backend {self.name!r} does not support realtime=True")
-        if not realtime and not caps.lockstep:
-            raise ConfigurationError(f"backend {self.name!r} runs in real time only; lockstep is not supported")
-        #: the validated robot.yaml (or defaults for a bare description)
-        self.config = config
-        #: the loaded robot description
-        self.description = description
-        #: actuated joints in order, with limits after robot.yaml overrides
-        self.joints = joints
-        #: True when paced to the wall clock, False in lockstep
-        self.realtime = bool(realtime)
-        #: joint names in ``joints`` order
-        self.names: tuple[str, ...] = tuple(j.name for j in joints)
+    ) -> BackendSpec:
+        """The ready values this backend class is built from (:meth:`BackendSpec.derive`; nothing is opened)."""
+        draft = cls.__new__(cls)  # holds what the hooks may read, before construction
+        return BackendSpec.derive(draft, config, description, joints, realtime, options)
+
+    @classmethod
+    def create(
+        cls,
+        config: RobotConfig,
+        description: RobotDescription,
+        joints: tuple[JointInfo, ...],
+        *,
+        realtime: bool | None = None,
+        **options: Any,
+    ) -> Backend:
+        """The backend for a robot: its spec (:meth:`make_spec`), then ``cls(spec)``.
+
+        A subclass whose ``__init__`` takes ``(config, description, joints, ...)`` (earlier releases)
+        is called that way and warns.
+        """
+        if takes_spec(cls, Backend):
+            return cls(cls.make_spec(config, description, joints, realtime=realtime, **options))
+        return cls(config, description, joints, realtime=realtime, **options)
+
+    @classmethod
+    def default_realtime(cls, config: RobotConfig, options: dict[str, Any]) -> bool:
+        """The time model when ``realtime`` is not given: lockstep where the backend supports it.
+
+        ``options``: robot.yaml ``backends.<name>`` merged with the connect options, not validated
+        (a backend whose time model depends on the remote side reads them, ``ros2``).
+        """
+        return not cls.capabilities.lockstep
+
+    def _adopt(self, spec: BackendSpec) -> None:
+        """Take the spec's ready values as this backend's read-only attributes (documented on BackendSpec)."""
+        #: every ready value this backend is built from (limits, start pose, gains, servo-law flags, options)
+        self.spec: BackendSpec = spec
+        self.config, self.description, self.joints = spec.config, spec.description, spec.joints
+        self.realtime, self.period, self.options = spec.realtime, spec.period, spec.options
+        self.names = spec.names
         #: joint name -> index
-        self.index: dict[str, int] = {n: i for i, n in enumerate(self.names)}
-        #: control period (s)
-        self.period: float = config.control_period
-        from_file = config.backend_options(self.name)
-        merged = {**from_file, **options}
-        # the options are validated by the (overridable) hook, which may read the attributes above
-        validated = self._validate_options(merged, given=frozenset(options))
-        #: every ready value this backend is built from (limits, start pose, servo-law flags, options)
-        self.spec: BackendSpec = BackendSpec.build(config, description, joints, validated, realtime=self.realtime)
-        spec = self.spec
-        #: the validated options (an instance of ``options_model``, or None)
-        self.options: Any = spec.options
-        self.lower = spec.lower
-        self.upper = spec.upper
-        self.max_velocity = spec.max_velocity
-        self.max_effort = spec.max_effort
-        #: the start pose and where each joint's value came from (:mod:`agentsdk.description.start`)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self.lower, self.upper = spec.lower, spec.upper
+        self.max_velocity, self.max_effort = spec.max_velocity, spec.max_effort
         self.start_pose: StartPose = spec.start_pose
-        #: where the joints start: robot.yaml ``initial_positions``, an SRDF group state, the model's
-        #: home pose, else 0 -- always inside the limits
         self.initial_positions = spec.initial_positions
-        #: per joint: the servo law adds the model's gravity torque (robot.yaml ``gravity_compensation``)
         self.gravity_compensation: np.ndarray = spec.gravity_compensation
-        #: the servo law adds the inverse dynamics of the desired motion (robot.yaml ``inverse_dynamics``)
         self.inverse_dynamics: bool = spec.inverse_dynamics
         self._backend_open = False
         #: joints whose reading frame the backend is changing on purpose (see :meth:`frame_change`),
         #: and how many changes are in progress (one list item: the gate checks it every tick)
-        self.frame_changing = np.zeros(len(joints), dtype=bool)
+        self.frame_changing = np.zeros(len(spec.joints), dtype=bool)
         self.frame_changes = [0]
 
     # ------------------------------------------------------------ model-based information
@@ -306,72 +345,39 @@ class Backend(ABC):
 
     @functools.cached_property
     def dynamics(self) -> DynamicsModel:
-        """The description's rigid-body model (``g(q)``, ``M(q)``), built on first use."""
+        """The description's rigid-body model (``g(q)``, ``M(q)``) on the robot's one host model (:attr:`spec`).
+
+        Its own scratch data on the model the robot's kinematics share (compiled at most once).
+        """
         from .dynamics import DynamicsModel
 
-        return DynamicsModel(self.description, self.joints)
+        return DynamicsModel(self.description, self.joints, host=self.spec.host.get())
 
     @functools.cached_property
     def model_gain_report(self) -> GainReport:
         """The model-based gains of every joint at the start pose and what bounded each."""
-        mg = self.config.model_gains
-        return self.dynamics.gains(
-            self.initial_positions,
-            bandwidth=mg.bandwidth,
-            damping_ratio=mg.damping_ratio,
-            timestep=self.servo_timestep,
-            floating_base=self.floating_base,
-        )
+        if self.spec.gain_report is not None:
+            return self.spec.gain_report
+        from .backendspec import model_gain_report
+
+        spec = self.spec
+        return model_gain_report(spec.config, spec.host, spec.initial_positions, spec.servo_timestep,
+                                 spec.floating_base)
 
     @functools.cached_property
     def gain_sources(self) -> tuple[str, ...]:
-        """Where each joint's servo gains come from (see :attr:`servo_gains`).
+        """Where each joint's servo gains come from: ``"robot.yaml"``, ``"description"`` or ``"model"``."""
+        from .backendspec import gain_sources
 
-        ``"robot.yaml"``, ``"description"`` (the position servo the description declares for the
-        joint, :attr:`RobotDescription.declared_gains`) or ``"model"`` (:func:`~agentsdk.dynamics.model_gains`).
-        """
-        declared = self.description.declared_gains
-        return tuple(
-            "robot.yaml" if self.config.gains_for(j.name) is not None
-            else "description" if j.name in declared else "model"
-            for j in self.joints
-        )
+        return gain_sources(self.config, self.description, self.joints)
 
-    @functools.cached_property
+    @property
     def servo_gains(self) -> tuple[Gains, ...]:
-        """Servo gains per joint: robot.yaml ``gains``, else the description's own servo's, else from the model.
+        """Servo gains per joint: robot.yaml's, else the description's own servo's, else the model's.
 
-        robot.yaml: the joint's entry, else ``default``. The description's: an MJCF position
-        actuator's ``kp``/``kv`` (the robot author's gains, as a ros2_control user takes the
-        controller YAML the robot ships), lowered only where the simulator's timestep could not
-        integrate them (:func:`agentsdk.dynamics.declared_gains`).
+        See :func:`agentsdk.backendspec.gain_sources` for the order; :attr:`gain_sources` says which.
         """
-        explicit = [self.config.gains_for(j.name) for j in self.joints]
-        if all(g is not None for g in explicit):
-            return tuple(g for g in explicit if g is not None)
-        report = self.model_gain_report
-        declared = self.description.declared_gains
-        if any(j.name in declared for j in self.joints):
-            from .dynamics import declared_gains
-
-            damping = np.array([self.description.joint_record(j.name).damping for j in self.joints])
-            own = declared_gains([declared.get(j.name) for j in self.joints], report, damping, self.servo_timestep,
-                                 self.config.model_gains.damping_ratio)
-            explicit = [g if g is not None else own[k] for k, g in enumerate(explicit)]
-            if all(g is not None for g in explicit):
-                return tuple(g for g in explicit if g is not None)
-        bad = [
-            f"{j.name} (kp {p:g}, kd {d:g})"
-            for j, p, d, g in zip(self.joints, report.kp, report.kd, explicit, strict=True)
-            if g is None and not (math.isfinite(p) and math.isfinite(d) and 0 <= p <= MAX_GAIN and 0 <= d <= MAX_GAIN)
-        ]
-        if bad:  # a degenerate mass model (an inertia of 1e30 beside one of 1e-4): no usable servo
-            raise DescriptionError(
-                f"{self.description.source}: the model's masses and inertias give no usable servo gains for "
-                f"{', '.join(bad)}; fix the description's <inertial> values or set gains for them in robot.yaml"
-            )
-        model = report.as_gains()
-        return tuple(g if g is not None else model[k] for k, g in enumerate(explicit))
+        return self.spec.servo_gains
 
     @functools.cached_property
     def sensors(self) -> tuple[SensorSpec, ...]:
@@ -591,3 +597,4 @@ def substeps(period: float, timestep: float, simulator: str, source: str) -> int
             f"{period:g} s (at most {MAX_SUBSTEPS}); raise the timestep or update_rate"
         )
     return nsub
+

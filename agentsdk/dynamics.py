@@ -21,7 +21,9 @@ URDF parser, its own inertia repairs and a second source of truth). MuJoCo's
 recursive Newton-Euler (``mj_rne``) runs allocation-free on preallocated buffers,
 a few microseconds per call for an arm.
 
-Model-based gains (:func:`model_gains`) are documented there.
+The model is the robot's one :class:`~agentsdk.hostmodel.HostModel` (``host=``), the same compiled
+model as its :class:`~agentsdk.kinematics.Kinematics`; a :class:`DynamicsModel` computes in its own
+``MjData``. Model-based gains (:func:`model_gains`) are documented there.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ import numpy as np
 from .config import Gains
 from .description.model import quat_from_rpy
 from .errors import DescriptionError
-from .hostmodel import EQ_JOINT, GravityTerm, coupling_matrix
+from .hostmodel import GravityTerm, HostModel, coupling_matrix
 from .pose import Pose
 from .types import FloatArray, JointInfo
 
@@ -57,15 +59,6 @@ STABILITY_FRACTION = 0.25
 MIN_INERTIA = 1e-9
 
 
-def _description_spec(description: RobotDescription) -> mujoco.MjSpec:
-    """The description as a MuJoCo spec without geometry (URDF) or the MJCF as written, no actuators."""
-    from .description.mjspec import build_spec, mjcf_spec_without_actuators
-
-    if description.format == "mjcf":
-        return mjcf_spec_without_actuators(str(description.source))
-    return build_spec(description, {}).spec
-
-
 class DynamicsModel:
     """The description's rigid-body model (MuJoCo, see the module docstring): ``g(q)`` and ``M(q)``.
 
@@ -82,43 +75,25 @@ class DynamicsModel:
         *,
         gravity: Sequence[float] = (0.0, 0.0, -9.81),
         floating_base: bool = False,
+        host: HostModel | None = None,
     ) -> None:
         self.description = description
-        self.joints: tuple[JointInfo, ...] = tuple(joints if joints is not None else description.joints)
-        self.names = tuple(j.name for j in self.joints)
-        try:
-            spec = _description_spec(description)
-            spec.option.gravity = list(gravity)
-            self._free = ""
-            if floating_base:
-                tops = list(spec.worldbody.bodies)
-                if len(tops) == 1 and not tops[0].joints:
-                    tops[0].add_freejoint()
-                    self._free = tops[0].name
-                elif description.free_root is not None:  # an MJCF free joint at the root
-                    self._free = description.free_root
-                elif len(tops) == 1 and [j.type for j in tops[0].joints] == [mujoco.mjtJoint.mjJNT_FREE]:
-                    self._free = tops[0].name  # an MJCF <freejoint>: the base floats already
-            self.model = spec.compile()
-        except Exception as exc:
-            raise DescriptionError(f"could not build the dynamics model of {description.name!r}: {exc}") from exc
-        m = self.model
-        self._data = mujoco.MjData(m)
-        jids = [m.joint(name).id for name in self.names]
-        self._qadr = np.array([m.jnt_qposadr[j] for j in jids], dtype=np.intp)
-        self._s = coupling_matrix(m, self.names)
-        self._gravity = GravityTerm(m, self.names)
-        # joint equalities q_f = c0 + c1 q_l: followers placed from their leader
-        self._followers: list[tuple[int, int, float, float]] = []
-        index = {name: k for k, name in enumerate(self.names)}
-        for e in range(m.neq):
-            if int(m.eq_type[e]) != EQ_JOINT or not m.eq_active0[e] or m.eq_obj2id[e] < 0:
-                continue
-            f, leader = int(m.eq_obj1id[e]), m.joint(int(m.eq_obj2id[e])).name
-            if leader in index and m.joint(f).name not in index:
-                self._followers.append(
-                    (int(m.jnt_qposadr[f]), index[leader], float(m.eq_data[e, 1]), float(m.eq_data[e, 0]))
-                )
+        if host is None:
+            host = HostModel.compile(description, joints, gravity=gravity, floating_base=floating_base)
+        elif joints is not None and tuple(j.name for j in joints) != host.names:
+            raise DescriptionError(f"joints {[j.name for j in joints]} are not the host model's {list(host.names)}")
+        #: the robot's one compiled host model (shared with its Kinematics; this object has its own MjData)
+        self.host = host
+        self.joints: tuple[JointInfo, ...] = host.joints
+        self.names = host.names
+        self.model = m = host.model
+        self._free = host.free_body
+        self._data = host.new_data()
+        self._qadr = host.qadr
+        self._s = host.coupling
+        self._gravity = host.gravity_term()
+        # joint equalities q_f = c0 + c1 q_l: followers placed from their leader (the host's couplings)
+        self._followers = [(c.qadr, c.leader, c.multiplier, c.offset) for c in host.couplings]
         self._qpos = m.qpos0.copy()
         self._free_qadr = int(m.jnt_qposadr[m.body_jntadr[m.body(self._free).id]]) if self._free else 0
         self._mfull = np.zeros((m.nv, m.nv))
@@ -269,19 +244,22 @@ class DynamicsModel:
     def _limbs(self) -> int:
         """How many chains of movable joints leave the base body (at least 1)."""
         m = self.model
+        jntnum = m.body_jntnum.copy()
+        if self.host.added_free:  # a free joint added for a floating base is not one of the robot's joints
+            jntnum[m.body(self._free).id] -= 1
         tops = [b for b in range(1, m.nbody) if m.body_parentid[b] == 0]
         base = tops[0] if len(tops) == 1 else 0
         # descend through bodies without joints (fixed links) to the body the limbs hang from
         while True:
             children = [b for b in range(1, m.nbody) if m.body_parentid[b] == base and b != base]
-            if len(children) == 1 and m.body_jntnum[children[0]] == 0 and m.body_jntnum[base] == 0 and base != 0:
+            if len(children) == 1 and jntnum[children[0]] == 0 and jntnum[base] == 0 and base != 0:
                 base = children[0]
                 continue
             break
 
         def moves(b: int) -> bool:
             children = (c for c in range(1, m.nbody) if m.body_parentid[c] == b and c != b)
-            return bool(m.body_jntnum[b]) or any(moves(c) for c in children)
+            return bool(jntnum[b]) or any(moves(c) for c in children)
 
         return max(1, sum(1 for c in range(1, m.nbody) if m.body_parentid[c] == base and c != base and moves(c)))
 

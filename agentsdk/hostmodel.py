@@ -1,12 +1,22 @@
 """The host-side model of a robot: its description compiled by MuJoCo, without geometry.
 
-The model :class:`~agentsdk.kinematics.Kinematics` computes with: an MJCF file as written, or
-the description built by :func:`agentsdk.description.mjspec.build_spec` (how the MuJoCo backend
-builds the robot), and the couplings of its mimic joints.
+One :class:`HostModel` per robot: an MJCF file as written (actuators dropped), or the description
+built by :func:`agentsdk.description.mjspec.build_spec` (how the MuJoCo backend builds the robot),
+compiled once (:func:`compile_spec`), with the couplings of its mimic joints read once. It is
+shared by :class:`~agentsdk.kinematics.Kinematics` (FK, Jacobians, IK) and
+:class:`~agentsdk.dynamics.DynamicsModel` (``g(q)``, ``M(q)``, model-based gains); a connected
+robot builds it once (:attr:`agentsdk.backendspec.BackendSpec.host`).
+
+The ``MjModel`` is read-only once built; every user takes its own ``MjData``
+(:meth:`HostModel.new_data`, :meth:`HostModel.gravity_term`), so IK in a worker thread and
+the control tick's gravity term never share scratch state.
 """
 
 from __future__ import annotations
 
+import copy
+import math
+import threading
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from .errors import DescriptionError
-from .types import FloatArray, JointState
+from .types import FloatArray, JointInfo, JointState
 
 Positions = Mapping[str, float] | Sequence[float] | npt.NDArray[np.floating] | JointState
 """Joint positions: ``{joint: value}``, a full-length sequence in joint order, or a JointState."""
@@ -61,26 +71,27 @@ def mjcf_source(description: Any) -> Path | None:
     return None
 
 
-def compile_model(description: Any) -> tuple[mujoco.MjModel, list[str]]:
-    """The kinematic/dynamic model: an MJCF file as written, or the description built by ``build_spec``.
+def compile_spec(spec: mujoco.MjSpec) -> mujoco.MjModel:
+    """Compile a host-side model: the one place :class:`HostModel` is compiled (tests count the calls)."""
+    return spec.compile()
 
-    ``build_spec`` is how the MuJoCo backend builds the robot (one body per link, fixed
-    links kept, the description's repaired inertials, mimic joints as equality
-    constraints), so link frames and g(q) are the simulators' own. No collision geometry.
+
+def host_spec(description: Any) -> mujoco.MjSpec:
+    """The description as MuJoCo builds it host-side, without geometry or actuators.
+
+    An MJCF file as written (includes, defaults, equalities) with its actuators removed and
+    every body kept (``fusestatic`` off: links attached by fixed joints stay frames), or
+    :func:`~agentsdk.description.mjspec.build_spec`'s model of a URDF (one body per link, the
+    description's repaired inertials, mimic joints as joint equalities).
     """
-    mjcf = mjcf_source(description)
-    try:
-        if mjcf is not None:
-            spec = mujoco.MjSpec.from_file(str(mjcf))
-            spec.compiler.fusestatic = False
-        else:
-            from .description.mjspec import build_spec
+    from .description.mjspec import build_spec, mjcf_spec_without_actuators
 
-            spec = build_spec(description, {}).spec
-        model = spec.compile()
-    except Exception as exc:
-        raise DescriptionError(f"MuJoCo could not build the kinematics of {description.name!r}: {exc}") from exc
-    return model, [f"{r}" for r in getattr(description, "repairs", ()) if "inertia" in str(r) or "mass" in str(r)]
+    mjcf = mjcf_source(description)
+    if mjcf is not None:
+        spec = mjcf_spec_without_actuators(str(mjcf))
+        spec.compiler.fusestatic = False
+        return spec
+    return build_spec(description, {}).spec
 
 
 @dataclass(frozen=True)
@@ -214,11 +225,12 @@ class GravityTerm:
     attitude) and writes ``S.T @ g_all`` into ``out``. Not thread-safe (one caller).
     """
 
-    def __init__(self, model: mujoco.MjModel, joints: Sequence[str]) -> None:
+    def __init__(self, model: mujoco.MjModel, joints: Sequence[str], coupling: FloatArray | None = None) -> None:
         self.model = model
         self._data = mujoco.MjData(model)  # qvel stays 0: mj_rne gives the bias at rest, g(q)
         self._qpos = self._data.qpos  # a view made once (each MjData attribute access builds a new array)
-        self._st = np.ascontiguousarray(coupling_matrix(model, joints).T)
+        s = coupling_matrix(model, joints) if coupling is None else coupling  # a HostModel passes its own
+        self._st = np.ascontiguousarray(s.T)
         self._all = np.zeros(model.nv)
         #: the last result and the bytes of the ``qpos`` it is for: a robot at rest has the same
         #: ``qpos`` bit for bit tick after tick, and g(q) is a pure function of it (same result)
@@ -246,3 +258,137 @@ class GravityTerm:
     def invalidate(self) -> None:
         """Forget the cached result (after changing the model's masses, inertias or gravity)."""
         self._key = b""
+
+
+class HostModel:
+    """One robot's host-side model: the description compiled once, its couplings read once.
+
+    ``joints`` are the commanded joints (with robot.yaml limit overrides: IK keeps within
+    them); each must be a hinge or slide joint of the model. The ``MjModel`` is not changed
+    after construction; a user takes its own ``MjData`` (:meth:`new_data`, :meth:`gravity_term`).
+    Build one with :meth:`compile`; :class:`~agentsdk.kinematics.Kinematics` and
+    :class:`~agentsdk.dynamics.DynamicsModel` take it as ``host=``.
+    """
+
+    def __init__(
+        self,
+        model: mujoco.MjModel,
+        description: Any,
+        joints: Sequence[JointInfo],
+        *,
+        repaired: Sequence[str] = (),
+        free_body: str = "",
+        added_free: bool = False,
+    ) -> None:
+        self.model = model
+        self.description = description
+        self.name: str = str(description.name)
+        self.joints: tuple[JointInfo, ...] = tuple(joints)
+        self.names: tuple[str, ...] = tuple(j.name for j in self.joints)
+        self.index: dict[str, int] = {n: k for k, n in enumerate(self.names)}
+        #: bodies whose inertia MuJoCo rejected and that were repaired
+        self.repaired_inertias: tuple[str, ...] = tuple(repaired)
+        #: the body whose free joint floats the base ("" for a fixed base)
+        self.free_body = free_body
+        #: True when the free joint was added for a floating base (not in the description)
+        self.added_free = added_free
+        m = model
+        n = len(self.joints)
+        qadr, dadr = np.zeros(n, dtype=np.intp), np.zeros(n, dtype=np.intp)
+        for k, j in enumerate(self.joints):
+            jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j.name)
+            if jid < 0:
+                raise DescriptionError(f"joint {j.name!r} of {self.name!r} is missing from the host model")
+            if int(m.jnt_type[jid]) not in (HINGE, SLIDE):
+                raise DescriptionError(f"joint {j.name!r} of {self.name!r} is not a revolute or prismatic joint")
+            qadr[k], dadr[k] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
+            # IK keeps within the robot's limits (robot.yaml may tighten the URDF ones)
+            if math.isfinite(j.lower) and math.isfinite(j.upper):
+                m.jnt_limited[jid] = 1
+                m.jnt_range[jid] = (j.lower, j.upper)
+            else:
+                m.jnt_limited[jid] = 0
+        #: qpos and dof address of each commanded joint
+        self.qadr, self.dadr = qadr, dadr
+        #: the mimic joints and their leaders, read once (description records, else joint equalities)
+        self.couplings: tuple[Coupling, ...] = tuple(find_couplings(m, description, self.index))
+        s = np.zeros((m.nv, n))
+        s[dadr, np.arange(n)] = 1.0
+        for c in self.couplings:
+            s[c.dadr, c.leader] += c.multiplier
+        s.flags.writeable = False
+        #: ``S`` (nv, n): generalized velocities from the commanded joints' (see :func:`coupling_matrix`)
+        self.coupling = s
+        #: the copy of the model with another gravity vector (:meth:`gravity_term`), the last one asked for
+        self._copy: tuple[bytes, mujoco.MjModel] | None = None
+        self._copy_lock = threading.Lock()
+
+    @classmethod
+    def compile(
+        cls,
+        description: Any,
+        joints: Sequence[JointInfo] | None = None,
+        *,
+        gravity: Sequence[float] = (0.0, 0.0, -9.81),
+        floating_base: bool = False,
+    ) -> HostModel:
+        """Compile ``description`` (:func:`host_spec`) once: the model every host-side user shares.
+
+        ``floating_base`` frees the root body (a free joint added to a single top body without
+        joints; an MJCF free joint at the root is kept), for ``g(q)`` at a given base attitude.
+        """
+        joints = tuple(joints if joints is not None else description.joints)
+        free, added = "", False
+        try:
+            spec = host_spec(description)
+            spec.option.gravity = [float(v) for v in gravity]
+            if floating_base:
+                tops = list(spec.worldbody.bodies)
+                if len(tops) == 1 and not tops[0].joints:
+                    tops[0].add_freejoint()
+                    free, added = tops[0].name, True
+                elif getattr(description, "free_root", None) is not None:  # an MJCF free joint at the root
+                    free = description.free_root
+                elif len(tops) == 1 and [j.type for j in tops[0].joints] == [mujoco.mjtJoint.mjJNT_FREE]:
+                    free = tops[0].name  # an MJCF <freejoint>: the base floats already
+            model = compile_spec(spec)
+        except Exception as exc:
+            raise DescriptionError(f"MuJoCo could not build the host model of {description.name!r}: {exc}") from exc
+        repaired = [f"{r}" for r in getattr(description, "repairs", ()) if "inertia" in str(r) or "mass" in str(r)]
+        return cls(model, description, joints, repaired=repaired, free_body=free, added_free=added)
+
+    def new_data(self) -> mujoco.MjData:
+        """A fresh ``MjData`` of the shared model: each user (thread) computes in its own."""
+        return mujoco.MjData(self.model)
+
+    def gravity_term(self, gravity: Sequence[float] | FloatArray | None = None) -> GravityTerm:
+        """A new ``g(q)`` of the commanded joints with its own ``MjData`` (one per user).
+
+        ``gravity``: a gravity vector other than the model's; its term computes on a copy of
+        the model with that vector (the shared model is never changed; a copy, not a recompile,
+        kept for the last vector asked for).
+        """
+        model = self.model
+        if gravity is not None:
+            g = np.asarray(gravity, dtype=float)
+            if not np.array_equal(g, model.opt.gravity):
+                key = g.tobytes()
+                with self._copy_lock:
+                    if self._copy is None or self._copy[0] != key:
+                        other = copy.copy(self.model)
+                        other.opt.gravity[:] = g
+                        self._copy = (key, other)
+                    model = self._copy[1]
+        return GravityTerm(model, self.names, self.coupling)
+
+    def qpos(self, q: FloatArray, out: FloatArray) -> FloatArray:
+        """The full ``qpos`` for commanded positions ``q`` into ``out``: defaults, then ``q`` and the mimic joints."""
+        out[:] = self.model.qpos0
+        out[self.qadr] = q
+        for c in self.couplings:
+            out[c.qadr] = c.multiplier * q[c.leader] + c.offset
+        return out
+
+    def __repr__(self) -> str:
+        base = f", floating at {self.free_body!r}" if self.free_body else ""
+        return f"<HostModel {self.name!r}: {len(self.joints)} joints, {self.model.nbody} bodies{base}>"

@@ -16,7 +16,11 @@ The kinematic model is the description compiled by MuJoCo with
   so :meth:`Kinematics.gravity` is the simulators' rigid-body gravity torque and
   meshes are never loaded. The description's inertial repairs are listed in
   :attr:`Kinematics.repaired_inertias`;
-* for MJCF, the model as written (MuJoCo is its reference implementation).
+* for MJCF, the model as written (MuJoCo is its reference implementation), its actuators dropped.
+
+That model is a :class:`~agentsdk.hostmodel.HostModel`, compiled once per robot and shared with the
+robot's :class:`~agentsdk.dynamics.DynamicsModel` (``host=``); this object computes in its own
+``MjData`` under its own lock, so it may be used from any thread.
 
 Conventions (as ROS / KDL / MoveIt):
 
@@ -56,10 +60,11 @@ from .hostmodel import (
     HINGE,
     SLIDE,
     GravityTerm,
+    HostModel,
     MjcfDescription,
     Positions,
-    compile_model,
-    find_couplings,
+    compile_spec,
+    host_spec,
     link_tree,
     wxyz_to_xyzw,
 )
@@ -149,41 +154,33 @@ class Kinematics:
         joints: Sequence[JointInfo] | None = None,
         *,
         state: Callable[[], JointState] | None = None,
+        host: HostModel | None = None,
     ) -> None:
         self.description = description
         self.name: str = description.name
-        self.joints: tuple[JointInfo, ...] = tuple(joints if joints is not None else description.joints)
+        if host is None:
+            host = HostModel.compile(description, joints)
+        elif joints is not None and tuple(j.name for j in joints) != host.names:
+            raise InvalidValueError(f"joints {[j.name for j in joints]} are not the host model's {list(host.names)}")
+        #: the robot's one compiled host model (shared with its DynamicsModel; this object has its own MjData)
+        self.host = host
+        self.joints: tuple[JointInfo, ...] = host.joints
         self._state = state
-        self.model, repaired = compile_model(description)
+        self.model = host.model
         #: bodies whose inertia MuJoCo rejected and that were repaired (see the module docstring)
-        self.repaired_inertias: tuple[str, ...] = tuple(repaired)
+        self.repaired_inertias: tuple[str, ...] = host.repaired_inertias
         m = self.model
-        self._data = mujoco.MjData(m)
+        self._data = host.new_data()
         self._lock = threading.RLock()
-        self.joint_names: tuple[str, ...] = tuple(j.name for j in self.joints)
-        self._index = {n: i for i, n in enumerate(self.joint_names)}
+        self.joint_names: tuple[str, ...] = host.names
+        self._index = dict(host.index)
         n = len(self.joints)
-
-        qadr, dadr = np.zeros(n, dtype=np.intp), np.zeros(n, dtype=np.intp)
-        for k, j in enumerate(self.joints):
-            jid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j.name)
-            if jid < 0:
-                raise DescriptionError(f"joint {j.name!r} of {self.name!r} is missing from the kinematic model")
-            if int(m.jnt_type[jid]) not in (HINGE, SLIDE):
-                raise DescriptionError(f"joint {j.name!r} of {self.name!r} is not a revolute or prismatic joint")
-            qadr[k], dadr[k] = m.jnt_qposadr[jid], m.jnt_dofadr[jid]
-            # IK keeps within the robot's limits (robot.yaml may tighten the URDF ones)
-            if math.isfinite(j.lower) and math.isfinite(j.upper):
-                m.jnt_limited[jid] = 1
-                m.jnt_range[jid] = (j.lower, j.upper)
-            else:
-                m.jnt_limited[jid] = 0
-        self._qadr, self._dadr = qadr, dadr
+        self._qadr, self._dadr = host.qadr, host.dadr
         self.lower = np.array([j.lower for j in self.joints])
         self.upper = np.array([j.upper for j in self.joints])
-        self._couplings = find_couplings(m, description, self._index)
+        self._couplings = host.couplings
         coupled = {c.dadr for c in self._couplings}
-        actuated = set(dadr.tolist())
+        actuated = set(self._dadr.tolist())
         #: dofs IK must not move: free/ball joints and joints that are neither actuated nor mimic
         self._frozen_dofs = [d for d in range(m.nv) if d not in actuated and d not in coupled]
         self._neutral = np.clip(np.zeros(n), self.lower, self.upper)
@@ -192,12 +189,15 @@ class Kinematics:
         self._body = {name: bid for name, bid in self._links.items()}
         self._ik: IKSolver | None = None
         self._gravity: GravityTerm | None = None
-        self._gravity_qpos = np.zeros(0)
+        self._gravity_qpos = np.zeros(m.nq)
 
     @classmethod
     def for_robot(cls, robot: Any) -> Kinematics:
-        """The kinematics of a connected :class:`~agentsdk.Robot`, defaulting to its latest measured state."""
-        return cls(robot.description, robot.joints, state=robot.latest_state)
+        """The kinematics of a connected :class:`~agentsdk.Robot`, defaulting to its latest measured state.
+
+        On the robot's one host model (its own ``MjData``): nothing is compiled again.
+        """
+        return cls(robot.description, robot.joints, state=robot.latest_state, host=robot.controller.spec.host.get())
 
     @classmethod
     def from_mjcf(
@@ -216,8 +216,9 @@ class Kinematics:
         path = Path(path).expanduser().resolve()
         if not path.is_file():
             raise DescriptionError(f"MJCF model not found: {path}")
+        desc = MjcfDescription(name=path.stem, source=path)
         try:
-            model = mujoco.MjModel.from_xml_path(str(path))
+            model = compile_spec(host_spec(desc))
         except Exception as exc:
             raise DescriptionError(f"{path}: MuJoCo could not load the MJCF model: {exc}") from exc
         followers = {
@@ -255,7 +256,9 @@ class Kinematics:
                 )
             infos = [by_name[j] for j in joints]
         desc = MjcfDescription(name=model.names.split(b"\0")[0].decode() or path.stem, source=path)
-        return cls(desc, infos, state=state)  # type: ignore[arg-type]
+        # the model compiled above is the host model: an MJCF file is compiled once here too
+        host = HostModel(model, desc, infos)
+        return cls(desc, infos, state=state, host=host)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------ structure
     @property
@@ -329,10 +332,7 @@ class Kinematics:
         return q
 
     def _qpos(self, q: FloatArray, out: FloatArray) -> None:
-        out[:] = self.model.qpos0
-        out[self._qadr] = q
-        for c in self._couplings:
-            out[c.qadr] = c.multiplier * q[c.leader] + c.offset
+        self.host.qpos(q, out)
 
     def _set(self, q: FloatArray) -> mujoco.MjData:
         d = self._data
@@ -443,27 +443,23 @@ class Kinematics:
         g = np.asarray(gravity, dtype=float)
         if g.shape != (3,) or not np.isfinite(g).all():
             raise InvalidValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
-        m = self.model
         out = np.zeros(len(self.joints))
         with self._lock:
-            term = self._gravity_term()
-            saved = m.opt.gravity.copy()
-            try:
-                m.opt.gravity[:] = g
-                term.invalidate()
-                self._qpos(q, self._gravity_qpos)
-                term.compute(self._gravity_qpos, out)
-            finally:
-                m.opt.gravity[:] = saved
-                term.invalidate()
+            term = self._gravity_term(g)
+            self._qpos(q, self._gravity_qpos)
+            term.compute(self._gravity_qpos, out)
         return out
 
-    def _gravity_term(self) -> GravityTerm:
-        """The host model's one g(q) (:class:`~agentsdk.hostmodel.GravityTerm`), made on first use."""
-        if self._gravity is None:
-            self._gravity = GravityTerm(self.model, self.joint_names)
-            self._gravity_qpos = np.zeros(self.model.nq)
-        return self._gravity
+    def _gravity_term(self, gravity: FloatArray) -> GravityTerm:
+        """The host model's one g(q) (:class:`~agentsdk.hostmodel.GravityTerm`, this object's own ``MjData``).
+
+        Made on first use, and again when ``gravity`` differs from the last call's (the shared
+        model is never changed: another vector computes on a copy, :meth:`HostModel.gravity_term`).
+        """
+        term = self._gravity
+        if term is None or not np.array_equal(term.model.opt.gravity, gravity):
+            term = self._gravity = self.host.gravity_term(gravity)
+        return term
 
     # ------------------------------------------------------------ inverse kinematics
     def ik(

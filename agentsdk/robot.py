@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable, Generator, Mapping, Sequence
+from collections.abc import Callable, Generator, Mapping
 from pathlib import Path
 from types import MappingProxyType, TracebackType
 from typing import TYPE_CHECKING, Any
@@ -245,7 +245,7 @@ class Robot:
         return self._kinematics
 
     def _build_kinematics(self) -> Kinematics:
-        kin = _build_kinematics(self.description, self.joints)
+        kin = _build_kinematics(self._loop.backend)
         kin.bind_state(self.latest_state)
         return kin
 
@@ -473,16 +473,16 @@ async def _open_robot(
         joints = apply_overrides(description, config)
         safety_cfg = SafetyConfig.from_sources(config.safety, safety, source=config.label)
         bounds = PositionBounds(joints, safety_cfg.position_margin)
-        backend_obj = cls(config, description, joints, realtime=realtime, **options)
-        backend_obj.servo_gains  # noqa: B018 - gains from the model (a compile) here, not on the event loop
+        # the backend's ready values (options, start pose, gains from the host model: its one compile)
+        backend_obj = cls.create(config, description, joints, realtime=realtime, **options)
         backend_obj.sensors  # noqa: B018 - the declared sensors (parsing, an MJCF compile) here too
-        # the kinematic model and the IK solver (the first ``import mink`` loads scipy's shared
-        # libraries, holding the GIL for up to a second on a slow machine): built here, before the
-        # control loop runs, so that neither the loop nor the stall watchdog waits for them. A
-        # description the kinematics cannot model fails at ``robot.kinematics``, not here.
+        # the kinematics on the same host model and the IK solver (the first ``import mink`` loads
+        # scipy's shared libraries, holding the GIL for up to a second on a slow machine): built here,
+        # before the control loop runs, so that neither the loop nor the stall watchdog waits for them.
+        # A description the kinematics cannot model fails at ``robot.kinematics``, not here.
         kin: Kinematics | Exception
         try:
-            kin = _build_kinematics(backend_obj.description, backend_obj.joints)
+            kin = _build_kinematics(backend_obj)
         except Exception as exc:
             kin = exc
         return backend_obj, safety_cfg, bounds, kin
@@ -517,10 +517,11 @@ def _robot_spec(cls: type[Backend], robot: str | Path | None, options: Mapping[s
     return remote(options) if callable(remote) else "arm3"
 
 
-def _build_kinematics(description: Any, joints: Sequence[JointInfo]) -> Kinematics:
+def _build_kinematics(backend: Backend) -> Kinematics:
+    """The robot's kinematics on its one host model (``backend.spec.host``: compiled once per connect)."""
     from .kinematics import Kinematics
 
-    kin = Kinematics(description, joints)
+    kin = Kinematics(backend.description, backend.joints, host=backend.spec.host.get())
     kin.prepare_ik()
     return kin
 

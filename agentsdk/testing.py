@@ -105,7 +105,7 @@ class BackendConformance:
         cls = load_backend(self.backend)
         # (connect()'s own keywords, e.g. ``safety``, are not backend options)
         backend_options = {k: v for k, v in self.connect_options.items() if k not in _CONNECT_KEYWORDS}
-        instance = cls(config, desc, apply_overrides(desc, config), realtime=self.realtime, **backend_options)
+        instance = cls.create(config, desc, apply_overrides(desc, config), realtime=self.realtime, **backend_options)
         caps: Capabilities = instance.capabilities
         type.__setattr__(type(self), "_caps", caps)
         return caps

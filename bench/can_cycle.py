@@ -279,8 +279,8 @@ async def _backend_free_run(robot_yaml: Path, interface: str, channel: str, dura
     """The backend's bus cycle back to back through its public methods (see the module docstring)."""
     config, desc = resolve_robot(robot_yaml)
     joints = apply_overrides(desc, config)
-    ctl = load_backend("can")(config, desc, joints, realtime=True, interface=interface, channel=channel,
-                              max_missed_replies=1000)
+    ctl = load_backend("can").create(config, desc, joints, realtime=True, interface=interface, channel=channel,
+                                     max_missed_replies=1000)
     await ctl.open()
     try:
         # hold the measured position with the robot's gains, as the control loop would

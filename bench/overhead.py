@@ -88,7 +88,7 @@ def _backend_model(rb: _Robot) -> tuple[Any, Any, int]:
     """(model, data at the initial state, substeps per control period) built by the MuJoCo backend itself."""
     from agentsdk.registry import load_backend
 
-    ctl = load_backend("mujoco")(rb.config, rb.description, rb.joints, realtime=False)
+    ctl = load_backend("mujoco").create(rb.config, rb.description, rb.joints, realtime=False)
 
     async def build() -> tuple[Any, Any, int]:
         await ctl.open()

@@ -11,6 +11,8 @@
   there is still long (the list of exceptions stays true).
 * The position limiting math exists once: the safety filter and the trajectory executor call
   the same :class:`agentsdk.limits.StepLimiter` methods.
+* The host-side model is compiled in one place (:func:`agentsdk.hostmodel.compile_spec`): the
+  kinematics, the dynamics and the core build no MuJoCo model of their own.
 """
 
 from __future__ import annotations
@@ -298,3 +300,40 @@ async def test_filter_and_executor_limit_through_the_same_limiter(monkeypatch: p
         await robot.clock.sleep(0.05)
     assert (MotionManager._limited.__module__, "_limited") in callers, callers
     assert (SafetyLayer._filter.__module__, "_filter") in callers, callers
+
+
+#: MuJoCo calls that compile or load a model
+_COMPILES = ("compile", "from_xml_path", "from_xml_string", "from_binary_path", "from_file", "from_string")
+#: the model stack and the core modules, which use the robot's one host model
+_HOST_MODEL_USERS = ("agentsdk.kinematics", "agentsdk.ik", "agentsdk.dynamics", "agentsdk.feedforward",
+                     "agentsdk.backendspec", "agentsdk.backend", "agentsdk.robot", "agentsdk.cartesian",
+                     "agentsdk.arm")
+
+
+def _compile_calls(source: str, label: str) -> list[str]:
+    """``label:line name`` of every call of a MuJoCo compile/load method in ``source`` (``HostModel.compile``,
+    the shared model's own constructor, excepted)."""
+    return [
+        f"{label}:{node.lineno} {ast.unparse(node.func)}"
+        for node in ast.walk(ast.parse(source, filename=label))
+        if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in _COMPILES
+        and ast.unparse(node.func.value) != "HostModel"
+    ]
+
+
+def _module_compiles(module: str) -> list[str]:
+    path = MODULES[module]
+    return _compile_calls(path.read_text(), str(path.relative_to(ROOT)))
+
+
+def test_the_host_model_is_compiled_in_one_place() -> None:
+    found = [c for m in _HOST_MODEL_USERS for c in _module_compiles(m)]
+    assert not found, f"compile the host model with agentsdk.hostmodel.compile_spec (HostModel), not: {found}"
+    in_hostmodel = _module_compiles("agentsdk.hostmodel")
+    assert len(in_hostmodel) == 1 and in_hostmodel[0].endswith(" spec.compile"), in_hostmodel
+
+
+def test_the_compile_guard_finds_a_compile() -> None:
+    """The compile finder is not vacuous."""
+    src = "import mujoco\nm = mujoco.MjModel.from_xml_path('x')\nn = spec.compile()\nk = HostModel.compile(d)\n"
+    assert _compile_calls(src, "probe") == ["probe:2 mujoco.MjModel.from_xml_path", "probe:3 spec.compile"]

@@ -7,6 +7,7 @@ and is immutable.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
@@ -63,3 +64,92 @@ async def test_a_backend_option_overrides_the_gravity_flags() -> None:
     spec = BackendSpec.build(config, desc, joints, Options(), realtime=True)
     assert spec.gravity_compensation.all()
     assert spec.inverse_dynamics is False
+
+
+# ---------------------------------------------------------------- a backend is constructed from its spec
+
+
+async def test_a_backend_is_constructed_from_its_spec() -> None:
+    """``connect`` builds the spec (options, start pose, gains, the host model), then ``cls(spec)``."""
+    from tiny_backend import TinyController
+
+    from agentsdk.backendspec import takes_spec
+
+    agentsdk.register_backend("tiny_spec", TinyController)
+    try:
+        async with agentsdk.connect("tiny_spec", "arm3") as robot:
+            backend = robot.controller
+            spec = backend.spec
+            assert backend.servo_gains is spec.servo_gains
+            assert len(spec.servo_gains) == len(spec.joints)
+            assert spec.gain_report is None  # arm3's robot.yaml sets every joint's gains
+            assert robot.kinematics.model is spec.host.get().model
+            assert backend.dynamics.model is spec.host.get().model
+    finally:
+        agentsdk.unregister_backend("tiny_spec")
+    assert takes_spec(TinyController, agentsdk.Backend)
+    again = TinyController(TinyController.make_spec(spec.config, spec.description, spec.joints))
+    assert again.spec.names == spec.names
+    np.testing.assert_array_equal(again.initial_positions, spec.initial_positions)
+    with pytest.raises(TypeError, match="BackendSpec alone"):
+        TinyController(spec, spec.description)  # type: ignore[arg-type]
+
+
+async def test_the_spec_carries_the_backends_timestep_and_floating_base() -> None:
+    pytest.importorskip("mujoco")
+    async with agentsdk.connect("mujoco", "arm3", timestep=0.0005) as robot:
+        spec = robot.controller.spec
+        assert spec.servo_timestep == 0.0005 == robot.controller.servo_timestep
+        assert spec.floating_base is robot.controller.floating_base is False
+        report = robot.controller.model_gain_report  # computed on demand with the spec's timestep
+        stiffer = robot.controller.dynamics.gains(spec.initial_positions, timestep=0.002).kp
+        assert (report.kp >= stiffer).all()
+
+
+def test_model_gains_come_from_the_host_model() -> None:
+    """A robot without robot.yaml gains (its bare xacro): the spec's gains are the host model's."""
+    from pathlib import Path
+
+    from agentsdk.description import resolve_robot
+
+    config, desc = resolve_robot(Path(__file__).resolve().parents[1] / "robots" / "arm3" / "arm3.urdf.xacro")
+    spec = agentsdk.load_backend("mock").make_spec(config, desc, desc.joints, realtime=False)
+    assert spec.gain_report is not None and spec.host.built
+    assert [g.p for g in spec.servo_gains] == spec.gain_report.kp.tolist()
+
+
+async def test_a_backend_written_against_the_old_constructor_still_connects_and_warns() -> None:
+    """Deprecation path: ``__init__(self, config, description, joints, **options)`` calling the base that way."""
+    from tiny_backend import TinyController
+
+    class OldStyle(TinyController):
+        name = "old_style"
+
+        def __init__(self, config: Any, description: Any, joints: Any, *, realtime: bool | None = None,
+                     **options: Any) -> None:
+            super().__init__(config, description, joints, realtime=realtime, **options)
+            self.built_the_old_way = True
+
+    agentsdk.register_backend("old_style", OldStyle)
+    try:
+        with pytest.warns(DeprecationWarning, match="OldStyle: constructing a backend from"):
+            connection = agentsdk.connect("old_style", "arm3")
+            robot = await connection
+        try:
+            backend = robot.controller
+            assert isinstance(backend, OldStyle) and backend.built_the_old_way
+            assert backend.spec.names == robot.joint_names
+            assert robot.kinematics.model is backend.spec.host.get().model
+            await robot.move_to({robot.joint_names[0]: 0.2})
+        finally:
+            await robot.close()
+    finally:
+        agentsdk.unregister_backend("old_style")
+    # a built-in backend constructed the old way directly still works too, and warns
+    config, desc, joints = backend.config, backend.description, backend.joints
+    with pytest.warns(DeprecationWarning, match="MockBackend"):
+        old = agentsdk.load_backend("mock")(config, desc, joints, realtime=False)  # type: ignore[arg-type]
+    new = agentsdk.load_backend("mock").create(config, desc, joints, realtime=False)
+    assert old.spec.names == new.spec.names
+    np.testing.assert_array_equal(old.initial_positions, new.initial_positions)
+    assert [(g.p, g.d) for g in old.servo_gains] == [(g.p, g.d) for g in new.servo_gains]

@@ -220,7 +220,7 @@ def _load(case: Case) -> str:
     try:
         config, description = resolve_robot(case.path)
         joints = apply_overrides(description, config)
-        backend = load_backend("mock")(config, description, joints, realtime=False)
+        backend = load_backend("mock").create(config, description, joints, realtime=False)
         backend.servo_gains  # noqa: B018 - the model gains, computed when a backend starts
     except AgentSDKError as exc:
         assert str(exc).strip(), f"case {case.index} ({case.kind}, {case.mutation}): an empty message"

@@ -107,7 +107,7 @@ async def _trajectory(robot: agentsdk.Robot, pose: dict[str, float], mode: str =
 
 def _controller() -> PybulletController:
     config, description = resolve_robot("arm3")
-    return PybulletController(config, description, apply_overrides(description, config))
+    return PybulletController.create(config, description, apply_overrides(description, config))
 
 
 async def _drive(ctls: list[PybulletController], poses: list[dict[str, float]], ticks: int = 250) -> list[np.ndarray]:
@@ -210,7 +210,7 @@ async def test_timestep_from_robot_yaml_section() -> None:
 
 async def test_close_is_idempotent_and_safe_without_open() -> None:
     config, description = resolve_robot("arm3")
-    ctl = PybulletController(config, description, apply_overrides(description, config))
+    ctl = PybulletController.create(config, description, apply_overrides(description, config))
     await ctl._close()  # never opened
     await ctl._open()
     cid = ctl._cid

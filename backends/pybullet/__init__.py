@@ -510,9 +510,9 @@ class PybulletBackend(Backend):
     # ------------------------------------------------------------ gravity compensation
     def _setup_dynamics(self) -> None:
         """The description's rigid-body model (see the module docstring) and the buffers of the implicit step."""
-        self._model = DynamicsModel(
-            self.description, self.joints, gravity=self.options.gravity, floating_base=self.floating_base
-        )
+        # on the robot's one host model (compiled with this backend's gravity and floating base, see
+        # BackendSpec.host), with scratch data of its own
+        self._model = DynamicsModel(self.description, self.joints, host=self.spec.host.get())
         self._gc_on = bool(self._gc_mask.any()) and any(self.options.gravity)
         self._gc_q = np.zeros(len(self.joints))
         # + M(q) a_des + C(q, v_des) v_des (robot.yaml inverse_dynamics), from the same host model

@@ -101,10 +101,9 @@ from agentsdk.ros2.stream import COMMAND_TOPIC, QOS_STREAM, STATE_TOPIC, parse_f
 from .msgs import Float64MultiArray
 
 if TYPE_CHECKING:
+    from agentsdk.backendspec import BackendSpec
     from agentsdk.config import RobotConfig
-    from agentsdk.description import RobotDescription
     from agentsdk.offload import OffloadRequest
-    from agentsdk.types import JointInfo
 
 __all__ = ["Ros2Backend", "Ros2Options"]
 
@@ -157,11 +156,13 @@ class Ros2Backend(Backend):
                                 standalone=False)
     options_model = Ros2Options
 
-    def __init__(self, config: RobotConfig, description: RobotDescription, joints: tuple[JointInfo, ...],
-                 realtime: bool | None = None, **options: Any) -> None:
-        if realtime is None:  # the remote's time model: lockstep when it publishes clock
-            realtime = not remote_sim_time({**config.backend_options("ros2"), **options})
-        super().__init__(config, description, joints, realtime=realtime, **options)
+    @classmethod
+    def default_realtime(cls, config: RobotConfig, options: dict[str, Any]) -> bool:
+        """The remote's time model: lockstep when it publishes ``/clock``."""
+        return not remote_sim_time(options)
+
+    def __init__(self, spec: BackendSpec) -> None:
+        super().__init__(spec)
         opts: Ros2Options = self.options
         try:
             self.namespace = normalize_namespace(opts.namespace)

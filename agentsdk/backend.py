@@ -431,13 +431,15 @@ class Backend(ABC):
             if not self.frame_changes[0]:
                 self.frame_changing[:] = False
 
-    def reading_age(self) -> FloatArray | None:
+    def reading_age(self, now: float | None = None) -> FloatArray | None:
         """How old (s) each joint's latest reading is, or None when every reading is current (the default).
 
         The plausibility gate (:mod:`agentsdk.plausibility`) measures how far a joint may have
         moved between two readings by the time between their samples. A backend whose
         :meth:`read` can return old data (a bus: the newest reply may predate this cycle, or a
         reply may have been delayed) reports its age here, called right after :meth:`read`.
+        ``now``: the ``time.monotonic()`` of that read, when the caller has it (a realtime tick
+        reads the clock once; None: read the clock).
         """
         return None
 

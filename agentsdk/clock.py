@@ -194,20 +194,27 @@ class RealtimeClock(Clock):
         """Sleep until ``deadline`` (clock seconds) on the timerfd, no spin (else ``asyncio.sleep`` precision)."""
         deadline = _check_deadline(deadline)
         self._check_running()
-        remaining = deadline - self.now()
-        if remaining <= 0.0:
+        if deadline == math.inf:
+            await self._park(None)  # until cancelled, or until the clock fails
+            return
+        if deadline <= 0.0:  # robot time starts at 0: long past (-inf included)
             await asyncio.sleep(0)
             self._check_running()
-            return
-        if math.isinf(remaining):
-            await self._park(None)  # until cancelled, or until the clock fails
             return
         timer = self._timer
         if timer is None or timer.closed or timer.loop is not asyncio.get_running_loop():
             timer = self._precise_timer()
-        if timer is None:
-            await self._park(remaining)  # no timerfd: the event loop's timer precision
+        if timer is None:  # no timerfd: the event loop's timer precision
+            remaining = deadline - self.now()
+            if remaining <= 0.0:
+                await asyncio.sleep(0)
+                self._check_running()
+                return
+            await self._park(remaining)
             return
+        # the timerfd is armed at the absolute deadline: one already past fires at the next wake-up, so
+        # no clock read here (the realtime control loop sleeps once per tick; a read is a system call
+        # where there is no vDSO, e.g. user-mode Linux)
         fut = timer.sleep_until(self._t0 + deadline)
         self._parked.add(fut)  # fail() (robot closed, loop faulted) wakes it with the reason
         try:

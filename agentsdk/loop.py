@@ -284,6 +284,10 @@ class ControlLoop:
         #: the plausibility gate every reading passes before it becomes the state (None: readings
         #: are taken as they are); see :meth:`install_sensor_gate`
         self.sensor_gate: SensorGate | None = None
+        #: the realtime clock's time.monotonic() at robot time 0 (None in lockstep), and the robot time of
+        #: the reading being gated (NaN: none): a backend's reading ages without another clock read
+        self._origin: float | None = getattr(self.clock, "origin", None)
+        self._read_t = math.nan
 
     # ------------------------------------------------------------ views
     @property
@@ -350,11 +354,18 @@ class ControlLoop:
         """
         st = self._state
         gate = SensorGate(self.joints, st.position, st.velocity, st.effort, margin=margin, floor=floor,
-                          tolerance=tolerance, period=self.period, age=self.backend.reading_age,
+                          tolerance=tolerance, period=self.period, age=self._reading_age,
                           changing=self.backend.frame_changing, changes=self.backend.frame_changes,
                           driven=self._driven)
         self.sensor_gate = gate
         return gate
+
+    def _reading_age(self) -> np.ndarray | None:
+        """The backend's reading ages as of the tick's own clock read (:meth:`_read`: no second read)."""
+        origin = self._origin
+        t = self._read_t
+        self._read_t = math.nan  # used once: a reading without a tick time reads the clock
+        return self.backend.reading_age(None if origin is None or t != t else origin + t)
 
     def _driven(self) -> np.ndarray:
         """Which joints have torque on now (the setpoint's enabled flags, none after an emergency stop)."""
@@ -456,7 +467,10 @@ class ControlLoop:
         q, v, e = self.backend.read()
         gate = self.sensor_gate
         if gate is not None:
-            gate.accept(q, v, e, self.clock.now() if t is None else t)
+            if t is None:
+                t = self.clock.now()
+            self._read_t = t  # for _reading_age, right after this read
+            gate.accept(q, v, e, t)
             return
         st = self._state
         st.position[:] = q

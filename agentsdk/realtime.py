@@ -85,12 +85,13 @@ class _TimerFd:
             err = ctypes.get_errno()
             raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
 
-    def drain(self) -> None:
-        """Consume the expiration count (the fd is readable until then)."""
+    def drain(self) -> bool:
+        """Consume the expiration count (the fd is readable until then); False when the timer had not expired."""
         try:
             os.read(self.fd, 8)
         except BlockingIOError:
-            pass
+            return False
+        return True
 
     def close(self) -> None:
         os.close(self.fd)
@@ -176,11 +177,15 @@ class DeadlineTimer:
         self._fd.arm(max(1, math.ceil(deadline * 1e9)))
 
     def _on_ready(self) -> None:
-        self._fd.drain()
+        if not self._fd.drain():
+            return  # not expired (re-armed since the event was reported): nothing is due yet
+        # The kernel woke us because the deadline it was armed at has passed: every sleeper up to it
+        # is due, without a clock read (a system call where there is no vDSO, e.g. user-mode Linux).
+        # A later deadline that passed meanwhile is re-armed in the past and fires at the next wake-up.
+        due = self._armed
         self._armed = math.inf
         heap = self._heap
-        now = time.monotonic()
-        while heap and (heap[0][0] <= now or heap[0][2].done()):
+        while heap and (heap[0][0] <= due or heap[0][2].done()):
             _, _, fut = heapq.heappop(heap)
             if not fut.done():
                 fut.set_result(None)

@@ -44,7 +44,6 @@ import json
 import math
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -61,6 +60,7 @@ import yaml
 import agentsdk
 from agentsdk.backends.can.emulator import MotorEmulator
 from agentsdk.backends.can.mit import encode_command, profile_for, ranges_for
+from agentsdk.bench.can_emulator import emulator_process
 from agentsdk.description import apply_overrides, resolve_robot
 from agentsdk.loop import Setpoint
 from agentsdk.registry import load_backend
@@ -151,28 +151,8 @@ def emulator(robot_yaml: Path, interface: str, channel: str) -> Iterator[str]:
         finally:
             bus.shutdown()
         return
-    fd, log_path = tempfile.mkstemp(prefix="can-bench-emulator-", suffix=".log")
-    with os.fdopen(fd, "wb") as log:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "agentsdk.backends.can.emulator", "--robot", str(robot_yaml),
-             "--interface", interface, "--channel", channel, "--log-level", "INFO"],
-            stdout=log, stderr=subprocess.STDOUT, cwd=ROOT,
-        )
-    try:
-        deadline = time.monotonic() + 60
-        while "emulating" not in Path(log_path).read_text(errors="replace"):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"emulator did not start:\n{Path(log_path).read_text(errors='replace')}")
-            time.sleep(0.02)
+    with emulator_process(robot_yaml, interface, channel, start_limit=60.0):
         yield "separate process"
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        Path(log_path).unlink(missing_ok=True)
 
 
 # ------------------------------------------------------------------------------ measurements

@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import collections
-import contextlib
 import importlib
 import json
 import os
@@ -44,7 +43,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-READY = "emulating mit_leg on"
 
 
 # ------------------------------------------------------------------------------ the host process
@@ -123,36 +121,6 @@ def _env(tree: Path) -> dict[str, str]:
     return env
 
 
-@contextlib.contextmanager
-def emulator(robot_yaml: str) -> Any:
-    """The emulator process on vcan0 (this checkout), at a real-time priority where permitted."""
-    rt = ["chrt", "--fifo", "10"] if os.geteuid() == 0 and shutil.which("chrt") else []
-    fd, path = tempfile.mkstemp(prefix="can-host-cost-emu-", suffix=".log")
-    with os.fdopen(fd, "wb") as out:
-        proc = subprocess.Popen(
-            [*rt, sys.executable, "-m", "agentsdk.backends.can.emulator", "--robot", robot_yaml,
-             "--interface", "socketcan", "--channel", "vcan0"],
-            stdout=out, stderr=subprocess.STDOUT, env=_env(ROOT), cwd=ROOT,
-        )
-    try:
-        deadline = time.monotonic() + 120
-        log = Path(path)
-        while READY not in log.read_text(errors="replace"):
-            if proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"emulator did not start:\n{log.read_text(errors='replace')}")
-            time.sleep(0.05)
-        yield proc
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-        with contextlib.suppress(OSError):
-            os.unlink(path)
-
-
 def run_host(tree: Path, robot_yaml: str, seconds: float, strace_out: str | None = None) -> dict[str, Any]:
     """One host process from ``tree``; its JSON report (and ``strace -f -c`` into ``strace_out``)."""
     argv = [sys.executable, str(Path(__file__).resolve()), "--child", robot_yaml, "--seconds", str(seconds)]
@@ -193,6 +161,9 @@ def syscalls_per_tick(tree: Path, robot_yaml: str, seconds: float) -> dict[str, 
 
 def measure(tree: Path, rates: list[float], seconds: float, strace: float | None) -> dict[str, Any]:
     """One row per rate (plus ``"strace"``: system calls per tick at ``strace`` Hz, when given)."""
+    # (imported here: a --child run has another checkout on its path, whose bench may lack the module)
+    from agentsdk.bench.can_emulator import emulator_process
+
     out: dict[str, Any] = {}
     runs: list[tuple[str, float]] = [(f"{rate:g}", rate) for rate in rates]
     if strace:
@@ -201,7 +172,7 @@ def measure(tree: Path, rates: list[float], seconds: float, strace: float | None
         with tempfile.TemporaryDirectory() as tmp:
             emu_yaml = leg_copy(ROOT, Path(tmp) / "emu", rate)
             host_yaml = leg_copy(tree, Path(tmp) / "host", rate)
-            with emulator(emu_yaml):
+            with emulator_process(emu_yaml, realtime=True):
                 if key == "strace":
                     out[key] = syscalls_per_tick(tree, host_yaml, max(1.0, seconds / 3))
                     out[key]["rate"] = rate

@@ -519,3 +519,28 @@ async def test_no_blocking_bus_calls_on_the_event_loop(monkeypatch: pytest.Monke
         await robot.enable()
         await run_cycles(robot, 10)
     assert blocking == []
+
+
+# ----------------------------------------------------------------------- per-tick clock reads (issue 20 perf)
+async def test_reading_age_takes_the_ticks_own_clock_read() -> None:
+    """The plausibility gate gets each motor's reply age at the tick's own clock read: the loop hands the
+    backend that time (``reading_age(now)``), so the age costs no clock read (a system call without a vDSO)."""
+    async with can_robot() as (robot, _, _):
+        ctl = robot.controller
+        original = ctl.reading_age
+        seen: list[float | None] = []
+
+        def spy(now: float | None = None) -> Any:
+            seen.append(now)
+            return original(now)
+
+        ctl.reading_age = spy  # type: ignore[method-assign]
+        await run_cycles(robot, 10)
+        assert robot.safety.state is SafetyState.OK, robot.safety.cause
+        assert len(seen) >= 10 and all(now is not None for now in seen), seen
+        origin = robot.clock.origin  # type: ignore[attr-defined]
+        assert all(origin <= now <= origin + robot.clock.now() for now in seen if now is not None)
+        # on the tick's clock, the newest replies are younger than a cycle plus the time since that tick
+        ages = original(seen[-1])
+        assert (ages >= 0.0).all()
+        assert ages.max() < robot.clock.now() + origin - seen[-1] + 2 * robot.control_period + 1.0

@@ -675,3 +675,121 @@ def test_unknown_plant_is_a_configuration_error(buses: tuple[can.BusABC, can.Bus
     _, bus = buses
     with pytest.raises(ConfigurationError, match="unknown plant"):
         MotorEmulator.from_robot("mit_leg", bus, plant="gazebo")
+
+
+# ---------------------------------------------------------------- plant batches (issue 20: the plant in a slow VM)
+class _FakeClock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class _RecordingPlant:
+    """A plant that records each batch: (time the first substep ends, substeps, kp and activity of motor 1)."""
+
+    def __init__(self) -> None:
+        self.batches: list[tuple[float, int, float, bool]] = []
+        self.h = 0.0
+
+    def attach(self, motors: dict[int, EmulatedMotor], substep: float) -> None:
+        self.motors, self.h = motors, substep
+
+    def advance(self, h: float, t: float, n: int) -> None:
+        m = self.motors[1]
+        self.batches.append((t, n, m.kp, m.active(t)))
+
+
+def _batched(bus: can.BusABC, motor: EmulatedMotor) -> tuple[MotorEmulator, _RecordingPlant, _FakeClock]:
+    """An emulator (thread not started) whose physics runs on a fake clock into a recording plant."""
+    plant, clock = _RecordingPlant(), _FakeClock()
+    em = MotorEmulator(bus, {1: motor}, plant=plant, clock=clock, substep=0.0005)
+    return em, plant, clock
+
+
+def _law_changes(plant: _RecordingPlant) -> list[tuple[float, float, float, bool]]:
+    """Per batch: first and last substep end times, kp, active."""
+    return [(t, t + (n - 1) * plant.h, kp, on) for t, n, kp, on in plant.batches]
+
+
+def test_plant_steps_in_batches_cut_where_the_command_timeout_fires(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    """Half a second of physics in a handful of plant calls, not 1000: the firmware law is constant
+    between frames, and the batch ends exactly where the per-substep timeout rule would fire."""
+    motor = EmulatedMotor(1, timeout=0.1)
+    em, plant, clock = _batched(buses[1], motor)
+    motor.apply_special("enable", 0.0)
+    motor.apply_command(0.0, 0.0, 10.0, 0.5, 0.0, 0.0)
+    clock.t = 0.5
+    em.snapshot(1)  # brings the physics up to now
+    assert sum(n for _, n, _, _ in plant.batches) == round(0.5 / 0.0005)
+    assert len(plant.batches) <= 3, plant.batches
+    changes = _law_changes(plant)
+    held = [c for c in changes if c[2] == 10.0]
+    limp = [c for c in changes if c[2] == 0.0]
+    assert held and limp
+    # the per-substep rule: the timeout fires at the first substep that ends more than 0.1 s after the frame
+    assert max(last for _, last, _, _ in held) <= 0.1 + 1e-9
+    assert 0.1 < min(first for first, _, _, _ in limp) <= 0.1 + 0.0005 + 1e-9
+    (fired,) = motor.timeout_events
+    assert 0.1 < fired <= 0.1 + 0.0005 + 1e-9
+
+
+def test_plant_batches_end_where_a_zero_pause_ends(buses: tuple[can.BusABC, can.BusABC]) -> None:
+    motor = EmulatedMotor(1, timeout=10.0, zero_pause=0.2)
+    em, plant, clock = _batched(buses[1], motor)
+    motor.apply_special("enable", 0.0)
+    motor.apply_command(0.0, 0.0, 10.0, 0.5, 0.0, 0.0)
+    motor.apply_special("zero", 0.0)  # the motor ignores frames and applies no torque until 0.2 s
+    clock.t = 0.4
+    em.snapshot(1)
+    changes = _law_changes(plant)
+    paused = [c for c in changes if not c[3]]
+    active = [c for c in changes if c[3]]
+    assert paused and active
+    assert max(last for _, last, _, _ in paused) < 0.2
+    assert 0.2 <= min(first for first, _, _, _ in active) < 0.2 + 0.0005 + 1e-9
+    assert sum(n for _, n, _, _ in plant.batches) == round(0.4 / 0.0005)
+
+
+def test_mujoco_plant_batch_is_step_for_step_the_same_physics() -> None:
+    """One ``advance(h, t, n)`` of the MuJoCo plant computes exactly what n single substeps compute."""
+    from agentsdk.backends.can.plant import MujocoPlant
+
+    _, cfg = load_can_config("mit_leg")
+    states = []
+    for batch in (True, False):
+        motors = {m.id: EmulatedMotor(m.id, m.motor_ranges, timeout=10.0) for m in cfg.motors.values()}
+        plant = MujocoPlant("mit_leg", cfg)
+        plant.attach(motors, 0.001)
+        for mot in motors.values():  # a servo law on every motor: nothing limp
+            mot.apply_special("enable", 0.0)
+            mot.apply_command(mot.position + 0.1, 0.0, 5.0, 0.2, 0.1, 0.0)
+        if batch:
+            plant.advance(0.001, 0.001, 200)
+        else:
+            for k in range(200):
+                plant.advance(0.001, 0.001 * (k + 1), 1)
+        states.append([(m.raw_position, m.velocity) for m in motors.values()])
+    assert states[0] == states[1]
+    assert states[0] != [(0.0, 0.0)] * len(states[0])
+
+
+def test_untimed_mujoco_turns_the_profiling_timers_off() -> None:
+    """MuJoCo reads the clock ~30 times per mj_step for its timers (a system call each in user-mode Linux)."""
+    import mujoco
+
+    from agentsdk.backends.can.plant import untimed_mujoco
+
+    model = mujoco.MjModel.from_xml_string(
+        "<mujoco><worldbody><body><joint type='hinge'/><geom size='.1'/></body></worldbody></mujoco>"
+    )
+    data = mujoco.MjData(model)
+    assert mujoco.get_mjcb_time() is None
+    try:
+        untimed_mujoco()
+        mujoco.mj_step(model, data, nstep=5)
+        step = data.timer[mujoco.mjtTimer.mjTIMER_STEP]
+        assert step.number == 5 and step.duration == 0.0
+    finally:
+        mujoco.set_mjcb_time(None)  # process-wide: leave the default for the other tests

@@ -51,6 +51,40 @@ async def test_deadline_timer_cancelled_sleep_leaves_the_others() -> None:
         timer.close()
 
 
+@pytest.mark.skipif(not timerfd_available(), reason="no timerfd (not Linux)")
+async def test_deadline_timer_and_realtime_sleeps_read_no_clock(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A realtime tick's sleep costs no clock read (a system call without a vDSO, e.g. user-mode Linux):
+    the timerfd is armed at the absolute deadline, and its expiry says which sleepers are due."""
+    import types
+
+    import agentsdk.realtime as rt
+    from agentsdk.clock import RealtimeClock
+
+    clock = RealtimeClock()
+    reads = 0
+
+    def counted() -> float:
+        nonlocal reads
+        reads += 1
+        return time.monotonic()
+
+    # the realtime module's clock (the timer's wake-ups) and the robot clock's now(), counted
+    monkeypatch.setattr(rt, "time", types.SimpleNamespace(monotonic=counted, CLOCK_MONOTONIC=time.CLOCK_MONOTONIC))
+    now = clock.now
+    monkeypatch.setattr(clock, "now", lambda: (counted(), now())[1])
+    try:
+        start = now()
+        for k in range(1, 6):  # like the control loop: each deadline a period after the last
+            await clock.sleep_until(start + 0.002 * k)
+            assert now() >= start + 0.002 * k  # never early
+        await clock.sleep_until(start)  # a deadline already past returns at the next wake-up
+        await clock.sleep_until(-1.0)
+        await clock.sleep_until(-float("inf"))
+    finally:
+        clock.release()
+    assert reads == 0
+
+
 @pytest.mark.skipif(not hasattr(os, "sched_setscheduler"), reason="no SCHED_FIFO on this platform")
 def test_set_realtime_priority_rejects_bad_priority_and_cpus() -> None:
     with pytest.raises(ConfigurationError, match=r"priority must be an integer in 1\.\.99"):

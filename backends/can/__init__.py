@@ -266,6 +266,8 @@ class CanBackend(Backend):
         self._stamps_bad = 0
         #: time.time() - time.monotonic(), for MotorStats.last_reply_time from a wall-clock stamp
         self._clock_offset = time.time() - time.monotonic()
+        #: the same offset read at the start of the current bus cycle (None before the first): reading_age
+        self._wall_minus_mono: float | None = None
         #: unknown ids seen in reply byte 0 since the last fault check (id -> count)
         self._unexpected_ids: dict[int, int] = {}
         #: the emergency bus handle has no file descriptor (virtual): drain its rx queue each cycle
@@ -774,7 +776,12 @@ class CanBackend(Backend):
         got[:] = self._none_got
         self._n_got = 0
         stats = self.stats
-        self._window_start = time.time()
+        # the cycle's start on both clocks, back to back: the wall clock for the replies' receive
+        # stamps, the monotonic clock (the event loop's: asyncio's loop.time()) for the reply deadline;
+        # their difference converts the stamps to the tick's own clock read in reading_age (no read there)
+        mono = time.monotonic()
+        self._window_start = ws = time.time()
+        self._wall_minus_mono = ws - mono
         self._window_open = True
         try:
             # the commands go out back to back, before any reply is handled (each counted before
@@ -805,7 +812,7 @@ class CanBackend(Backend):
             if self._n_got < self._n:
                 fut: asyncio.Future[bool] = loop.create_future()
                 self._all_in = fut
-                timer = loop.call_at(loop.time() + dt * self.options.reply_deadline, _deadline, fut)
+                timer = loop.call_at(mono + dt * self.options.reply_deadline, _deadline, fut)
                 try:
                     if not await fut:
                         await asyncio.sleep(0)  # frames the loop already holds are still this cycle's
@@ -895,9 +902,15 @@ class CanBackend(Backend):
                 temp = stats[index[ch.spec.joint or ""]].temperature
                 ch.values[0] = math.nan if temp is None else temp  # NaN until the motor first replied
 
-    def reading_age(self) -> np.ndarray:
-        """Seconds since each motor's newest reply (the data ``read`` returns) reached the bus."""
-        now = time.time()
+    def reading_age(self, now: float | None = None) -> np.ndarray:
+        """Seconds since each motor's newest reply (the data ``read`` returns) reached the bus.
+
+        ``now`` (``time.monotonic()`` of the read, which the control tick has already read) is put
+        on the replies' wall clock with this cycle's offset between the two clocks (both read at
+        the cycle's start); None, or before the first cycle: the wall clock is read here.
+        """
+        offset = self._wall_minus_mono
+        now = time.time() if now is None or offset is None else now + offset
         age = self._age
         for k, ts in enumerate(self._rx_stamp):
             a = now - ts

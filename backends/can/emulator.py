@@ -87,17 +87,21 @@ GravityFn = Callable[[Mapping[int, float]], Mapping[int, float]]
 class Plant(Protocol):
     """The physics the emulated motors drive (instead of each motor being a free rotor).
 
-    ``attach`` is called once with the motors and the substep; then ``advance(h, t)``
-    integrates ``h`` seconds ending at ``t``: it runs each motor's firmware law (and its
-    command timeout, :meth:`EmulatedMotor.check_timeout`) on the plant and writes back each
-    motor's ``raw_position`` and ``velocity``. Called with the emulator's lock held.
+    ``attach`` is called once with the motors and the substep; then ``advance(h, t, n)``
+    integrates ``n`` substeps of ``h`` seconds, the first ending at ``t``, with each motor's
+    firmware law as it stands at ``t`` (:meth:`EmulatedMotor.active` and the last command), and
+    writes back each motor's ``raw_position`` and ``velocity`` once, after the last substep.
+    The emulator has run the motors' command timeouts up to ``t`` and cuts the batches where a
+    law changes (a command timeout, the end of a zero pause, a frame), so a plant can step in
+    one call (MuJoCo's ``mj_step(nstep=n)``) instead of one Python round per substep. Called
+    with the emulator's lock held.
     """
 
     def attach(self, motors: Mapping[int, EmulatedMotor], substep: float) -> None:
         """Bind the motors (by CAN id) and the integration step."""
 
-    def advance(self, h: float, t: float) -> None:
-        """Integrate one substep."""
+    def advance(self, h: float, t: float, n: int) -> None:
+        """Integrate ``n`` substeps of ``h``, the first ending at ``t``, under the motors' laws at ``t``."""
 
 #: Knobs of :meth:`MotorEmulator.set_faults`.
 _MOTOR_KNOBS: Final = frozenset({"silent", "wrong_id", "error_code", "drop_rate", "reply_latency"})
@@ -290,6 +294,17 @@ class EmulatedMotor:
     def _zero_command(self) -> None:
         self.p_des = self.v_des = self.kp = self.kd = self.t_ff = 0.0
         self._watchdog_armed = False
+
+    def law_until(self, t: float) -> float:
+        """The time from which the firmware law in force at ``t`` may change by itself (without a frame).
+
+        A command timeout fires after ``last_frame_time + timeout``; a zero pause ends at
+        ``paused_until``; otherwise only a frame or a fault knob changes it (``math.inf``).
+        """
+        until = self.last_frame_time + self.timeout if self._watchdog_armed else math.inf
+        if t < self.paused_until < until:
+            until = self.paused_until
+        return until
 
     def check_timeout(self, t: float) -> None:
         """The firmware's command timeout: no frame for ``timeout`` seconds zeroes kp, kd and t_ff (limp)."""
@@ -724,16 +739,33 @@ class MotorEmulator:
         t = self._sim_time
         lag = now - t
         if lag > self._max_catchup:  # the thread was starved: skip instead of a long catch-up burst
+            if not self._counters.physics_skipped:  # once: the physics cannot keep up with the wall clock here
+                log.warning("the emulator's physics fell %.3f s behind the wall clock and skips ahead (a starved "
+                            "CPU, or a plant too costly for it; see bus_counters().physics_skipped)", lag)
             self._counters.physics_skipped += lag - self._max_catchup
             t = now - self._max_catchup
         motors = self._motors.values()
         gravity = self._gravity
         plant = self._plant
+        if plant is not None:  # in batches of substeps under one set of firmware laws (see Plant)
+            while t + h <= now:
+                t1 = t + h
+                until = math.inf
+                for m in motors:
+                    m.check_timeout(t1)
+                    u = m.law_until(t1)
+                    if u < until:
+                        until = u
+                n = max(1, int((now - t) / h))
+                if until < math.inf:  # the substeps that end strictly before the law may change
+                    n = max(1, min(n, math.ceil((until - t) / h) - 1))
+                plant.advance(h, t1, n)
+                t += n * h
+            self._sim_time = t
+            return
         while t + h <= now:
             t += h
-            if plant is not None:
-                plant.advance(h, t)
-            elif gravity is None:
+            if gravity is None:
                 for m in motors:
                     m.substep(h, t)
             else:
@@ -925,8 +957,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         plant: Plant | None = None
         if args.plant == "mujoco":
-            from .plant import MujocoPlant
+            from .plant import MujocoPlant, untimed_mujoco
 
+            untimed_mujoco()  # this process owns MuJoCo: no clock reads inside mj_step (see untimed_mujoco)
             plant = MujocoPlant(args.robot, can_cfg)
         emulator = MotorEmulator.from_config(
             can_cfg,

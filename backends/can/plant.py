@@ -4,7 +4,7 @@ The free-rotor model of :class:`~agentsdk.backends.can.emulator.EmulatedMotor` h
 no coupling between joints and no contacts; this plant does. The robot is built from its
 description exactly as the MuJoCo backend builds it (:func:`agentsdk.description.mjspec.build_spec`,
 the same links, repaired inertials and collision model), with one servo actuator per motor.
-Every substep each motor's firmware law is mapped into its joint through the robot.yaml
+Each motor's firmware law is mapped into its joint through the robot.yaml
 mapping ``q_motor = direction * gear_ratio * q_joint + zero_offset``::
 
     tau_joint = direction * gear_ratio * tau_motor       kp_joint = gear_ratio**2 * kp_motor
@@ -37,7 +37,25 @@ if TYPE_CHECKING:
 
     from .emulator import EmulatedMotor
 
-__all__ = ["MujocoPlant"]
+__all__ = ["MujocoPlant", "untimed_mujoco"]
+
+
+def _no_time() -> float:
+    return 0.0
+
+
+def untimed_mujoco() -> None:
+    """Turn MuJoCo's internal profiling timers off in this process (``mjcb_time`` returns 0).
+
+    MuJoCo (4.x) times the stages of every ``mj_step`` with the process's monotonic clock,
+    about 30 clock reads per step. On most machines a clock read costs tens of nanoseconds
+    (the vDSO); in user-mode Linux, which has no vDSO, each is a system call that traps into
+    the guest kernel (~60 µs measured), so one ``mj_step`` of mit_leg took ~1.8 ms instead of
+    ~20 µs and a plant stepping every 2 ms needed the VM's whole CPU. With this callback
+    ``MjData.timer`` stays at 0. Process-wide (``mjcb_time`` is a global of MuJoCo): the
+    ``emulate-can`` process calls it, a library importing the plant does not.
+    """
+    mujoco.set_mjcb_time(_no_time)
 
 
 class MujocoPlant:
@@ -123,21 +141,30 @@ class MujocoPlant:
         d.qpos[self._qadr] = (raw - self._z) / self._dg
         d.qvel[self._dadr] = np.array([mot.velocity for mot in self._motors]) / self._dg
         mujoco.mj_forward(m, d)
+        # the same maps as Python floats: advance() uses them per motor, per batch
+        self._dg_f: list[float] = self._dg.tolist()
+        self._g2_f: list[float] = self._g2.tolist()
+        self._z_f: list[float] = self._z.tolist()
         self._ctrl = np.zeros(m.nu)
         self._bias = m.actuator_biasprm
 
-    def advance(self, h: float, t: float) -> None:
-        """One MuJoCo step of the motors' firmware laws, then the motors' state from their joints."""
+    def advance(self, h: float, t: float, n: int) -> None:
+        """``n`` MuJoCo steps under the motors' firmware laws at ``t``, then the motors' state from their joints.
+
+        The laws are constant over the batch (the emulator cuts batches where one changes), so the
+        actuators are set once and MuJoCo steps ``n`` times in one call: the Python cost is per
+        batch (per received frame or idle poll), not per substep.
+        """
         m, d = self.model, self.data
         assert m is not None and d is not None
         ctrl, bias = self._ctrl, self._bias
+        dg_, g2_, z_ = self._dg_f, self._g2_f, self._z_f
         for k, mot in enumerate(self._motors):
-            mot.check_timeout(t)
             if mot.active(t):
-                dg = self._dg[k]
-                kp = self._g2[k] * mot.kp
-                kd = self._g2[k] * mot.kd
-                q_des = (mot.p_des + mot.zero_offset - self._z[k]) / dg
+                dg = dg_[k]
+                kp = g2_[k] * mot.kp
+                kd = g2_[k] * mot.kd
+                q_des = (mot.p_des + mot.zero_offset - z_[k]) / dg
                 ctrl[k] = kp * q_des + kd * (mot.v_des / dg) + dg * mot.t_ff
                 bias[k, 1] = -kp
                 bias[k, 2] = -kd
@@ -146,9 +173,9 @@ class MujocoPlant:
                 bias[k, 1] = 0.0
                 bias[k, 2] = 0.0
         d.ctrl[:] = ctrl
-        mujoco.mj_step(m, d)
-        q = d.qpos[self._qadr]
-        v = d.qvel[self._dadr]
+        mujoco.mj_step(m, d, nstep=n)
+        q = d.qpos[self._qadr].tolist()
+        v = d.qvel[self._dadr].tolist()
         for k, mot in enumerate(self._motors):
-            mot.raw_position = float(self._dg[k] * q[k] + self._z[k])
-            mot.velocity = float(self._dg[k] * v[k])
+            mot.raw_position = dg_[k] * q[k] + z_[k]
+            mot.velocity = dg_[k] * v[k]

@@ -434,12 +434,10 @@ class Backend(ABC):
     def reading_age(self, now: float | None = None) -> FloatArray | None:
         """How old (s) each joint's latest reading is, or None when every reading is current (the default).
 
-        The plausibility gate (:mod:`agentsdk.plausibility`) measures how far a joint may have
-        moved between two readings by the time between their samples. A backend whose
-        :meth:`read` can return old data (a bus: the newest reply may predate this cycle, or a
-        reply may have been delayed) reports its age here, called right after :meth:`read`.
-        ``now``: the ``time.monotonic()`` of that read, when the caller has it (a realtime tick
-        reads the clock once; None: read the clock).
+        The plausibility gate (:mod:`agentsdk.plausibility`) bounds a joint's move between two
+        readings by the time between their samples. A backend whose :meth:`read` can return old data
+        (a bus: the newest reply may predate this cycle, or be delayed) reports its age here, after :meth:`read`, with
+        ``now`` the ``time.monotonic()`` of that read when the caller has it (None: read the clock).
         """
         return None
 

@@ -204,3 +204,37 @@ async def test_tick_hashes_match_the_reference(backend: str, robot: str) -> None
         pytest.skip(f"no reference hashes for {key} on {fp} (AGENTSDK_UPDATE_TICK_HASHES=1 records them)")
     diff = {k: (entry["hashes"].get(k), v) for k, v in got.items() if entry["hashes"].get(k) != v}
     assert not diff, f"the tick computes other bits than the reference on {key}: {diff}"
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("what", ["follow", "speed", "push", "near_limits"])
+async def test_the_executor_shortcut_changes_no_bit(what: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Differential: the same run with the executor's envelope shortcut (agentsdk.motion._envelope) and
+    without it (every sample through the limiter) computes the same bits, wherever the machine is."""
+    import agentsdk.motion._admission as admission
+
+    try:
+        load_backend("mujoco")
+    except BackendUnavailableError:
+        pytest.skip("mujoco not installed")
+    run = _near_limits if what == "near_limits" else _scenario
+    with_shortcut = await run("mujoco", "arm3", what)
+    monkeypatch.setattr(admission, "envelope", lambda *args: None)
+    without = await run("mujoco", "arm3", what)
+    assert with_shortcut == without
+
+
+async def _near_limits(backend: str, robot_name: str, what: str) -> tuple[str, int]:
+    """Planned moves onto the position bounds and back: segments that touch a bound take the limiter's path."""
+    async with agentsdk.connect(backend, robot=robot_name, safety={"stall_timeout": 30.0}) as robot:
+        hasher = _Hasher(robot)
+        names = list(robot.joint_names)
+        margin = robot.safety.config.position_margin
+        for frac in (1.0, 0.0, 0.5):
+            goal = []
+            for j in robot.joints:
+                lo = j.lower if np.isfinite(j.lower) else -1.0
+                hi = j.upper if np.isfinite(j.upper) else 1.0
+                goal.append(min(max(lo + (hi - lo) * frac, lo + margin), hi - margin))
+            hasher.add(_result_of(await robot.move_to(dict(zip(names, goal, strict=True)))))
+        return hasher.h.hexdigest(), hasher.ticks

@@ -15,6 +15,7 @@ from ..trajectory import (
     check_motion_limits,
     time_scale_for_limits,
 )
+from ._envelope import envelope
 from ._records import _Exec
 from ._stops import _StopPlanner
 from ._types import _MAX_STRETCH_ITERATIONS, MotionPhase, _turns_to
@@ -101,3 +102,8 @@ class _Admission(_StopPlanner):
         ex.sdot = 0.0
         ex.des_q, ex.des_v, ex.des_a = q0.copy(), v0.copy(), a0.copy()
         ex.vt, ex.at = v0.copy(), a0.copy()
+        ex.path_unbounded = bool(np.all(ex.path_tol == np.inf))
+        # what the tick may skip of the limiter for this motion (the sampler's peaks are known from the check)
+        if ex.limits is None:
+            ex.limits = self._limiter.select(ex.idx)
+        ex.env = envelope(sampler, ex.limits, self.loop.period)

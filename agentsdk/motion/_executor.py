@@ -151,7 +151,10 @@ class _Executor(_Admission):
         if ex.remote is not None:
             return self._update_remote(ex, ex.remote, t, st, sp, q, v, a, err, elapsed)
         if ex.phase == MotionPhase.FOLLOW:
-            np.less_equal(np.abs(err, out=w.tmp), ex.path_tol, out=w.mask)
+            if ex.path_unbounded:  # |err| <= inf fails only where err is NaN, as err <= inf does
+                np.less_equal(err, ex.path_tol, out=w.mask)
+            else:
+                np.less_equal(np.abs(err, out=w.tmp), ex.path_tol, out=w.mask)
             if w.mask.tobytes() != w.all:
                 over = ~w.mask
                 k = int(np.argmax(over))
@@ -166,7 +169,7 @@ class _Executor(_Admission):
                                      None)
                     return self._write_stop(ex, t, st, sp)
                 ex.phase = MotionPhase.SETTLE
-        qc = self._limited(ex, q, v, a)
+        qc = self._limited_sample(ex, w, q, v, a)
         if qc is None:  # a step the limiter would have clipped: aborted
             return self._write_stop(ex, t, st, sp)
         if ex.phase == MotionPhase.SETTLE:
@@ -213,6 +216,35 @@ class _Executor(_Admission):
             self.loop.hold_at(ex.idx, qc)
             return False
         return True
+
+    def _limited_sample(self, ex: _Exec, w: _TickBuffers, q: np.ndarray, v: np.ndarray,
+                        a: np.ndarray) -> np.ndarray | None:
+        """:meth:`_limited` for this tick's sample ``q``, skipped where the motion's envelope proves it the identity.
+
+        See :mod:`._envelope`: the sample's segment lies strictly inside the bounds, and either no
+        step window applies or consecutive samples stay within it and the limiter's origin still
+        holds the previous (unclipped) sample. Then ``q`` is what the limiter would return, bit for bit.
+        """
+        env = ex.env
+        if env is None or env.sampler is not ex.sampler:
+            return self._limited(ex, q, v, a)
+        lim = ex.limits
+        steps = lim is not None and lim.step is not None and self._origin is not None
+        if env.inside[env.sampler.region + 1]:
+            if not steps:
+                return q
+            o = w.st_views[2]
+            prev = env.prev
+            if env.step_free and o is not None and prev is not None and o.tobytes() == prev:
+                env.prev = q.tobytes()
+                return q
+        qc = self._limited(ex, q, v, a)
+        env.prev = None
+        if qc is not None and steps and env.step_free:
+            b = qc.tobytes()
+            if b == q.tobytes():
+                env.prev = b
+        return qc
 
     def _limited(self, ex: _Exec, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray | None:
         """``q`` through the safety layer's :class:`~agentsdk.limits.StepLimiter` (the same calls its filter makes).
@@ -292,17 +324,20 @@ class _Executor(_Admission):
         if bound is None or bound[0] is not sp or bound[1] is not st:
             w.bind(idx, sp, st, self._origin, loop)
         sel = ex.sel = w.sel
-        if w.sp_views:  # consecutive joints, through views made once (basic indexing makes a view per write)
-            mode, enabled, position, velocity, effort, kp, kd, target, gain_p, gain_d, acceleration = w.sp_views
+        rows = w.sp_rows
+        if rows is not None:  # consecutive joints, through views made once (basic indexing makes a view per write)
+            mode, enabled, position, velocity, _effort, _kp, _kd, target, _gp, _gd, acceleration = w.sp_views
             mode.fill(_POS)
             enabled.fill(True)
-            position[...] = qc
-            velocity[...] = v
-            acceleration[...] = a  # the servo law's inverse-dynamics feed-forward
-            effort.fill(0.0)
-            kp[...] = gain_p
-            kd[...] = gain_d
+            qv, const = rows
+            if qc is w.q and v is w.vt:  # the sample's rows as they are: position and velocity in one copy
+                qv[...] = w.qv
+            else:
+                position[...] = qc
+                velocity[...] = v
+            const[...] = w.const  # effort 0, the loop's kp and kd (read-only: copied when bound)
             target[...] = qc
+            acceleration[...] = a  # the servo law's inverse-dynamics feed-forward
         else:
             sp.mode[sel] = _POS
             sp.enabled[sel] = True
@@ -323,7 +358,10 @@ class _Executor(_Admission):
             snap.time = t
             snap.q, snap.v, snap.err = qc, v, err
             pos_view, vel_view, _ = w.st_views
-            if pos_view is not None and vel_view is not None:
+            st_rows = w.st_rows
+            if st_rows is not None:
+                w.measured[...] = st_rows
+            elif pos_view is not None and vel_view is not None:
                 w.act[...] = pos_view
                 w.actual_v[...] = vel_view
             else:
@@ -338,7 +376,8 @@ class _Executor(_Admission):
                 if ex.wrap is not None:
                     _wrap_into(err, ex.wrap, w.tmp)
             snap.seq += 1
-            m._keep_measured(st.position)
+            if m._pose_streams or m._feedback_q is not None:
+                m._keep_measured(st.position)
 
     # ------------------------------------------------------------ offload (agentsdk.offload)
     def _try_offload(self, ex: _Exec, traj: Trajectory) -> None:

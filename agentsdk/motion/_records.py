@@ -13,6 +13,7 @@ from ..offload import OffloadedGoal
 from ..trajectory import (
     Trajectory,
 )
+from ._envelope import _Envelope
 from ._handle import Motion
 from ._types import MotionPhase, ResultCode
 
@@ -28,17 +29,22 @@ class _TickBuffers:
         "all",
         "at",
         "bound",
+        "const",
         "dev",
         "err",
         "gain",
         "mask",
+        "measured",
         "none",
         "o",
         "out",
         "q",
+        "qv",
         "sample",
         "sel",
+        "sp_rows",
         "sp_views",
+        "st_rows",
         "st_views",
         "tmp",
         "v",
@@ -49,8 +55,15 @@ class _TickBuffers:
         self.sample = np.zeros((3, n))
         # row views made once (a view is a Python object: making them per tick would allocate)
         self.q, self.vt, self.at = self.sample[0], self.sample[1], self.sample[2]
+        #: the sample's position and velocity rows (written to the setpoint in one copy when unchanged)
+        self.qv = self.sample[0:2]
         self.v, self.a, self.err, self.actual, self.out = (np.zeros(n) for _ in range(5))
-        self.tmp, self.o, self.dev, self.gain, self.act, self.actual_v = (np.zeros(n) for _ in range(6))
+        self.tmp, self.o, self.dev, self.gain = (np.zeros(n) for _ in range(4))
+        #: the measured position and velocity of the tick (for feedback), as the rows of one array
+        self.measured = np.zeros((2, n))
+        self.act, self.actual_v = self.measured[0], self.measured[1]
+        #: the setpoint's effort, kp, kd rows a motion writes: zero and the loop's (read-only) gains
+        self.const = np.zeros((3, n))
         self.mask = np.zeros(n, dtype=bool)
         #: ``mask.tobytes()`` with every / no joint set (a bytes compare costs less than np.count_nonzero)
         self.all, self.none = np.ones(n, dtype=bool).tobytes(), self.mask.tobytes()
@@ -61,6 +74,10 @@ class _TickBuffers:
         self.bound: tuple[Any, Any, Any] | None = None
         self.sp_views: tuple[np.ndarray, ...] = ()
         self.st_views: tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None] = (None, None, None)
+        #: views of the setpoint block's rows 0:2 (position, velocity) and 2:5 (effort, kp, kd), and of
+        #: the state block's rows 0:2 (position, velocity), for consecutive joints
+        self.sp_rows: tuple[np.ndarray, np.ndarray] | None = None
+        self.st_rows: np.ndarray | None = None
 
     def selection(self, idx: np.ndarray) -> Any:
         """The joints ``idx`` as a slice when they are consecutive (basic indexing is ~4x cheaper), else ``idx``."""
@@ -80,9 +97,17 @@ class _TickBuffers:
                              sp.kp[sel], sp.kd[sel], sp.target[sel], loop.gain_p[sel], loop.gain_d[sel],
                              sp.acceleration[sel])
             self.st_views = (st.position[sel], st.velocity[sel], None if origin is None else origin[sel])
+            # rows in Setpoint.FIELDS order: position, velocity | effort, kp, kd | target, acceleration
+            self.sp_rows = (sp.block[0:2, sel], sp.block[2:5, sel])
+            self.const[0] = 0.0
+            self.const[1] = loop.gain_p[sel]
+            self.const[2] = loop.gain_d[sel]
+            self.st_rows = None if st.block is None else st.block[0:2, sel]
         else:
             self.sp_views = ()
             self.st_views = (None, None, None)
+            self.sp_rows = None
+            self.st_rows = None
 
 
 @dataclass(eq=False)
@@ -122,8 +147,12 @@ class _Exec:
     #: the trajectory ends moving (allow_nonzero_velocity_at_end): decelerate after the end
     end_moving: bool = False
     reported_clip: bool = False
-    #: the safety limiter of its joints (:meth:`StepLimiter.select`), made on the first tick
+    #: the safety limiter of its joints (:meth:`StepLimiter.select`), made when it starts or on the first tick
     limits: StepLimiter | None = None
+    #: what the limiter would never change of its trajectory's samples (:mod:`._envelope`), or None
+    env: _Envelope | None = None
+    #: every path tolerance is infinite (the path check only rejects NaN errors)
+    path_unbounded: bool = False
     #: its joints as a slice when they are consecutive (basic indexing: ~4x cheaper than ``idx`` per write)
     sel: Any = None
     #: the tick path's preallocated arrays (made on the first tick)

@@ -125,11 +125,13 @@ class TrajectorySampler:
         "_has_start",
         "_knots",
         "_n",
+        "_peaks",
         "_segs",
         "_start_state",
         "end_time",
         "indices",
         "joint_names",
+        "region",
         "start_time",
         "trajectory",
     )
@@ -290,6 +292,24 @@ class TrajectorySampler:
             self._start_state = self._end_state
         self._start_state.setflags(write=False)
         self._end_state.setflags(write=False)
+        self._peaks: MotionPeaks | None = None
+        #: where the last :meth:`sample_into` sampled: -1 before the first segment, ``i`` in segment ``i``,
+        #: :attr:`segments` after the last (the executor looks up what it precomputed per segment)
+        self.region = -1
+
+    @property
+    def segments(self) -> int:
+        """Number of polynomial segments (the start state -> point 0 one included)."""
+        return len(self._c)
+
+    def coefficients(self) -> FloatArray:
+        """The segments' polynomial coefficients, shape (segments, 6, joints), ascending powers of local time.
+
+        Read-only: segment ``i`` is ``sum(c[i, k] * tau**k)`` for ``tau`` from 0 to its duration.
+        """
+        c = self._c.view()
+        c.setflags(write=False)
+        return c
 
     @property
     def duration(self) -> float:
@@ -311,11 +331,14 @@ class TrajectorySampler:
         knots = self._knots
         i = bisect_right(knots, t) - 1
         if i >= len(self._c):
+            self.region = len(self._c)
             out[...] = self._end_state
             return out
         if i < 0:
+            self.region = -1
             out[...] = self._start_state
             return out
+        self.region = i
         tau = t - knots[i]
         t2 = tau * tau
         t3 = t2 * tau
@@ -355,7 +378,16 @@ class TrajectorySampler:
         16-cell grid bisected to machine precision, plus the companion-matrix roots, which also
         find two extrema inside one cell). Velocity steps at the points of a
         positions-only (linear) trajectory are not motion inside a segment and are not counted.
+        Computed once per sampler (the admission's limit check and the executor share it).
         """
+        pk = self._peaks
+        if pk is None:
+            pk = self._peaks = self._compute_peaks()
+            for a in (pk.knots, pk.q_min, pk.q_max, pk.v_peak, pk.a_peak, pk.v_time, pk.a_time):
+                a.setflags(write=False)  # shared by every caller
+        return pk
+
+    def _compute_peaks(self) -> MotionPeaks:
         c = self._c
         n_seg = len(c)
         n = self._n

@@ -97,6 +97,7 @@ from agentsdk.types import MODES
 from .floating import FloatingStep
 from .friction import friction_torque
 from .sensors import SERVED, PybulletSensors
+from .solve import solve
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletBackend", "PybulletController", "PybulletOptions"]
 
@@ -117,6 +118,9 @@ _GEAR_FORCE = 1e5
 MIN_TIMESTEP = 1e-6
 #: a gravity component (m/s²): finite, within ±1000 (about 100 g)
 GravityComponent = Annotated[float, Field(ge=-1000.0, le=1000.0)]
+
+#: ``count_nonzero(x) > 0`` as one ufunc reduction (NaN counts, as there); the numpy function has a Python wrapper
+_any_nonzero = np.logical_or.reduce
 
 
 class PybulletOptions(BaseModel):
@@ -154,6 +158,8 @@ class PybulletBackend(Backend):
     sensor_kinds = SERVED
     #: the self-collision model in use (None for an MJCF model)
     collision: SelfCollision | None = None
+    #: :attr:`floating_base`, kept by the first write (the servo path asks every tick)
+    _floating: bool | None = None
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -560,19 +566,15 @@ class PybulletBackend(Backend):
                     forces=friction, physicsClientId=self._cid,
                 )
 
-    def _gravity_torque(self) -> np.ndarray:
-        """g(q) at the latest sensed state into ``_tau_model`` (masked per joint)."""
-        q = np.take(self._q_all, self._sel, out=self._gc_q)
-        base = self.base_state().pose if self.floating_base else None
+    def _gravity_torque(self, q: np.ndarray, base: Pose | None) -> np.ndarray:
+        """g(q) at the latest sensed state ``q`` (base pose ``base``) into ``_tau_model`` (masked per joint)."""
         tau = self._model.gravity(q, self._tau_model, base)
         tau *= self._gc_mask
         return tau
 
-    def _motion_torque(self, sp: SetpointView) -> np.ndarray:
-        """``M(q) a_des + C(q, v_des) v_des`` at the latest sensed state into ``_tau_motion``."""
+    def _motion_torque(self, sp: SetpointView, q: np.ndarray, base: Pose | None) -> np.ndarray:
+        """``M(q) a_des + C(q, v_des) v_des`` at the latest sensed state ``q`` into ``_tau_motion``."""
         assert self._inverse is not None
-        q = np.take(self._q_all, self._sel, out=self._gc_q)
-        base = self.base_state().pose if self.floating_base else None
         # (called only when the write found the reference moving: not asked again)
         return self._inverse.compute(self._model.qpos(q, base), sp.velocity, sp.acceleration, self._tau_motion,
                                      sp.mode, moving=True)
@@ -605,10 +607,10 @@ class PybulletBackend(Backend):
         np.copyto(a, mass)
         a[self._diag] += h * d_all
         rhs = f_all - bias
-        qacc = np.linalg.solve(a, rhs)
+        qacc = solve(a, rhs)
         if self._friction_any:  # the joints that can stop this step stop, the others slide (coupled)
             rhs += friction_torque(a, rhs, self._v_all, h, self._friction)
-            qacc = np.linalg.solve(a, rhs)
+            qacc = solve(a, rhs)
         if self._armature_any:
             rigid = self._rigid_mass
             np.copyto(rigid, mass)
@@ -635,16 +637,26 @@ class PybulletBackend(Backend):
 
     # ------------------------------------------------------------ servo
     def _write(self, sp: SetpointView) -> None:
-        np.copyto(self._qd, sp.position)
-        np.copyto(self._vd, sp.velocity)
-        np.copyto(self._ff, sp.effort)
-        if self._gc_on:  # tau_model: g(q) at the measured position, added to the feed-forward
-            self._ff += self._gravity_torque()
-        if self._inverse is not None and self._inverse.moving(sp.velocity, sp.acceleration):
-            self._ff += self._motion_torque(sp)
-        np.copyto(self._kp, sp.kp)
-        np.copyto(self._kd, sp.kd)
-        np.copyto(self._en, sp.enabled)
+        # (a[...] = b: np.copyto's Python-level wrapper costs more than the copy of a few joints)
+        self._qd[...] = sp.position
+        self._vd[...] = sp.velocity
+        self._ff[...] = sp.effort
+        gc = self._gc_on
+        moving = self._inverse is not None and self._inverse.moving(sp.velocity, sp.acceleration)
+        if gc or moving:
+            # the model terms at the measured state, gathered once for both (the base pose is two PyBullet calls)
+            q = np.take(self._q_all, self._sel, out=self._gc_q)
+            floating = self._floating
+            if floating is None:
+                floating = self._floating = self.floating_base
+            base = self.base_state().pose if floating else None
+            if gc:  # tau_model: g(q) at the measured position, added to the feed-forward
+                self._ff += self._gravity_torque(q, base)
+            if moving:
+                self._ff += self._motion_torque(sp, q, base)
+        self._kp[...] = sp.kp
+        self._kd[...] = sp.kd
+        self._en[...] = sp.enabled
 
     async def _step(self, dt: float) -> None:
         # Allocation-free per substep: preallocated arrays, ufuncs with out= (ufunc dispatch is
@@ -688,15 +700,15 @@ class PybulletBackend(Backend):
                 if not all_on:
                     mask &= en
                 kdm.fill(0.0)
-                np.copyto(kdm, kd, where=mask)
+                np.positive(kd, out=kdm, where=mask)  # copyto(kdm, kd, where=mask) as a plain ufunc
                 if every:
                     np.add(damping, kdm, out=d_all)
                 else:
-                    np.copyto(d_all, damping)
+                    d_all[...] = damping
                     d_all[sel] += kdm
                 if self._floating_step is not None:
                     f_all = self._floating_step(cid, body, q_all, v_all, f_all, d_all)
-                elif self._armature_any or self._friction_any or np.count_nonzero(d_all):
+                elif self._armature_any or self._friction_any or _any_nonzero(d_all):
                     f_all = self._implicit_step(f_all, d_all, h)
             set_motors(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)
             step(physicsClientId=cid)

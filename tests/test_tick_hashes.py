@@ -41,7 +41,7 @@ ROBOTS = ("arm3", "humanoid")
 
 
 def _fingerprint(backend: str) -> str:
-    """The builds a hash depends on: the simulator, numpy, Python and the machine."""
+    """The builds a hash depends on: the simulator, numpy, Python, the architecture and the CPU model."""
     if backend == "mujoco":
         import mujoco
 
@@ -50,7 +50,18 @@ def _fingerprint(backend: str) -> str:
         import pybullet
 
         sim = f"pybullet api {pybullet.getAPIVersion()}"
-    return f"{sim}; numpy {np.__version__}; python {platform.python_version()}; {platform.machine()}"
+    return f"{sim}; numpy {np.__version__}; python {platform.python_version()}; {platform.machine()}; {_cpu()}"
+
+
+def _cpu() -> str:
+    """The CPU model: numpy's BLAS and MuJoCo pick their SIMD kernels at run time, per CPU."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown cpu"
 
 
 class _Hasher:

@@ -54,14 +54,17 @@ def _fingerprint(backend: str) -> str:
 
 
 def _cpu() -> str:
-    """The CPU model: numpy's BLAS and MuJoCo pick their SIMD kernels at run time, per CPU."""
+    """The CPU model and its instruction sets: numpy's BLAS and MuJoCo pick their SIMD kernels at run time."""
+    model, flags = platform.processor() or "unknown cpu", ""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags") and not flags:  # the instruction sets the kernels are chosen by
+                flags = hashlib.sha256(" ".join(sorted(line.split(":", 1)[1].split())).encode()).hexdigest()[:12]
     except OSError:
         pass
-    return platform.processor() or "unknown cpu"
+    return f"{model} (flags {flags or '?'})"
 
 
 class _Hasher:

@@ -300,8 +300,6 @@ class RawPybullet:
         The same arithmetic with the same numpy primitives (preallocated arrays, ufuncs with
         ``out=``), so that the difference to the SDK loop is the SDK, not the way the law is coded.
         """
-        from agentsdk.backends.pybullet.solve import solve  # the backend's solve (np.linalg.solve's gufunc)
-
         p, cid, body, dofs = self.p, self.cid, self.body, self.dofs
         sel, kp, kd, lim, neg_lim, h = self.sel, self.kp, self.kd, self.lim, self.neg_lim, self.h
         raw, tau, tmp, kdm, mask = self.raw, self.tau, self.tmp, self.kdm, self.mask
@@ -335,7 +333,7 @@ class RawPybullet:
                 np.add(diag, hd, out=diag)
                 rhs = self.rhs
                 np.subtract(f_all, bias, out=rhs)
-                qacc = solve(mass, rhs)  # np.linalg.solve, bit for bit, as the backend calls it
+                qacc = np.linalg.solve(mass, rhs)
                 np.multiply(hd, qacc, out=rhs)
                 np.subtract(f_all, rhs, out=f_all)
             p.setJointMotorControlArray(body, dofs, p.TORQUE_CONTROL, forces=f_all.tolist(), physicsClientId=cid)

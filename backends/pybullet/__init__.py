@@ -97,7 +97,6 @@ from agentsdk.types import MODES
 from .floating import FloatingStep
 from .friction import friction_torque
 from .sensors import SERVED, PybulletSensors
-from .solve import solve
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletBackend", "PybulletController", "PybulletOptions"]
 
@@ -607,10 +606,10 @@ class PybulletBackend(Backend):
         np.copyto(a, mass)
         a[self._diag] += h * d_all
         rhs = f_all - bias
-        qacc = solve(a, rhs)
+        qacc = np.linalg.solve(a, rhs)
         if self._friction_any:  # the joints that can stop this step stop, the others slide (coupled)
             rhs += friction_torque(a, rhs, self._v_all, h, self._friction)
-            qacc = solve(a, rhs)
+            qacc = np.linalg.solve(a, rhs)
         if self._armature_any:
             rigid = self._rigid_mass
             np.copyto(rigid, mass)

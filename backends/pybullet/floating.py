@@ -41,7 +41,6 @@ from agentsdk.dynamics import DynamicsModel
 from agentsdk.pose import Pose
 
 from .friction import friction_torque
-from .solve import solve
 
 __all__ = ["EXT_FILTER", "FloatingStep", "free_body_name"]
 
@@ -236,10 +235,10 @@ class FloatingStep:
         a[self._jdiag] += h * damping
         np.subtract(ext, bias, out=rhs)
         rhs[dofs] += force
-        qacc = solve(a, rhs)
+        qacc = np.linalg.solve(a, rhs)
         if self._friction_any:  # the joints that can stop this substep stop, the others slide (coupled)
             rhs += friction_torque(a, rhs, qvel, h, self._friction_all)
-            qacc = solve(a, rhs)
+            qacc = np.linalg.solve(a, rhs)
         mass[self._diag] -= self._armature  # PyBullet's rigid bodies: the rotors take A qacc
         out = self._out
         np.matmul(mass, qacc, out=out)

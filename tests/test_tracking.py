@@ -269,9 +269,10 @@ def _corpus_arms() -> tuple[str, ...]:
 
 #: arms that cannot follow the trajectory for a physical reason of their description, per backend
 #: (checked: each must fail at the joint named, so a fix or a new failure shows up)
-UNTRACKABLE: dict[tuple[str, str], tuple[str, str]] = {
-    # the URDF gives s1 50 N·m; holding the outstretched arm takes 56.4 N·m (see test_corpus_dynamics)
-    **{("baxter_description/urdf/baxter.urdf", b): ("right_s1", "effort limit below the gravity torque")
+UNTRACKABLE: dict[tuple[str, str], tuple[str | tuple[str, ...], str]] = {
+    # the URDF gives s1 50 N·m; holding the outstretched arm takes 56.4 N·m (see test_corpus_dynamics); the two
+    # arms are mirror images, so either s1 may show the larger peak (they differ in the last bits)
+    **{("baxter_description/urdf/baxter.urdf", b): (("left_s1", "right_s1"), "effort limit below the gravity torque")
        for b in BACKENDS},
     # the gripper's motor (effort limit 1 N·m) drives 6 mimic followers, each with 1 N·m of URDF dry
     # friction: PyBullet's Coulomb friction (7 N·m) holds it; MuJoCo's soft frictionloss lets it creep
@@ -306,6 +307,7 @@ def test_corpus_arm_tracks_a_1s_trajectory(tracked: dict[tuple[str, str], dict[s
     impossible = UNTRACKABLE.get((name, backend))
     if impossible is not None:
         assert not ok, f"{name} now tracks on {backend} ({summary}): remove it from UNTRACKABLE"
-        assert joint == impossible[0], summary
+        expected = impossible[0] if isinstance(impossible[0], tuple) else (impossible[0],)
+        assert joint in expected, summary
         pytest.xfail(f"{impossible[1]}: {summary}")
     assert ok, summary

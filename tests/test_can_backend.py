@@ -182,16 +182,17 @@ class TestCanConformanceVirtual(BackendConformance):
 
 # ----------------------------------------------------------------------- gravity feed-forward (issue 13)
 async def hold_drift(robot: Robot, seconds: float = 1.0) -> float:
-    """Largest joint excursion from the start pose while the robot holds it (after 0.2 s to settle
-    from the enable: the motors are limp until then)."""
+    """How far the robot sags from the start pose while it holds it: the median over the hold of the largest
+    joint excursion (after 0.2 s to settle from the enable: the motors are limp until then). Gravity's sag
+    is a steady offset; the median leaves out the transient excursions a loaded host's late cycles make."""
     q0 = np.array([robot.controller.initial_positions[k] for k in range(len(robot.joints))])
     await robot.command(JointCommand("position", dict(zip(robot.joint_names, q0.tolist(), strict=True))))
     await robot.clock.sleep(0.2)
-    peak = 0.0
+    excursions = []
     for _ in range(round(seconds / 0.02)):
         await robot.clock.sleep(0.02)
-        peak = max(peak, float(abs((await robot.read()).position - q0).max()))
-    return peak
+        excursions.append(float(abs((await robot.read()).position - q0).max()))
+    return float(np.median(excursions))
 
 
 async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant(tmp_path: Path) -> None:

@@ -220,6 +220,18 @@ class Backend(ABC):
     #: sensor kinds the backend samples in ``_read_sensors`` (joint sensors are served by the loop for every backend)
     sensor_kinds: ClassVar[frozenset[str]] = frozenset()
 
+    def __str__(self) -> str:
+        return self.name
+
+    def __eq__(self, other: object) -> bool:  # ``robot.backend`` was the name (a str) in 0.1
+        if isinstance(other, str):
+            warnings.warn(f"comparing a Backend with a string: use robot.backend.name == {other!r}",
+                          DeprecationWarning, stacklevel=2)
+            return self.name == other
+        return self is other
+
+    __hash__ = object.__hash__
+
     # the read-only values a backend is built from (set from its spec, see ``_adopt``)
     config: RobotConfig
     description: RobotDescription
@@ -263,29 +275,15 @@ class Backend(ABC):
         self._adopt(spec)
 
     @classmethod
-    def make_spec(
-        cls,
-        config: RobotConfig,
-        description: RobotDescription,
-        joints: tuple[JointInfo, ...],
-        *,
-        realtime: bool | None = None,
-        **options: Any,
-    ) -> BackendSpec:
+    def make_spec(cls, config: RobotConfig, description: RobotDescription, joints: tuple[JointInfo, ...], *,
+                  realtime: bool | None = None, **options: Any) -> BackendSpec:
         """The ready values this backend class is built from (:meth:`BackendSpec.derive`; nothing is opened)."""
         draft = cls.__new__(cls)  # holds what the hooks may read, before construction
         return BackendSpec.derive(draft, config, description, joints, realtime, options)
 
     @classmethod
-    def create(
-        cls,
-        config: RobotConfig,
-        description: RobotDescription,
-        joints: tuple[JointInfo, ...],
-        *,
-        realtime: bool | None = None,
-        **options: Any,
-    ) -> Backend:
+    def create(cls, config: RobotConfig, description: RobotDescription, joints: tuple[JointInfo, ...], *,
+               realtime: bool | None = None, **options: Any) -> Backend:
         """The backend for a robot: its spec (:meth:`make_spec`), then ``cls(spec)``.
 
         A subclass whose ``__init__`` takes ``(config, description, joints, ...)`` (earlier releases)

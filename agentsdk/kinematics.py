@@ -197,7 +197,7 @@ class Kinematics:
 
         On the robot's one host model (its own ``MjData``): nothing is compiled again.
         """
-        return cls(robot.description, robot.joints, state=robot.latest_state, host=robot.controller.spec.host.get())
+        return cls(robot.description, robot.joints, state=robot.latest_state, host=robot.backend.spec.host.get())
 
     @classmethod
     def from_mjcf(

@@ -163,7 +163,7 @@ async def _probe_async(
     from agentsdk.errors import AgentSDKError
 
     async with agentsdk.connect(backend, robot=robot, **options) as bot:
-        ctl = bot.controller
+        ctl = bot.backend
         desc = ctl.description
         out: dict[str, Any] = {
             "loaded": True,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import warnings
 from collections.abc import Callable, Generator, Mapping
 from pathlib import Path
 from types import MappingProxyType, TracebackType
@@ -94,9 +95,14 @@ class Robot:
         return self._loop.clock
 
     @property
-    def backend(self) -> str:
-        """Name of the backend (``"mujoco"``, ``"pybullet"``, ``"can"``, ``"mock"``...)."""
-        return self._loop.backend.name
+    def backend(self) -> Backend:
+        """The backend this robot runs on: its name is ``robot.backend.name`` (``"mujoco"``, ``"can"``...).
+
+        Backend-specific extras live on it (CAN ``set_zero`` and ``stats``, MuJoCo ``model``/``data``,
+        ``gain_sources``); behaviors should not need it, since everything common to all backends is on
+        the Robot. ``str(robot.backend)`` is the name, so ``f"{robot.backend}"`` prints it as before.
+        """
+        return self._loop.backend
 
     @property
     def capabilities(self) -> Capabilities:
@@ -120,10 +126,9 @@ class Robot:
 
     @property
     def controller(self) -> Backend:
-        """The backend instance, for backend-specific extras (e.g. CAN ``set_zero``, ``stats``).
-
-        Behaviors should not need it; everything common to all backends is on the Robot.
-        """
+        """Deprecated former name of :attr:`backend` (the backend instance): use ``robot.backend``."""
+        warnings.warn("Robot.controller is deprecated: use Robot.backend (the same Backend instance)",
+                      DeprecationWarning, stacklevel=2)
         return self._loop.backend
 
     @property
@@ -137,8 +142,8 @@ class Robot:
 
         robot.yaml ``gains`` where given, else the position servo the description declares (an MJCF
         position actuator's ``kp``/``kv``), else computed from the model (see
-        :func:`agentsdk.dynamics.model_gains`; ``robot.controller.gain_sources`` says which per joint,
-        ``robot.controller.model_gain_report`` what bounded the model's).
+        :func:`agentsdk.dynamics.model_gains`; ``robot.backend.gain_sources`` says which per joint,
+        ``robot.backend.model_gain_report`` what bounded the model's).
         """
         loop = self._loop
         return MappingProxyType({

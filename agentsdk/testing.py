@@ -368,7 +368,7 @@ class BackendConformance:
                 await self._check_sensor_fault(robot, kind)
 
     async def _check_sensor_fault(self, robot: Robot, kind: str) -> None:
-        backend = robot.controller
+        backend = robot.backend
         joints = robot.joints
         j = next((k for k, info in enumerate(joints) if math.isfinite(info.upper)), 0)
         name = joints[j].name

@@ -323,14 +323,14 @@ class VideoRecorder:
         self.size = (int(w) // 2 * 2, int(h) // 2 * 2)  # H.264 (yuv420p) needs even sizes
         self.fps = float(fps)
         self.robot = robot
-        ctl = robot.controller
+        ctl = robot.backend
         self._ctl = ctl
         self._names = tuple(robot.joint_names)
         self._description = ctl.description
         self.backend = robot.backend
         # on MuJoCo, frames are the backend's own qpos (a floating base and passive joints included),
         # drawn with its own model: MujocoBackend's public ``model`` and ``data``
-        self._mj_model = getattr(ctl, "model", None) if robot.backend == "mujoco" else None
+        self._mj_model = getattr(ctl, "model", None) if robot.backend.name == "mujoco" else None
         self._mj_data: Any = getattr(ctl, "data", None) if self._mj_model is not None else None
         self.frames: list[np.ndarray] = []
         self._next = 0.0

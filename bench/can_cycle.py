@@ -294,7 +294,7 @@ async def _backend_realtime(robot_yaml: Path, interface: str, channel: str, dura
     """The whole stack at the robot.yaml's update_rate, holding position."""
     async with agentsdk.connect("can", robot=robot_yaml, interface=interface, channel=channel,
                                 max_missed_replies=1000) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         await robot.clock.sleep(0.2)  # settle
         ticks0, skipped0 = robot.ticks, robot.missed_deadlines
         c0, m0, l0 = _missed(ctl)

@@ -64,7 +64,7 @@ async def host(robot_yaml: str, seconds: float) -> dict[str, Any]:
         here = (await robot.read()).positions()
         await robot.command(JointCommand("position", here))  # hold where the motors are, torque on
         await robot.clock.sleep(0.5)  # warm up: first ticks, allocations, caches
-        stats = robot.controller.stats  # type: ignore[attr-defined]
+        stats = robot.backend.stats  # type: ignore[attr-defined]
         period = robot.control_period
         missed0 = sum(s.missed for s in stats)
         late0 = sum(s.late for s in stats)

@@ -66,7 +66,7 @@ async def _per_tick(path: Path, ticks: int) -> tuple[float, Any]:
         t0 = time.perf_counter()
         await robot.clock.sleep(ticks * robot.control_period)
         per = (time.perf_counter() - t0) / ticks
-        return per, robot.controller
+        return per, robot.backend
 
 
 def _renderer_per_frame(model: Any, data: Any, cam: int, frames: int, depth: bool) -> float:

@@ -18,7 +18,7 @@ from agentsdk.backendspec import BackendSpec
 
 async def test_backend_attributes_are_its_spec() -> None:
     async with agentsdk.connect("mock", "arm3") as robot:
-        backend = robot.controller
+        backend = robot.backend
         spec = backend.spec
         assert spec.names == backend.names == robot.joint_names
         assert spec.period == backend.period
@@ -32,7 +32,7 @@ async def test_backend_attributes_are_its_spec() -> None:
 
 async def test_spec_is_derived_without_a_backend_and_is_immutable() -> None:
     async with agentsdk.connect("mock", "arm3") as robot:
-        backend = robot.controller
+        backend = robot.backend
         again = BackendSpec.build(backend.config, backend.description, backend.joints, backend.options, realtime=False)
     assert again.names == backend.names
     np.testing.assert_array_equal(again.initial_positions, backend.initial_positions)
@@ -48,7 +48,7 @@ async def test_spec_is_derived_without_a_backend_and_is_immutable() -> None:
 async def test_a_backend_option_overrides_the_gravity_flags() -> None:
     """``gravity_compensation`` / ``inverse_dynamics`` backend options switch the robot.yaml values."""
     async with agentsdk.connect("mock", "arm3") as robot:
-        backend = robot.controller
+        backend = robot.backend
         config, desc, joints = backend.config, backend.description, backend.joints
 
     class Options:
@@ -78,7 +78,7 @@ async def test_a_backend_is_constructed_from_its_spec() -> None:
     agentsdk.register_backend("tiny_spec", TinyController)
     try:
         async with agentsdk.connect("tiny_spec", "arm3") as robot:
-            backend = robot.controller
+            backend = robot.backend
             spec = backend.spec
             assert backend.servo_gains is spec.servo_gains
             assert len(spec.servo_gains) == len(spec.joints)
@@ -98,11 +98,11 @@ async def test_a_backend_is_constructed_from_its_spec() -> None:
 async def test_the_spec_carries_the_backends_timestep_and_floating_base() -> None:
     pytest.importorskip("mujoco")
     async with agentsdk.connect("mujoco", "arm3", timestep=0.0005) as robot:
-        spec = robot.controller.spec
-        assert spec.servo_timestep == 0.0005 == robot.controller.servo_timestep
-        assert spec.floating_base is robot.controller.floating_base is False
-        report = robot.controller.model_gain_report  # computed on demand with the spec's timestep
-        stiffer = robot.controller.dynamics.gains(spec.initial_positions, timestep=0.002).kp
+        spec = robot.backend.spec
+        assert spec.servo_timestep == 0.0005 == robot.backend.servo_timestep
+        assert spec.floating_base is robot.backend.floating_base is False
+        report = robot.backend.model_gain_report  # computed on demand with the spec's timestep
+        stiffer = robot.backend.dynamics.gains(spec.initial_positions, timestep=0.002).kp
         assert (report.kp >= stiffer).all()
 
 
@@ -136,7 +136,7 @@ async def test_a_backend_written_against_the_old_constructor_still_connects_and_
             connection = agentsdk.connect("old_style", "arm3")
             robot = await connection
         try:
-            backend = robot.controller
+            backend = robot.backend
             assert isinstance(backend, OldStyle) and backend.built_the_old_way
             assert backend.spec.names == robot.joint_names
             assert robot.kinematics.model is backend.spec.host.get().model

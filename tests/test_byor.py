@@ -46,8 +46,8 @@ async def _settle(robot: agentsdk.Robot, seconds: float) -> np.ndarray:
 
 def _sim_joint_position(robot: agentsdk.Robot, joint: str) -> float:
     """A joint's position as the simulator holds it (also for joints that are not commanded)."""
-    ctl: Any = robot.controller
-    if robot.backend == "mujoco":
+    ctl: Any = robot.backend
+    if robot.backend.name == "mujoco":
         return float(ctl.data.qpos[ctl.model.joint(joint).qposadr[0]])
     index = next(i for i in range(p.getNumJoints(ctl._body, physicsClientId=ctl._cid))
                  if p.getJointInfo(ctl._body, i, physicsClientId=ctl._cid)[1].decode() == joint)
@@ -77,7 +77,7 @@ async def test_a_root_link_touching_its_first_child_does_not_block_the_joint(tmp
         q = await _settle(robot, 1.5)
         assert q[0] == pytest.approx(0.3, abs=0.01), f"{backend}: joint1 at {q[0]:.4g}"
         assert robot.safety.state.name == "OK"
-        report = robot.controller.simulator_report()  # type: ignore[attr-defined]
+        report = robot.backend.simulator_report()  # type: ignore[attr-defined]
         assert report["pairs"] == []  # the only pair is adjacent
 
 
@@ -178,7 +178,7 @@ async def test_degenerate_masses_give_the_same_robot_that_moves_on_both_simulato
     path = _write(tmp_path, DEGENERATE)
     desc = load_description(path, warn=False)
     async with agentsdk.connect(backend, robot=path) as robot:
-        masses = robot.controller.simulator_report()["masses"]  # type: ignore[attr-defined]
+        masses = robot.backend.simulator_report()["masses"]  # type: ignore[attr-defined]
         for rec in desc.link_records:
             if rec.name in masses:
                 assert masses[rec.name] == pytest.approx(rec.mass, rel=1e-12), rec.name
@@ -334,15 +334,15 @@ async def test_srdf_beside_the_urdf_or_named_in_robot_yaml_is_honoured(tmp_path:
     srdf = '<robot name="siblings"><disable_collisions link1="far" link2="left" reason="Never"/></robot>'
     (tmp_path / "robot.srdf").write_text(srdf)
     async with agentsdk.connect(backend, robot=tmp_path / "robot.urdf") as robot:
-        assert robot.controller.simulator_report()["pairs"] == [("far", "right")]  # type: ignore[attr-defined]
+        assert robot.backend.simulator_report()["pairs"] == [("far", "right")]  # type: ignore[attr-defined]
     (tmp_path / "robot.srdf").unlink()
     (tmp_path / "other.srdf").write_text(srdf.replace('link2="left"', 'link2="right"'))
     (tmp_path / "robot.yaml").write_text("description: robot.urdf\nsrdf: other.srdf\nself_collision: true\n")
     async with agentsdk.connect(backend, robot=tmp_path / "robot.yaml") as robot:
-        pairs = robot.controller.simulator_report()["pairs"]  # type: ignore[attr-defined]
+        pairs = robot.backend.simulator_report()["pairs"]  # type: ignore[attr-defined]
         assert pairs == [("far", "left"), ("left", "right")]
     async with agentsdk.connect(backend, robot=tmp_path / "robot.yaml", self_collision=False) as robot:
-        assert robot.controller.simulator_report()["pairs"] == []  # type: ignore[attr-defined]
+        assert robot.backend.simulator_report()["pairs"] == []  # type: ignore[attr-defined]
 
 
 # --------------------------------------------------------------------------- MJCF

@@ -185,7 +185,7 @@ async def hold_drift(robot: Robot, seconds: float = 1.0) -> float:
     """How far the robot sags from the start pose while it holds it: the median over the hold of the largest
     joint excursion (after 0.2 s to settle from the enable: the motors are limp until then). Gravity's sag
     is a steady offset; the median leaves out the transient excursions a loaded host's late cycles make."""
-    q0 = np.array([robot.controller.initial_positions[k] for k in range(len(robot.joints))])
+    q0 = np.array([robot.backend.initial_positions[k] for k in range(len(robot.joints))])
     await robot.command(JointCommand("position", dict(zip(robot.joint_names, q0.tolist(), strict=True))))
     await robot.clock.sleep(0.2)
     excursions = []
@@ -206,7 +206,7 @@ async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant(tmp_path: P
             async with agentsdk.connect("can", robot=leg, interface="virtual", channel=channel, open_timeout=5.0,
                                         max_missed_replies=MAX_MISSED) as robot:
                 drift[on] = await hold_drift(robot)
-                sent = robot.controller.gravity_torque
+                sent = robot.backend.gravity_torque
                 assert bool(abs(sent).max() > 0.1) is on  # hip_abduction carries ~0.9 N·m
     print(f"mit_leg hold drift on the MuJoCo plant: with g(q) {drift[True]:.5f} rad, without {drift[False]:.5f} rad")
     assert drift[True] < 0.01, drift
@@ -218,7 +218,7 @@ async def test_open_enables_and_close_disables_every_motor() -> None:
     async with can_robot() as (robot, emu, _):
         assert all(emu.snapshot(i).enabled for i in MOTORS)
         await run_cycles(robot, 20)
-        ctl = robot.controller
+        ctl = robot.backend
         assert [s.joint for s in ctl.stats] == list(MOTORS.values())
         assert all(s.commands >= 20 and s.replies >= 20 for s in ctl.stats)
         assert robot.safety.state is SafetyState.OK
@@ -228,7 +228,7 @@ async def test_open_enables_and_close_disables_every_motor() -> None:
 # ----------------------------------------------------------------------- faults
 async def test_dropped_frames_are_counted_then_a_dead_motor_faults() -> None:
     async with can_robot() as (robot, emu, channel):
-        ctl = robot.controller
+        ctl = robot.backend
         # 20 % of commands and 20 % of replies lost: about 36 % of cycles miss each motor
         # (set after the open, which sends each ENABLE once)
         emu.drop_rate = 0.2
@@ -262,7 +262,7 @@ async def test_late_replies_are_counted_and_escalate(tmp_path: Path) -> None:
     # (asyncio's timers are ~1 ms coarse and the emulator is a thread: keep margins of ms).
     leg = mit_leg_at(tmp_path, 100.0)
     async with can_robot(leg, reply_deadline=0.5, max_missed_replies=10) as (robot, emu, _):
-        ctl = robot.controller
+        ctl = robot.backend
         await run_cycles(robot, 5)
         emu.set_faults(3, reply_latency=0.0075)
         cause = await wait_fault(robot)
@@ -336,7 +336,7 @@ async def test_silent_motor_mid_run_faults_naming_it_and_disables_all() -> None:
 
 async def test_wrong_id_replies_are_unexpected_and_the_real_motor_faults() -> None:
     async with can_robot() as (robot, emu, _):
-        ctl = robot.controller
+        ctl = robot.backend
         await run_cycles(robot, 10)
         assert ctl.unexpected_replies == 0
         emu.set_faults(3, wrong_id=9)
@@ -353,7 +353,7 @@ async def test_motor_error_code_faults_with_its_name() -> None:
         emu.set_faults(2, error_code=1)  # CubeMars: over-temperature
         cause = await wait_fault(robot)
         assert "motor id 2 (joint 'hip_pitch') reports error: over-temp" in str(cause)
-        assert robot.controller.stats[1].last_error == "over-temperature"
+        assert robot.backend.stats[1].last_error == "over-temperature"
         await wait_until(lambda: all_disabled(emu), "every motor disabled")
         with pytest.raises(SafetyFault, match="over-temp"):
             await robot.command(JointCommand("position", {"knee": 0.5}))
@@ -379,7 +379,7 @@ async def test_fault_recovers_once_the_motor_error_clears() -> None:
 
 async def test_estop_disables_and_enable_reenables_while_the_loop_runs() -> None:
     async with can_robot() as (robot, emu, _):
-        ctl = robot.controller
+        ctl = robot.backend
         await run_cycles(robot, 10)
         await robot.estop(0)
         await wait_until(lambda: all_disabled(emu), "every motor disabled")
@@ -398,7 +398,7 @@ async def test_estop_disables_and_enable_reenables_while_the_loop_runs() -> None
 # ------------------------------------------------------------------------ stall
 async def test_loop_stall_disables_the_motors_from_the_watchdog_thread() -> None:
     async with can_robot() as (robot, emu, _):
-        ctl = robot.controller
+        ctl = robot.backend
         await run_cycles(robot, 10)
         bus = ctl._estop_bus
         assert bus is not None
@@ -448,14 +448,14 @@ async def test_set_zero_with_torque_on_is_refused_and_nothing_moves() -> None:
         await wait_until(lambda: abs(emu.snapshot(3).position - 0.6) < 0.02, "knee at 0.6")
         specials = emu.counters(3).specials
         with pytest.raises(agentsdk.CommandRejected, match=r"set_zero\('knee'\) refused: motor id 3 has torque on"):
-            await robot.controller.set_zero("knee")
+            await robot.backend.set_zero("knee")
         await run_cycles(robot, 100)
         knee = emu.snapshot(3)
         assert knee.zero_offset == 0.0 and abs(knee.position - 0.6) < 0.02
         assert emu.counters(3).specials == specials  # no zero frame went out
         assert robot.safety.state is SafetyState.OK
         with pytest.raises(agentsdk.UnknownJointError):
-            await robot.controller.set_zero("ankle")
+            await robot.backend.set_zero("ankle")
 
 
 def settled(emu: MotorEmulator, motor: int, position: float) -> bool:
@@ -472,7 +472,7 @@ async def test_set_zero_with_torque_off_then_enable_holds_the_new_zero() -> None
         await wait_until(lambda: all_disabled(emu), "every motor disabled")
         raw = emu.snapshot(3).position + emu.snapshot(3).zero_offset
         emu.motor(3, zero_pause=0.3)  # like CubeMars firmware: frames ignored for a while after a zero
-        await robot.controller.set_zero("knee")
+        await robot.backend.set_zero("knee")
         assert emu.snapshot(3).zero_offset == pytest.approx(raw, abs=0.01)
         await robot.enable()  # holds where the knee is: 0 in the new frame
         await run_cycles(robot, 100)
@@ -512,11 +512,11 @@ async def test_no_blocking_bus_calls_on_the_event_loop(monkeypatch: pytest.Monke
     monkeypatch.setattr(can.Notifier, "stop", stop)
     robot_buses: list[VirtualBus] = []
     async with can_robot() as (robot, _emu, _):
-        robot_buses.extend([robot.controller._bus, robot.controller._estop_bus])
+        robot_buses.extend([robot.backend._bus, robot.backend._estop_bus])
         await run_cycles(robot, 10)
         await robot.estop(0)
         await robot.reset()
-        await robot.controller.set_zero("knee")
+        await robot.backend.set_zero("knee")
         await robot.enable()
         await run_cycles(robot, 10)
     assert blocking == []
@@ -527,7 +527,7 @@ async def test_reading_age_takes_the_ticks_own_clock_read() -> None:
     """The plausibility gate gets each motor's reply age at the tick's own clock read: the loop hands the
     backend that time (``reading_age(now)``), so the age costs no clock read (a system call without a vDSO)."""
     async with can_robot() as (robot, _, _):
-        ctl = robot.controller
+        ctl = robot.backend
         original = ctl.reading_age
         seen: list[float | None] = []
 

@@ -107,7 +107,7 @@ class SetpointLog:
 
 async def hold_still(robot: Robot) -> None:
     """Hold the start pose (a position command) and let the motors settle."""
-    q0 = dict(zip(robot.joint_names, robot.controller.initial_positions.tolist(), strict=True))
+    q0 = dict(zip(robot.joint_names, robot.backend.initial_positions.tolist(), strict=True))
     await robot.command(JointCommand("position", q0))
     await robot.clock.sleep(0.3)
     assert robot.safety.state is SafetyState.OK
@@ -247,7 +247,7 @@ async def test_a_foreign_commander_is_a_bus_conflict_naming_the_motor(frame: str
             cause = robot.safety.cause
             assert isinstance(cause, BusConflict), cause
             assert "motor id 3 (joint 'knee'" in str(cause) and "another controller" in str(cause)
-            assert robot.controller.stats[2].foreign_commands == 1
+            assert robot.backend.stats[2].foreign_commands == 1
             assert not robot.torque_enabled
 
 
@@ -278,7 +278,7 @@ async def test_our_own_emergency_disables_are_not_a_foreign_commander() -> None:
                 await robot.enable()
                 await robot.clock.sleep(0.1)
                 assert robot.safety.state is SafetyState.OK, robot.safety.cause
-            assert all(s.foreign_commands == 0 for s in robot.controller.stats)
+            assert all(s.foreign_commands == 0 for s in robot.backend.stats)
 
 
 async def test_receive_own_messages_does_not_read_our_own_commands_as_foreign() -> None:

@@ -296,7 +296,7 @@ async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant_over_vcan0(
             await _wait_async(lambda p=proc: p.has(EMULATOR_READY) or p.popen.poll() is not None)
             assert proc.popen.poll() is None, proc.output()
             async with agentsdk.connect("can", robot=robot_yaml, open_timeout=2.0, max_missed_replies=50) as robot:
-                q0 = np.array([robot.controller.initial_positions[k] for k in range(len(robot.joints))])
+                q0 = np.array([robot.backend.initial_positions[k] for k in range(len(robot.joints))])
                 await robot.command(JointCommand("position", dict(zip(robot.joint_names, q0.tolist(), strict=True))))
                 await robot.clock.sleep(0.3)  # the motors were limp until enabled
                 trace = []
@@ -307,7 +307,7 @@ async def test_gravity_feedforward_holds_mit_leg_on_the_mujoco_plant_over_vcan0(
                 # physics), which kicks the leg whatever the feed-forward; the peak is in the message
                 drift[on] = float(np.median(np.abs(np.array(trace)).max(axis=1)))
                 traces[on] = trace
-                assert bool(np.abs(robot.controller.gravity_torque).max() > 0.1) is on
+                assert bool(np.abs(robot.backend.gravity_torque).max() > 0.1) is on
         except agentsdk.AgentSDKError as exc:
             pytest.fail(f"{exc}\nemulator output:\n{proc.output()[-3000:]}")
         finally:
@@ -587,14 +587,14 @@ async def test_set_zero_on_vcan0_refused_with_torque_on_then_zeroes_without_movi
             await robot.command(agentsdk.JointCommand("position", {"knee": 0.6}))
             await _settle(robot, "knee", 0.6)
             with pytest.raises(agentsdk.CommandRejected, match=r"set_zero\('knee'\) refused"):
-                await robot.controller.set_zero("knee")
+                await robot.backend.set_zero("knee")
             await robot.clock.sleep(0.5)
             assert await _settle(robot, "knee") == pytest.approx(0.6, abs=0.01)  # nothing moved
 
             await robot.estop(0)
             await robot.reset()
             await _settle(robot, "knee")
-            await robot.controller.set_zero("knee")
+            await robot.backend.set_zero("knee")
             assert (await robot.read()).positions()["knee"] == pytest.approx(0.0, abs=0.02)
             await robot.enable()  # holds the knee where it is: 0 in the new frame
             await robot.clock.sleep(0.5)

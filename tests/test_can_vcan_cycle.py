@@ -39,7 +39,7 @@ async def test_socketcan_cycle_uses_batched_receive_and_one_send_call(tmp_path: 
         await _wait_async(lambda: proc.has(EMULATOR_READY) or proc.popen.poll() is not None)
         assert proc.popen.poll() is None, proc.output()
         async with agentsdk.connect("can", robot=leg, max_missed_replies=50) as robot:
-            ctl = robot.controller
+            ctl = robot.backend
             reader, writer = ctl._reader, ctl._writer  # type: ignore[attr-defined]
             assert reader is not None and writer is not None, "socketcan must use the batched path"
             assert ctl._notifier is None  # type: ignore[attr-defined]

@@ -158,7 +158,7 @@ def worst_wire_step(frames: list[can.Message], robot_yaml: str, vmax_motor: dict
 
 
 async def hold(robot: Robot) -> None:
-    q0 = dict(zip(robot.joint_names, robot.controller.initial_positions.tolist(), strict=True))
+    q0 = dict(zip(robot.joint_names, robot.backend.initial_positions.tolist(), strict=True))
     await robot.command(JointCommand("position", q0))
     await robot.clock.sleep(0.5)
     assert robot.safety.state is SafetyState.OK, robot.safety.cause

@@ -55,8 +55,8 @@ async def test_package_mesh_robot_loads_and_simulates(monkeypatch: pytest.Monkey
     monkeypatch.setenv("AGENTSDK_PACKAGE_PATH", str(FIXTURES))
     urdf = FIXTURES / "mesh_pkg" / "urdf" / "mesh_arm.urdf"
     async with agentsdk.connect("mujoco", robot=urdf) as robot:
-        assert any(p.suffix == ".stl" for p in robot.controller.description.mesh_files)
-        assert robot.controller.model.nmesh >= 1  # the mesh really is in the simulation
+        assert any(p.suffix == ".stl" for p in robot.backend.description.mesh_files)
+        assert robot.backend.model.nmesh >= 1  # the mesh really is in the simulation
         first = robot.joints[0].name
         await robot.command(JointCommand("position", {first: 0.3}))
         await robot.clock.sleep(1.0)

@@ -120,7 +120,7 @@ def test_a_general_actuator_written_as_a_position_servo_counts_and_two_on_one_jo
 @pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
 async def test_declared_gains_are_the_default_and_the_model_fills_in(arm: Path, backend: str) -> None:
     async with agentsdk.connect(backend, robot=arm) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         assert ctl.gain_sources == ("description", "description", "model", "description")
         declared = ctl.description.declared_gains
         gains = robot.gains
@@ -145,9 +145,9 @@ async def test_robot_yaml_gains_win(arm: Path, tmp_path: Path) -> None:
     yaml = tmp_path / "robot.yaml"
     yaml.write_text(f"description: {arm}\ngains:\n  j1: {{p: 77.0, d: 3.0}}\n")
     async with agentsdk.connect("mujoco", robot=yaml) as robot:
-        assert robot.controller.gain_sources[0] == "robot.yaml"
+        assert robot.backend.gain_sources[0] == "robot.yaml"
         assert (robot.gains["j1"].p, robot.gains["j1"].d) == (77.0, 3.0)
-        assert robot.controller.gain_sources[1] == "description"
+        assert robot.backend.gain_sources[1] == "description"
 
 
 async def test_declared_gains_too_stiff_for_the_timestep_are_lowered(tmp_path: Path) -> None:
@@ -160,7 +160,7 @@ async def test_declared_gains_too_stiff_for_the_timestep_are_lowered(tmp_path: P
         '<actuator><position joint="j" kp="1e5" kv="1"/></actuator></mujoco>'
     )
     async with agentsdk.connect("mujoco", robot=path) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         report = ctl.model_gain_report
         h = ctl.servo_timestep
         bound = STABILITY_FRACTION * (4.0 * report.inertia_free[0] + 2.0 * h * 1.0) / h**2

@@ -127,7 +127,7 @@ def test_unknown_group_state_names_the_known_ones(tmp_path: Path) -> None:
 async def test_simulators_start_exactly_at_the_start_pose_without_a_jump(backend: str) -> None:
     async with agentsdk.connect(backend, robot=str(PANDA)) as robot:
         q0 = (await robot.read()).position
-        expected = np.array([robot.controller.initial_positions[k] for k in range(len(q0))])
+        expected = np.array([robot.backend.initial_positions[k] for k in range(len(q0))])
         assert q0 == pytest.approx(expected, abs=1e-9)
         # the SRDF's `default` group state (found beside the URDF), not 0 clipped to -0.0698
         assert q0[robot.joint_names.index("panda_joint4")] == pytest.approx(-2.35619, abs=1e-4)
@@ -181,7 +181,7 @@ def test_gravity_compensation_names_unknown_joints(tmp_path: Path) -> None:
 async def test_robot_shows_model_gains_and_keeps_robot_yaml_gains() -> None:
     async with agentsdk.connect("mujoco", robot=str(UR5)) as robot:
         gains = robot.gains
-        report = robot.controller.model_gain_report
+        report = robot.backend.model_gain_report
         assert [g.p for g in gains.values()] == pytest.approx(report.kp)
         assert [g.d for g in gains.values()] == pytest.approx(report.kd)
         assert all(g.p > 0 and g.d > 0 for g in gains.values())

@@ -35,7 +35,7 @@ def third_party(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[str
 async def test_an_entry_point_backend_is_listed_and_connects(third_party: str) -> None:
     assert third_party in available_backends()
     async with agentsdk.connect(third_party, robot="arm3") as robot:
-        assert robot.backend == "tiny"  # the class's own name; the entry point's name selects it
+        assert robot.backend.name == "tiny"  # the class's own name; the entry point's name selects it
         await robot.move_to({"joint1": 0.2}, duration=0.5)
         assert abs((await robot.read()).positions()["joint1"] - 0.2) < 0.01
 

@@ -42,7 +42,7 @@ def compiles(monkeypatch: pytest.MonkeyPatch) -> list[str]:
 @pytest.mark.parametrize("backend", lockstep_backends())
 async def test_a_connect_compiles_the_host_model_once(backend: str, compiles: list[str]) -> None:
     async with agentsdk.connect(backend, "arm3") as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         kin = robot.kinematics
         dyn = ctl.dynamics
         gains = ctl.model_gain_report  # the model-based gains come from the same model
@@ -62,7 +62,7 @@ async def test_the_host_model_floats_and_carries_the_simulators_gravity(compiles
     compensation computes on the robot's one model, not on a second one of its own."""
     pytest.importorskip("pybullet")
     async with agentsdk.connect("pybullet", "arm3", gravity=(0.0, 0.0, -3.0)) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         host = ctl.spec.host.get()
         np.testing.assert_array_equal(host.model.opt.gravity, (0.0, 0.0, -3.0))
         assert ctl._model.model is host.model is robot.kinematics.model

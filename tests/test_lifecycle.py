@@ -88,7 +88,7 @@ async def test_infinite_sleep_waits_without_driving_lockstep_time() -> None:
 
 async def test_sleep_during_a_fault_raises_and_works_after_recovery() -> None:
     async with agentsdk.connect("mock", robot="arm3") as robot:
-        robot.controller.step_error = True  # the mock's fault knob
+        robot.backend.step_error = True  # the mock's fault knob
         with pytest.raises(agentsdk.BackendFault):
             await robot.clock.sleep(0.1)
         assert robot.safety.state is SafetyState.FAULT

@@ -112,7 +112,7 @@ async def test_menagerie_arm_holds_and_moves_on_pybullet(model: str, caplog: pyt
 async def test_menagerie_legged_robot_stands_on_pybullet(model: str) -> None:
     """The root free joint floats on PyBullet: the robot stands ``STAND`` s, base height within 20 %."""
     async with agentsdk.connect("pybullet", robot=_model(model)) as robot:
-        assert robot.controller.floating_base
+        assert robot.backend.floating_base
         z0 = float(robot.base_state().pose.position[2])
         assert z0 > 0.05
         heights = []

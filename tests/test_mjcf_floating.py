@@ -98,7 +98,7 @@ def test_describe_and_check_say_a_floating_mjcf_base_floats() -> None:
 
 async def test_a_floating_mjcf_robot_without_a_floor_stands_on_an_added_ground() -> None:
     async with agentsdk.connect("mujoco", robot=QUADRUPED) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         assert ctl.model.geom("agentsdk/ground").id >= 0
         base = robot.base_state()
         # placed on the ground: the lowest collision shape touches z = 0 at the start pose
@@ -132,7 +132,7 @@ async def test_a_robot_whose_geoms_do_not_collide_by_default_still_stands_on_the
     path = tmp_path / "quadruped.xml"
     path.write_text(xml)
     async with agentsdk.connect("mujoco", robot=path) as robot:
-        m = robot.controller.model
+        m = robot.backend.model
         ground = m.geom("agentsdk/ground").id
         paired = {int(g) for p in range(m.npair) for g in (m.pair_geom1[p], m.pair_geom2[p]) if g != ground}
         if bits == "0":  # the collision shapes (group 3) are paired with the ground, not the visual sphere
@@ -149,7 +149,7 @@ async def test_a_robot_whose_geoms_do_not_collide_by_default_still_stands_on_the
 
 async def test_base_state_follows_the_free_joint() -> None:
     async with agentsdk.connect("mujoco", robot=QUADRUPED) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         adr = ctl.model.joint("root").qposadr[0]
         ctl.data.qpos[adr : adr + 3] += [0.3, -0.2, 0.0]
         mujoco.mj_forward(ctl.model, ctl.data)
@@ -159,7 +159,7 @@ async def test_base_state_follows_the_free_joint() -> None:
 
 async def test_default_gains_include_the_load_the_legs_carry() -> None:
     async with agentsdk.connect("mujoco", robot=QUADRUPED) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         assert ctl.floating_base
         carried = ctl.model_gain_report.kp
         desc = ctl.description
@@ -169,7 +169,7 @@ async def test_default_gains_include_the_load_the_legs_carry() -> None:
 
 async def test_a_model_with_its_own_floor_keeps_it(tmp_path: Path) -> None:
     async with agentsdk.connect("mujoco", robot=_scene(tmp_path)) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         assert mujoco.mj_name2id(ctl.model, mujoco.mjtObj.mjOBJ_GEOM, "agentsdk/ground") == -1
         h0 = float(robot.base_state().pose.position[2])
         assert h0 == pytest.approx(0.27)  # the keyframe's height, as written
@@ -187,7 +187,7 @@ async def test_a_named_keyframe_places_the_base_too(tmp_path: Path) -> None:
 async def test_floating_base_on_an_mjcf_without_a_free_joint(tmp_path: Path) -> None:
     """robot.yaml floating_base: true frees the one body attached to the world; keyframes keep working."""
     async with agentsdk.connect("mujoco", robot=_yaml(tmp_path, WELDED, "floating_base: true\n")) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         assert ctl.model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE
         np.testing.assert_allclose((await robot.read()).position, [0.3, 0.4, 0.8], atol=1e-9)
         assert float(robot.base_state().pose.position[2]) == pytest.approx(0.0, abs=1e-9)  # the base on the ground
@@ -212,7 +212,7 @@ async def test_a_world_welded_contact_at_the_start_pose_does_not_drag_the_joint(
 ) -> None:
     robot_yaml = _yaml(tmp_path, WELDED, f"self_collision: {self_collision}\n")
     async with agentsdk.connect("mujoco", robot=robot_yaml) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         start = (await robot.read()).position.copy()
         await robot.clock.sleep(2.0)
         assert np.abs((await robot.read()).position - start).max() < 0.005

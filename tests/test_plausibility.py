@@ -169,7 +169,7 @@ async def test_full_speed_moves_and_a_fall_with_torque_off_are_not_sensor_faults
 async def test_sensor_check_off_takes_readings_as_they_are() -> None:
     async with agentsdk.connect("mock", robot="arm3", safety={"sensor_check": False, "stall_timeout": None}) as robot:
         assert robot.safety.sensor_gate is None
-        backend = robot.controller
+        backend = robot.backend
         real = backend._read
 
         def nan_read():  # type: ignore[no-untyped-def]
@@ -189,7 +189,7 @@ async def test_sensor_check_off_takes_readings_as_they_are() -> None:
 async def test_sensor_fault_stop_category_0_removes_torque() -> None:
     async with agentsdk.connect("mock", robot="arm3", safety={"sensor_fault_stop": 0, "stall_timeout": None}) as robot:
         await robot.clock.sleep(0.05)
-        backend = robot.controller
+        backend = robot.backend
         real = backend._read
         once = [True]
 

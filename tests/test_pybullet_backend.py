@@ -57,7 +57,7 @@ async def test_effort_mode_accelerates_as_physics_predicts(effort: str) -> None:
         assert abs(st0.velocity[j2]) < 1e-6
 
         # reference dynamics from MuJoCo at the same pose (joint-space inertia and gravity torque)
-        mass, bias, names = _mujoco_dynamics(robot.controller.description.urdf_xml, st0.positions())
+        mass, bias, names = _mujoco_dynamics(robot.backend.description.urdf_xml, st0.positions())
         k = names.index("joint2")
         inertia, tau_gravity = mass[k, k], -bias[k]  # generalized gravity force at rest
         assert tau_gravity > 0.5  # tipped towards +x: gravity pulls joint2 further positive
@@ -203,7 +203,7 @@ async def test_options_are_validated(monkeypatch: pytest.MonkeyPatch) -> None:
 
 async def test_timestep_from_robot_yaml_section() -> None:
     async with agentsdk.connect("pybullet", robot="arm3", timestep=0.0005) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         assert ctl._nsub == 4  # type: ignore[attr-defined]
         assert p.getPhysicsEngineParameters(physicsClientId=ctl._cid)["fixedTimeStep"] == 0.0005  # type: ignore[attr-defined]
 
@@ -254,7 +254,7 @@ async def test_estop_category0_removes_torque_and_enable_restores_it() -> None:
 async def test_divergence_faults_and_recover_resets_the_world() -> None:
     async with agentsdk.connect("pybullet", robot="arm3") as robot:
         await _hold(robot, {"joint2": 0.5}, settle=0.2)
-        ctl = robot.controller
+        ctl = robot.backend
         # corrupt the physics state the way an exploding simulation would
         p.resetJointState(ctl._body, ctl._dofs[1], 0.5, 1e6, physicsClientId=ctl._cid)  # type: ignore[attr-defined]
         with pytest.raises(SimulationDiverged, match="diverged"):

@@ -28,7 +28,7 @@ async def test_light_links_on_heavy_rotors_stand_in_contact(tmp_path: Path, arma
     path = tmp_path / "quadruped.xml"
     path.write_text(xml.replace('range="-2.4 -0.2"/>', f'range="-2.4 -0.2" armature="{armature}"/>'))
     async with agentsdk.connect("pybullet", robot=path) as robot:
-        assert robot.controller.floating_base
+        assert robot.backend.floating_base
         z0 = float(robot.base_state().pose.position[2])
         q0 = (await robot.read()).position.copy()
         for _ in range(8):

@@ -67,7 +67,7 @@ async def test_a_free_joint_root_floats_on_pybullet_and_stands() -> None:
     """A root ``<freejoint>`` is the floating base: PyBullet floats the body on a ground plane (none in the
     file), starts it standing at the keyframe pose, and ``base_state()`` reports it."""
     async with agentsdk.connect("pybullet", robot=MJCF / "free_quad.xml") as robot:
-        assert robot.controller.floating_base
+        assert robot.backend.floating_base
         start = robot.base_state()
         z0 = float(start.pose.position[2])
         assert 0.2 < z0 < 0.3  # feet on the ground with the knees bent (keyframe "home")
@@ -86,7 +86,7 @@ async def test_a_free_joint_root_floats_on_pybullet_and_stands() -> None:
 async def test_a_free_joint_root_can_be_welded_to_the_world() -> None:
     """``floating_base=False`` welds the free body where the file puts it: a fixed-base robot."""
     async with agentsdk.connect("pybullet", robot=MJCF / "free_quad.xml", floating_base=False) as robot:
-        assert not robot.controller.floating_base
+        assert not robot.backend.floating_base
         assert robot.base_state().pose.position.tolist() == [0.0, 0.0, 0.0]
         drift, error = await _hold_and_move(robot, hold=0.5, delta=0.1)
         assert drift < 0.005 and error < 0.02
@@ -114,7 +114,7 @@ async def test_a_camera_fixed_to_a_tilting_head_does_not_stop_the_tilt(backend: 
     pan link the tilt turns against (MoveIt and MuJoCo's parent filter see it so); tilting 0.25 rad used to
     stop at 0.14 where the camera's box met the pan plate's (GOAL_TOLERANCE_VIOLATED)."""
     async with agentsdk.connect(backend, robot=FIXTURES / "head_camera" / "head.urdf") as robot:
-        collision = robot.controller.collision
+        collision = robot.backend.collision
         assert collision is not None
         assert collision.excluded[("camera", "pan")] == "adjacent"
         assert ("camera", "neck") in collision.pairs  # not adjacent: it still collides
@@ -214,7 +214,7 @@ async def test_links_touching_at_the_start_pose_do_not_collide_on_either_simulat
     path.write_text(FOLDED_WRIST)
     async with agentsdk.connect(backend, robot=path) as robot:
         if backend == "pybullet":
-            assert robot.controller.collision.excluded.get(("link1", "link3")) == "touching at the start pose"
+            assert robot.backend.collision.excluded.get(("link1", "link3")) == "touching at the start pose"
         q0 = np.array((await robot.read()).position)
         await robot.clock.sleep(1.0)
         drift = float(np.abs(np.array((await robot.read()).position) - q0).max())

@@ -111,7 +111,7 @@ async def test_description_and_time_model_come_from_the_robot() -> None:
         async with agentsdk.connect("ros2", namespace="/arm1", domain_id=did, safety=SAFETY) as robot:
             assert robot.joint_names == served.joint_names
             assert [j.upper for j in robot.joints] == [j.upper for j in served.joints]
-            assert not robot.realtime and robot.controller.interface == "agentsdk"  # type: ignore[attr-defined]
+            assert not robot.realtime and robot.backend.interface == "agentsdk"  # type: ignore[attr-defined]
             t0 = served.clock.now()
             result = await robot.move_to({"joint1": 0.4}, duration=0.5)
             assert result.ok, result
@@ -134,7 +134,7 @@ async def test_realtime_robot_and_stale_joint_states_fault_before_any_command() 
                 assert result.ok, result
                 await asyncio.sleep(0.2)
                 assert abs(served.latest_state().position[1] - 0.3) < 0.01
-                backend = robot.controller
+                backend = robot.backend
                 await face.aclose()  # the robot's joint_states stop
                 async with asyncio.timeout(5):
                     while robot.safety.state.name != "FAULT":  # noqa: ASYNC110 -- polls state another thread sets
@@ -227,7 +227,7 @@ async def test_ros2_backend_drives_the_fast_dds_jtc_and_faults_when_its_joint_st
         # no robot=, no realtime=: a plain ros2_control robot has no clock -> realtime, no agentsdk stream -> JTC
         async with agentsdk.connect("ros2", robot="arm3", namespace="/ur", domain_id=domain.id, safety=SAFETY,
                                     stale_after=stale_after, timeout=30.0) as robot:
-            backend: Any = robot.controller
+            backend: Any = robot.backend
             assert robot.realtime and backend.interface == "joint_trajectory"
             assert not backend.goals_available  # no action server in rmw_cyclonedds' format: streamed
             start = (await robot.read()).position
@@ -297,7 +297,7 @@ async def test_estop_holds_the_controller_cancels_its_goals_and_a_stale_fault_re
     try:
         async with agentsdk.connect("ros2", robot="arm3", namespace="/fake", domain_id=did, realtime=True,
                                     stale_after=0.5, safety=SAFETY) as robot:
-            backend: Any = robot.controller
+            backend: Any = robot.backend
             assert backend.interface == "joint_trajectory"
             assert (await robot.read()).position.tolist() == [0.1, 0.2, 0.3]
             await until(lambda: len(trajs) > 5)

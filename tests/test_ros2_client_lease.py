@@ -32,7 +32,7 @@ CLIENT = textwrap.dedent("""
     async def main() -> None:
         async with agentsdk.connect("ros2", robot="arm3", namespace="/lease", realtime=True, lease=0.5,
                                     stale_after=2.0, safety={"stall_timeout": 5.0}) as robot:
-            assert robot.controller.interface == "agentsdk"
+            assert robot.backend.interface == "agentsdk"
             move = asyncio.ensure_future(robot.move_to({"joint1": 1.5}, 8.0))
             await asyncio.sleep(1.0)
             print("moving", flush=True)

@@ -110,7 +110,7 @@ async def _served(**served_options: Any) -> AsyncIterator[tuple[agentsdk.Robot, 
 @pytest.mark.asyncio
 async def test_follow_is_one_goal_with_feedback_and_result_on_a_served_robot() -> None:
     async with _served() as (served, face, robot):
-        backend: Any = robot.controller
+        backend: Any = robot.backend
         assert backend.interface == "agentsdk" and backend.goals_available
         sent = backend.sent
         motion = robot.follow(Trajectory(["joint1", "joint2"], [TrajectoryPoint(0.6, [0.3, -0.2]),
@@ -169,7 +169,7 @@ async def test_cancel_and_estop_cancel_the_goal_and_a_remote_rejection_is_invali
         await robot.enable()
 
         # a trajectory beyond this client's own limits is refused here, whole, before anything is sent
-        backend: Any = robot.controller
+        backend: Any = robot.backend
         sent = backend.goals_sent
         q0 = float(served.latest_state().position[0])
         ok = Trajectory(["joint1"], [TrajectoryPoint(1.0, [q0 + 0.1]), TrajectoryPoint(1.05, [q0 + 0.6])])
@@ -210,7 +210,7 @@ async def test_follow_goals_false_streams() -> None:
             agentsdk.connect("ros2", robot="arm3", namespace="/arm1", domain_id=did, safety=SAFETY,
                              follow_goals=False) as robot:
         assert (await robot.move_to({"joint1": 0.3}, duration=1.0)).ok
-        backend: Any = robot.controller
+        backend: Any = robot.backend
         assert backend.goals_sent == 0 and not face._goals
 
 
@@ -364,7 +364,7 @@ async def _controller(outcome: tuple[int, int] | None = (GOAL_SUCCEEDED, 0), *, 
 @pytest.mark.asyncio
 async def test_a_controller_elsewhere_runs_the_goal_with_its_joint_order_and_extra_joints() -> None:
     async with _controller() as (fake, robot):
-        backend: Any = robot.controller
+        backend: Any = robot.backend
         assert backend.interface == "joint_trajectory" and backend.goals_available
         # joint_states in another order with an extra joint: read by name
         assert (await robot.read()).position.tolist() == pytest.approx([0.1, 0.2, -0.1])
@@ -435,7 +435,7 @@ async def test_a_forward_command_controller_in_its_own_joint_order_is_streamed()
     order = ("joint3", "joint1", "joint2")
     async with _controller(action=False, forward_joints=order, name="forward_position_controller",
                            interface="forward_command", command_joints=order) as (fake, robot):
-        backend: Any = robot.controller
+        backend: Any = robot.backend
         assert backend.interface == "forward_command" and not backend.goals_available
         result = await robot.move_to({"joint1": 0.4, "joint3": 0.2}, duration=1.0)
         assert result.ok, result
@@ -454,7 +454,7 @@ async def test_ros_domain_id_from_the_environment(monkeypatch: pytest.MonkeyPatc
     fake = FakeController(did, "/env", "joint_trajectory_controller", asyncio.get_running_loop())
     try:
         async with agentsdk.connect("ros2", robot="arm3", namespace="/env", realtime=True, safety=SAFETY) as robot:
-            backend: Any = robot.controller
+            backend: Any = robot.backend
             assert backend.domain_id == did != 0
             assert (await robot.move_to({"joint2": 0.0}, duration=1.0)).ok
             assert len(fake.goals) == 1
@@ -469,7 +469,7 @@ async def test_a_simulator_with_a_clock_runs_the_goal_in_lockstep() -> None:
     fake = FakeController(did, "/sim", "joint_trajectory_controller", asyncio.get_running_loop(), clock=True)
     try:
         async with agentsdk.connect("ros2", robot="arm3", namespace="/sim", domain_id=did, safety=SAFETY) as robot:
-            backend: Any = robot.controller
+            backend: Any = robot.backend
             assert not robot.realtime and backend.goals_available
             result = await robot.move_to({"joint1": -0.3}, duration=0.8)
             assert result.ok, result
@@ -505,7 +505,7 @@ async def test_pick_place_runs_as_goals_against_agentsdk_serve_in_another_proces
         # arm moves at up to 2.5 rad/s): the sensor plausibility check gets a 0.2 rad floor here
         async with agentsdk.connect("ros2", robot="arm3", namespace="/cell", domain_id=did, realtime=True,
                                     safety={**SAFETY, "sensor_jump_floor": 0.2}) as robot:
-            backend: Any = robot.controller
+            backend: Any = robot.backend
             await module.main(robot)  # raises if a step does not end SUCCESSFUL
             await robot.clock.sleep(0.3)
             remote = np.array((await robot.read()).position)
@@ -545,7 +545,7 @@ async def test_joint_states_split_over_messages_best_effort_without_velocities()
         # the plant above is an asyncio task on this loaded event loop: its 100 Hz samples can come tens of ms apart
         async with agentsdk.connect("ros2", robot="arm3", namespace="plant/arm", domain_id=did, realtime=True,
                                     safety={**SAFETY, "sensor_jump_floor": 0.2}) as robot:
-            backend: Any = robot.controller
+            backend: Any = robot.backend
             assert backend.namespace == "/plant/arm" and not backend.goals_available
             assert (await robot.read()).position.tolist() == pytest.approx([0.1, -0.2, 0.3])
             assert (await robot.move_to({"joint2": 0.25}, duration=1.0)).ok

@@ -358,7 +358,7 @@ async def test_position_commands_and_trajectories_are_not_watched() -> None:
 # ----------------------------------------------------- 4. loop stall watchdog
 async def test_blocked_loop_is_stopped_by_the_watchdog_thread(backend: str, monkeypatch: pytest.MonkeyPatch) -> None:
     async with arm(backend, stall_in_lockstep=True) as robot:
-        ctl, safety = robot.controller, robot.safety
+        ctl, safety = robot.backend, robot.safety
         timeout = safety.config.stall_timeout
         assert timeout is not None
         calls: list[tuple[str, float]] = []
@@ -658,7 +658,7 @@ async def test_stop_during_direct_position_ramp_decelerates_and_stays(backend: s
 @pytest.mark.parametrize("knob", ["step_error", "read_error"])
 async def test_mock_backend_fault_then_reset_and_enable(knob: str) -> None:
     async with arm("mock") as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         motion = robot.follow(Trajectory(["joint1"], [TrajectoryPoint(2.0, [1.0])]))
         sleeper = spawn(robot.clock.sleep(5.0))
         await robot.clock.sleep(0.2)
@@ -696,7 +696,7 @@ async def test_mock_backend_fault_then_reset_and_enable(knob: str) -> None:
 
 async def test_injected_backend_fault_on_every_backend(backend: str, monkeypatch: pytest.MonkeyPatch) -> None:
     async with arm(backend) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         original = ctl._step
         armed = False
 
@@ -734,7 +734,7 @@ async def test_fault_during_a_category_1_stop_ends_the_stop(monkeypatch: pytest.
         await robot.clock.sleep(0.5)
         stop = spawn(robot.estop(1))
         await robot.clock.sleep(0.05)
-        robot.controller.step_error = True
+        robot.backend.step_error = True
         await stop  # must not hang waiting for a ramp the dead loop never finishes
         assert robot.safety.state is SafetyState.FAULT
         assert robot.safety.events[-1].detail == "category 1: interrupted by a fault; torque removed"
@@ -793,7 +793,7 @@ def _from_thread(fn: Any, *args: Any) -> None:
 
 async def test_estop_threadsafe_category_0_latches_and_stops(backend: str, monkeypatch: pytest.MonkeyPatch) -> None:
     async with arm(backend) as robot:
-        ctl = robot.controller
+        ctl = robot.backend
         callers: list[str] = []
         original = ctl._emergency_stop
 

@@ -39,7 +39,7 @@ SAFETY = {"stall_timeout": 5.0}
 
 
 def _random_poses(robot: Robot, count: int, seed: int) -> list[np.ndarray]:
-    b = robot.controller
+    b = robot.backend
     rng = np.random.default_rng(seed)
     lo = np.where(np.isfinite(b.lower), b.lower, -np.pi)
     hi = np.where(np.isfinite(b.upper), b.upper, np.pi)
@@ -48,7 +48,7 @@ def _random_poses(robot: Robot, count: int, seed: int) -> list[np.ndarray]:
 
 def _place(robot: Robot, q: np.ndarray) -> mujoco.MjData:
     """A copy of the backend's data at joint positions ``q`` (mimic followers placed), forward computed."""
-    b = robot.controller
+    b = robot.backend
     m = b.model
     d = mujoco.MjData(m)
     d.qpos[:] = b.data.qpos
@@ -63,7 +63,7 @@ def _place(robot: Robot, q: np.ndarray) -> mujoco.MjData:
 async def test_mujoco_gravity_compensation_is_the_host_g_of_q(name: str) -> None:
     """``S.T @ qfrc_gravcomp`` equals the host term's ``g(q)`` at random poses, to rounding."""
     async with agentsdk.connect("mujoco", robot=SIMULATOR_ROUTED[name], safety=SAFETY) as robot:
-        b = robot.controller
+        b = robot.backend
         assert b.gravity_route == "simulator", b.gravity_route_reason
         m = b.model
         host, s_t = GravityTerm(m, b.names), coupling_matrix(m, b.names).T
@@ -93,7 +93,7 @@ def _setpoint(n: int, **values: np.ndarray) -> SetpointView:
 async def test_the_effort_is_the_servo_plus_g_of_q_clamped_to_the_limit(name: str) -> None:
     """The actuator torque read back is ``clamp(kp e + kd ė + ff + g(q), ±max_effort)``, g(q) included."""
     async with agentsdk.connect("mujoco", robot=SIMULATOR_ROUTED[name], safety=SAFETY) as robot:
-        b = robot.controller
+        b = robot.backend
         n = len(b.names)
         m, d = b.model, b.data
         host, g = GravityTerm(m, b.names), np.zeros(n)
@@ -114,7 +114,7 @@ async def test_the_effort_is_the_servo_plus_g_of_q_clamped_to_the_limit(name: st
 async def test_disabled_joints_and_the_emergency_stop_get_no_gravity_compensation() -> None:
     """Torque off is all of it off: a disabled joint's servo and gravity torque, every joint's after an e-stop."""
     async with agentsdk.connect("mujoco", robot=SIMULATOR_ROUTED["panda"], safety=SAFETY) as robot:
-        b = robot.controller
+        b = robot.backend
         n = len(b.names)
         m, d = b.model, b.data
         enabled = np.ones(n, dtype=bool)
@@ -159,7 +159,7 @@ async def test_where_gravity_compensation_is_computed(tmp_path: Path, robot: str
         yaml.write_text(f"description: {SIMULATOR_ROUTED['ur5']}\n{extra}", encoding="utf-8")
         robot = str(yaml)
     async with agentsdk.connect("mujoco", robot=robot, safety=SAFETY) as r:
-        b = r.controller
+        b = r.backend
         assert b.gravity_route == route
         assert reason in b.gravity_route_reason
         assert (route == "simulator") == bool(b.model.body_gravcomp.any())
@@ -176,7 +176,7 @@ async def test_a_floating_base_robot_is_not_held_up_by_its_compensation() -> Non
 async def test_the_feed_forward_depends_on_the_setpoint_not_the_measured_state() -> None:
     """The inverse-dynamics term is evaluated at the desired state: the same setpoint, the same control."""
     async with agentsdk.connect("mujoco", robot=SIMULATOR_ROUTED["panda"], safety=SAFETY) as robot:
-        b = robot.controller
+        b = robot.backend
         n = len(b.names)
         d = b.data
         rng = np.random.default_rng(11)
@@ -210,7 +210,7 @@ async def test_a_planned_motion_runs_as_one_rollout_bit_for_bit(name: str) -> No
     from mujoco import rollout
 
     async with agentsdk.connect("mujoco", robot=SIMULATOR_ROUTED[name], safety=SAFETY) as robot:
-        b = robot.controller
+        b = robot.backend
         m, d = b.model, b.data
         n, ticks, nsub = len(b.names), 150, b._nsub
         kp = np.array([g.p for g in robot.gains.values()])
@@ -273,7 +273,7 @@ async def test_an_mjcf_passive_joint_gets_none_and_a_ball_joint_keeps_the_host_t
     plain = tmp_path / "plain.xml"
     plain.write_text(_MJCF.format(tip="", tip_q=""), encoding="utf-8")
     async with agentsdk.connect("mujoco", robot=str(plain), safety=SAFETY) as robot:
-        b = robot.controller
+        b = robot.backend
         assert list(b.names) == ["j1", "j2"]
         assert b.gravity_route == "simulator", b.gravity_route_reason
         m = b.model
@@ -288,5 +288,5 @@ async def test_an_mjcf_passive_joint_gets_none_and_a_ball_joint_keeps_the_host_t
     ball = tmp_path / "ball.xml"
     ball.write_text(_MJCF.format(tip=_BALL_TIP, tip_q=" 1 0 0 0"), encoding="utf-8")
     async with agentsdk.connect("mujoco", robot=str(ball), safety=SAFETY) as robot:
-        assert robot.controller.gravity_route == "host"
-        assert "ball joint" in robot.controller.gravity_route_reason
+        assert robot.backend.gravity_route == "host"
+        assert "ball joint" in robot.backend.gravity_route_reason

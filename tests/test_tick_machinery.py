@@ -141,7 +141,7 @@ async def test_mujoco_tick_allocates_no_arrays(what: str) -> None:
         if what == "trajectory":
             motion = robot.follow(Trajectory(names, [TrajectoryPoint(2.0, [0.5] * len(names))]))
         await robot.clock.sleep(0.05)  # warm up (first-tick views, caches)
-        step = robot.controller.step(robot.control_period)
+        step = robot.backend.step(robot.control_period)
         coroutine = sys.getsizeof(step)
         step.close()
         tracemalloc.start()

@@ -90,7 +90,7 @@ async def test_linear_line_stays_within_2mm_with_the_defaults(
 ) -> None:
     link = ARMS[arm][1]
     async with agentsdk.connect(backend, robot=_robot_yaml(tmp_path, arm), safety=SAFETY) as robot:
-        assert robot.controller.inverse_dynamics
+        assert robot.backend.inverse_dynamics
         deviation, samples = await _line_deviation(robot, link, LINES[line])
     assert samples >= 100  # every control period of a motion of at least 0.2 s
     assert deviation < LINE_TOLERANCE, f"{arm} on {backend}: {deviation * 1e3:.2f} mm off the line"
@@ -103,11 +103,11 @@ async def test_the_feed_forward_is_what_keeps_the_hand_on_the_line(tmp_path: Pat
     link = ARMS[arm][1]
     off = _robot_yaml(tmp_path, arm, "inverse_dynamics: false\n")
     async with agentsdk.connect(backend, robot=off, safety=SAFETY) as robot:
-        assert not robot.controller.inverse_dynamics
+        assert not robot.backend.inverse_dynamics
         without, _ = await _line_deviation(robot, link, LINES["yz"])
     # the connect() option overrides robot.yaml
     async with agentsdk.connect(backend, robot=off, safety=SAFETY, inverse_dynamics=True) as robot:
-        assert robot.controller.inverse_dynamics
+        assert robot.backend.inverse_dynamics
         with_ff, _ = await _line_deviation(robot, link, LINES["yz"])
     assert with_ff < without / 5, (with_ff, without)
 
@@ -148,7 +148,7 @@ async def test_can_sends_the_motions_inverse_dynamics_from_the_host_model(tmp_pa
 
     leg = mit_leg_at(tmp_path, 500.0, gravity_compensation=False)
     async with can_robot(leg, safety=SAFETY) as (robot, _, _):  # realtime on a loaded machine: a lenient stall watchdog
-        ctl = robot.controller
+        ctl = robot.backend
         assert ctl.inverse_dynamics
         await robot.clock.sleep(0.1)
         assert not ctl.motion_torque.any()  # holding: nothing to feed forward
@@ -170,7 +170,7 @@ async def test_can_sends_the_motions_inverse_dynamics_from_the_host_model(tmp_pa
         await robot.clock.sleep(0.1)
         assert not ctl.motion_torque.any()
     async with can_robot(leg, inverse_dynamics=False, safety=SAFETY) as (robot, _, _):
-        assert not robot.controller.inverse_dynamics
+        assert not robot.backend.inverse_dynamics
 
 
 def _chain(damping: float = 0.0, friction: float = 0.0, armature: float = 0.0, mimic: bool = False) -> mujoco.MjModel:

@@ -51,7 +51,7 @@ class _MujocoView:
 
         from ..loop import Phase
 
-        backend = robot.controller  # the MuJoCo backend's public model and data
+        backend = robot.backend  # the MuJoCo backend's public model and data
         self._handle = mujoco.viewer.launch_passive(backend.model, backend.data)
         self._last = 0.0
         self._hook = robot.add_tick_hook(Phase.OBSERVE, self._on_tick)
@@ -107,7 +107,7 @@ class _RunExtras:
             rate: dict[str, Any] = {} if self.rate is None else {"rate": self.rate}  # default: recording.STATE_RATE
             self.recorder = Recorder.attach(bot, self.record, keep=bool(self.plot),
                                             metadata=self.metadata, format=self.record_format, **rate)
-        if self.view and bot.backend == "mujoco":
+        if self.view and bot.backend.name == "mujoco":
             self.viewer = _MujocoView(bot)
         if self.web_port is not None:
             from ..webview import WebView

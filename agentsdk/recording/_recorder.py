@@ -240,7 +240,7 @@ class Recorder:
     def _metadata(self, extra: Mapping[str, str]) -> dict[str, str]:
         from .. import __version__
 
-        backend = self._robot.controller
+        backend = self._robot.backend
         try:
             config = json.dumps(backend.config.model_dump(mode="json"), sort_keys=True)
         except Exception:  # pragma: no cover - a config that does not serialize
@@ -250,7 +250,7 @@ class Recorder:
             "format": FORMAT,
             "robot": self._robot.name,
             "robot_name": self._robot.name,
-            "backend": self._robot.backend,
+            "backend": self._robot.backend.name,
             "backend_options": json.dumps(opts, sort_keys=True),
             "realtime": "true" if self._robot.realtime else "false",
             "control_period": repr(self.period),

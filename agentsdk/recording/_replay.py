@@ -114,7 +114,7 @@ async def replay(
         config_changed = False
         recorded_config = data.metadata.get("robot_config")
         if recorded_config:
-            config_changed = json.loads(recorded_config) != bot.controller.config.model_dump(mode="json")
+            config_changed = json.loads(recorded_config) != bot.backend.config.model_dump(mode="json")
             if config_changed:
                 log.warning("robot.yaml of %s differs from the recorded one; replay may diverge", bot.name)
         cols = np.array([index[n] for n in data.names], dtype=np.intp)

@@ -482,7 +482,7 @@ class RosFace:
         values = [
             KeyValue("safety_state", st.name),
             KeyValue("cause", "" if cause is None else f"{type(cause).__name__}: {cause}"),
-            KeyValue("backend", robot.backend),
+            KeyValue("backend", robot.backend.name),
             KeyValue("time_model", "realtime" if robot.realtime else "lockstep"),
             KeyValue("control_rate_hz", f"{1.0 / robot.control_period:g}"),
             KeyValue("ticks", str(robot.ticks)),
@@ -500,9 +500,9 @@ class RosFace:
         ]
         message = st.name if cause is None else f"{st.name}: {cause}"
         statuses = [DiagnosticStatus(level=level, name=f"agentsdk: {robot.name}{self.namespace}",
-                                     message=message, hardware_id=robot.backend, values=values)]
+                                     message=message, hardware_id=robot.backend.name, values=values)]
         # per-motor statistics where the backend keeps them (the CAN backend: commands, replies, missed, late...)
-        stats = getattr(robot.controller, "stats", None)
+        stats = getattr(robot.backend, "stats", None)
         if isinstance(stats, list | tuple):
             for item in stats:
                 if not dataclasses.is_dataclass(item) or isinstance(item, type):
@@ -513,7 +513,7 @@ class RosFace:
                 statuses.append(DiagnosticStatus(
                     level=1 if trouble else 0, name=f"agentsdk: {robot.name}{self.namespace} motor {who}",
                     message=str(fields.get("last_error") or ("missing replies" if trouble else "OK")),
-                    hardware_id=str(fields.get("motor_id", robot.backend)),
+                    hardware_id=str(fields.get("motor_id", robot.backend.name)),
                     values=[KeyValue(k, str(v)) for k, v in fields.items()]))
         self._diagnostics.write(DiagnosticArray(Header(self.stamp(robot.clock.now())), statuses))
 

@@ -28,7 +28,7 @@ Open enables each motor and checks its reply; a silent motor fails the open
 with an error naming its id and joint, and the motors already enabled are
 disabled again. Close disables every motor, even when cancelled (its blocking
 part, joining python-can's reader thread and shutting the driver down, runs in a
-worker thread). Zeroing is never automatic (``await robot.controller.set_zero(joint)``
+worker thread). Zeroing is never automatic (``await robot.backend.set_zero(joint)``
 is explicit) and needs the joint's torque off.
 
 The emergency-stop hook (called by the safety layer's stall watchdog *thread*)
@@ -156,7 +156,7 @@ def _robots_with_can() -> list[str]:
 
 @dataclass
 class MotorStats:
-    """Per-motor bus statistics (exposed as ``robot.controller.stats``)."""
+    """Per-motor bus statistics (exposed as ``robot.backend.stats``)."""
 
     joint: str
     motor_id: int

@@ -28,7 +28,7 @@ async def main() -> None:
     async with agentsdk.connect("ros2", robot="arm3", namespace=NAMESPACE, domain_id=int(DOMAIN), realtime=True,
                                 timeout=60.0, lease=LEASE, stale_after=LEASE,  # a loaded one-vCPU guest
                                 safety={"stall_timeout": 5.0}) as robot:
-        backend: Any = robot.controller
+        backend: Any = robot.backend
         out["goals_available"] = backend.goals_available
         first = await robot.move_to({"joint1": 0.4, "joint2": -0.2}, duration=1.0)
         motion = robot.follow(Trajectory(["joint1"], [TrajectoryPoint(1.0, [0.0]), TrajectoryPoint(2.0, [-0.3])]))

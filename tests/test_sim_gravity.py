@@ -290,3 +290,43 @@ async def test_an_mjcf_passive_joint_gets_none_and_a_ball_joint_keeps_the_host_t
     async with agentsdk.connect("mujoco", robot=str(ball), safety=SAFETY) as robot:
         assert robot.backend.gravity_route == "host"
         assert "ball joint" in robot.backend.gravity_route_reason
+
+
+_OWN_GRAVCOMP = """<mujoco model="own_gravcomp">
+  <compiler angle="radian"/>
+  <worldbody>
+    <body name="l1" pos="0 0 0.5"{gc}>
+      <joint name="j1" axis="0 1 0" range="-2 2" actuatorfrcrange="-60 60"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="2"/>
+      <body name="l2" pos="0.3 0 0"{gc}>
+        <joint name="j2" axis="0 1 0" range="-2 2" actuatorfrcrange="-30 30"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="1"/>
+        <body name="tip" pos="0.3 0 0"{gc}>
+          <joint name="j3" axis="0 1 0" range="-2 2" actuatorfrcrange="-10 10"/>
+          <geom type="sphere" size="0.04" mass="0.5"/>
+        </body>
+      </body>
+    </body>
+  </worldbody>
+  <keyframe><key name="home" qpos="0.4 -0.3 0.2"/></keyframe>
+</mujoco>"""
+
+
+async def test_an_mjcf_own_gravcomp_is_not_added_to_the_host_term(tmp_path: Path) -> None:
+    """On the host route (compensation off for one joint), a model whose bodies carry their own
+    ``gravcomp`` holds exactly as the same model without it: the host's g(q) holds each body once
+    (before, MuJoCo's force held them a second time and the arm rose by 10 mrad)."""
+    yaml_gc = "gravity_compensation: {default: true, j3: false}\n"
+    finals = []
+    for gc in ("", ' gravcomp="1"'):
+        d = tmp_path / ("own" if gc else "plain")
+        d.mkdir()
+        (d / "arm.xml").write_text(_OWN_GRAVCOMP.format(gc=gc), encoding="utf-8")
+        (d / "robot.yaml").write_text(f"description: arm.xml\n{yaml_gc}", encoding="utf-8")
+        async with agentsdk.connect("mujoco", robot=str(d / "robot.yaml"), safety=SAFETY) as robot:
+            b = robot.backend
+            assert b.gravity_route == "host", b.gravity_route
+            assert not b.model.body_gravcomp.any()  # the model's own gravcomp is the host term's now
+            await robot.clock.sleep(1.0)
+            finals.append((await robot.read()).position.copy())
+    np.testing.assert_allclose(finals[1], finals[0], rtol=0, atol=1e-12)

@@ -72,7 +72,7 @@ from agentsdk.sensors import SensorChannel
 from agentsdk.threads import run_blocking
 from agentsdk.types import MODES
 
-from .gravcomp import StepGravity, step_gravity_obstacle
+from .gravcomp import StepGravity, drop_model_gravcomp, step_gravity_obstacle
 from .sensors import SERVED, MujocoSensors
 
 __all__ = ["MujocoBackend", "MujocoController", "MujocoOptions"]
@@ -404,6 +404,12 @@ class MujocoBackend(Backend):
         if reason:
             self.gravity_route, self.gravity_route_reason = "host", reason
             log.debug("%s: g(q) computed on the host: %s", self.config.label, reason)
+            compensated = [n for n, on in zip(self.names, mask, strict=True) if on]
+            compensated += [f for f, leader in followers.items() if mask[self.index[leader]]]
+            cleared = drop_model_gravcomp(spec, compensated)
+            if cleared:  # the host's g(q) carries their weight: the model's own gravcomp would carry it twice
+                log.info("%s: the model's own gravcomp of %s is replaced by the servo law's g(q)",
+                         self.config.label, ", ".join(repr(b) for b in cleared))
             return None
         self.gravity_route = "simulator"
         return StepGravity(self.names, followers, np.array([j.max_effort for j in self.joints], dtype=float))

@@ -30,7 +30,7 @@ from collections.abc import Mapping, Sequence
 import mujoco
 import numpy as np
 
-__all__ = ["StepGravity", "step_gravity_obstacle"]
+__all__ = ["StepGravity", "drop_model_gravcomp", "step_gravity_obstacle"]
 
 _HINGE, _SLIDE = mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE
 _LIMITED = mujoco.mjtLimited.mjLIMITED_TRUE
@@ -64,6 +64,22 @@ def step_gravity_obstacle(spec: mujoco.MjSpec, carried: Sequence[str]) -> str | 
                 return (f"body {body.name!r} moves with the {kind} joint {other.name!r}, whose share of its "
                         "gravity compensation MuJoCo cannot leave out")
     return None
+
+
+def drop_model_gravcomp(spec: mujoco.MjSpec, compensated: Sequence[str]) -> list[str]:
+    """Clear the model's own ``gravcomp`` of every body that moves with one of the joints ``compensated``.
+
+    For the host route: the servo law's ``g(q)`` (computed on the host, the full weight of those
+    bodies) already holds them, so an MJCF's ``gravcomp`` on them would hold them a second time.
+    Bodies that move with none of them keep the model's value. Returns the names of the bodies cleared.
+    """
+    names = set(compensated)
+    cleared: list[str] = []
+    for body, chain in _chains(spec):
+        if body.gravcomp != 0.0 and any(j.name in names for j in chain):
+            body.gravcomp = 0.0
+            cleared.append(body.name)
+    return cleared
 
 
 class StepGravity:

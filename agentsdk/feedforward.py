@@ -12,8 +12,8 @@ controller feeds the desired motion's inverse dynamics forward instead
 
 with ``v_des`` and ``a_des`` the reference's velocity and acceleration (the setpoint's
 ``velocity`` and ``acceleration``: the trajectory executor writes both every tick), ``q`` the
-measured position (the MuJoCo backend passes the desired one, the setpoint's ``position``, so
-that its term is a function of the setpoint stream alone), and the joints' damping ``b`` and dry
+desired position (every backend passes the setpoint's ``position``, so that the term is a
+function of the setpoint stream alone; ``g(q)`` stays at the measured one), and the joints' damping ``b`` and dry
 friction, which the motion meets as well (on corpus arms with URDF ``<dynamics damping
 friction>`` they, not the inertia, dominate the lag). :class:`InverseDynamicsTerm` computes the
 motion part (``g(q)`` stays the gravity term, so robot.yaml ``gravity_compensation`` keeps its

@@ -21,7 +21,7 @@ import pytest
 
 import agentsdk
 from agentsdk import Pose, ResultCode, Robot
-from agentsdk.backend import ModeCode
+from agentsdk.backend import ModeCode, SetpointView
 from agentsdk.feedforward import ACCELERATION_DTYPE, FRICTION_VELOCITY, InverseDynamicsTerm
 from agentsdk.loop import Phase
 from agentsdk.probe import TRACK, ProbePool
@@ -139,6 +139,28 @@ async def test_a_trajectory_feeds_its_acceleration_forward_and_a_hold_none() -> 
         seen.clear()
         await robot.clock.sleep(0.05)
         assert seen and all(a == 0.0 and v == 0.0 for a, v in seen)  # the hold after it: none
+
+
+async def test_pybullet_feeds_the_motion_forward_at_the_desired_position() -> None:
+    """One law on every backend: PyBullet's inverse-dynamics term is evaluated at the setpoint's
+    position (as MuJoCo's and CAN's), a function of the setpoint stream alone, not of the reading."""
+    pytest.importorskip("pybullet")
+    async with agentsdk.connect("pybullet", robot="arm3", safety=SAFETY) as robot:
+        b = robot.backend
+        assert b.inverse_dynamics
+        model = b.dynamics
+        ref = InverseDynamicsTerm(model.model, b.names, extra_damping=b.options.joint_damping)
+        out, gaps = np.zeros(len(b.names)), []
+
+        def check(t: float, st: object, sp: SetpointView) -> None:
+            if ref.moving(sp.velocity, sp.acceleration):
+                want = ref.compute(model.qpos(sp.position), sp.velocity, sp.acceleration, out, sp.mode, moving=True)
+                gaps.append(float(np.abs(b._tau_motion - want).max()))
+
+        robot.add_tick_hook(Phase.OBSERVE, check)
+        result = await robot.move_to({"joint1": 0.6, "joint2": 0.5}, duration=1.0)
+        assert result.code is ResultCode.SUCCESSFUL
+        assert len(gaps) > 100 and max(gaps) == 0.0, max(gaps)
 
 
 async def test_can_sends_the_motions_inverse_dynamics_from_the_host_model(tmp_path: Path) -> None:

@@ -746,8 +746,8 @@ class CanBackend(Backend):
             gt *= self._gc_mask
             ff += gt
         inverse = self._inverse
-        if inverse is not None:  # + the desired motion's inverse dynamics at the last measured position (host model)
-            qpos = self.dynamics.qpos(self._q)
+        if inverse is not None:  # + the desired motion's inverse dynamics at the desired position (host model)
+            qpos = self.dynamics.qpos(sp.position)
             ff += inverse.compute(qpos, sp.velocity, sp.acceleration, self.motion_torque, sp.mode)
         eff = ff.tolist()
         kp, kd, en = sp.kp.tolist(), sp.kd.tolist(), sp.enabled.tolist()

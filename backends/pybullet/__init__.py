@@ -571,12 +571,16 @@ class PybulletBackend(Backend):
         tau *= self._gc_mask
         return tau
 
-    def _motion_torque(self, sp: SetpointView, q: np.ndarray, base: Pose | None) -> np.ndarray:
-        """``M(q) a_des + C(q, v_des) v_des`` at the latest sensed state ``q`` into ``_tau_motion``."""
+    def _motion_torque(self, sp: SetpointView, base: Pose | None) -> np.ndarray:
+        """``M(q_des) a_des + C(q_des, v_des) v_des`` at the desired position into ``_tau_motion``.
+
+        As on every backend: a function of the setpoint stream alone (the joint-space terms do not
+        depend on a floating base's pose, which is the measured one here).
+        """
         assert self._inverse is not None
         # (called only when the write found the reference moving: not asked again)
-        return self._inverse.compute(self._model.qpos(q, base), sp.velocity, sp.acceleration, self._tau_motion,
-                                     sp.mode, moving=True)
+        return self._inverse.compute(self._model.qpos(sp.position, base), sp.velocity, sp.acceleration,
+                                     self._tau_motion, sp.mode, moving=True)
 
     def _implicit_terms(self) -> tuple[np.ndarray, np.ndarray]:
         """``M(q)`` and ``c(q, v) + g(q)`` in PyBullet's dof order, from the description's model.
@@ -643,7 +647,7 @@ class PybulletBackend(Backend):
         gc = self._gc_on
         moving = self._inverse is not None and self._inverse.moving(sp.velocity, sp.acceleration)
         if gc or moving:
-            # the model terms at the measured state, gathered once for both (the base pose is two PyBullet calls)
+            # the measured state, gathered once for both terms (the base pose is two PyBullet calls)
             q = np.take(self._q_all, self._sel, out=self._gc_q)
             floating = self._floating
             if floating is None:
@@ -652,7 +656,7 @@ class PybulletBackend(Backend):
             if gc:  # tau_model: g(q) at the measured position, added to the feed-forward
                 self._ff += self._gravity_torque(q, base)
             if moving:
-                self._ff += self._motion_torque(sp, q, base)
+                self._ff += self._motion_torque(sp, base)
         self._kp[...] = sp.kp
         self._kd[...] = sp.kd
         self._en[...] = sp.enabled

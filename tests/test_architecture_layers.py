@@ -238,6 +238,46 @@ def test_the_package_order_guard_finds_an_upward_import() -> None:
     assert _package_violations(order, {"p._a": {("p", "lazy")}}) != []
 
 
+def _private_state(source: str, cls: str) -> set[str]:
+    """The private attributes class ``cls`` of ``source`` assigns on ``self`` (its state)."""
+    node = next(n for n in ast.parse(source).body if isinstance(n, ast.ClassDef) and n.name == cls)
+    return {
+        a.attr for a in ast.walk(node)
+        if isinstance(a, ast.Attribute) and isinstance(a.ctx, ast.Store) and isinstance(a.value, ast.Name)
+        and a.value.id == "self" and a.attr.startswith("_")
+    }
+
+
+def _reach_ins(state: set[str], sources: dict[str, str]) -> list[str]:
+    """``module:line expr`` of every read or write of one of the ``state`` attributes on another object
+    than ``self`` in ``sources`` (another module's classes may name their own ``self._future``)."""
+    return [
+        f"{m}:{a.lineno} {ast.unparse(a)}"
+        for m, src in sorted(sources.items())
+        for a in ast.walk(ast.parse(src))
+        if isinstance(a, ast.Attribute) and a.attr in state
+        and not (isinstance(a.value, ast.Name) and a.value.id in ("self", "cls"))
+    ]
+
+
+def test_the_motion_handle_keeps_its_state() -> None:
+    """Nobody outside motion/_handle.py reads or writes a Motion's private state (its future, feedback
+    snapshot, pose streams): the executor resolves and publishes through the handle's own methods."""
+    state = _private_state(MODULES["agentsdk.motion._handle"].read_text(), "Motion")
+    assert {"_future", "_snap", "_feedback_q", "_pose_streams"} <= state
+    others = {m: p.read_text() for m, p in MODULES.items() if m != "agentsdk.motion._handle"}
+    bad = _reach_ins(state, others)
+    assert not bad, "reach-ins into a Motion's private state:\n" + "\n".join(bad)
+
+
+def test_the_reach_in_guard_finds_one() -> None:
+    """The reach-in check is not vacuous."""
+    state = _private_state("class M:\n    def __init__(self):\n        self._future = 1\n        self.x = 2\n", "M")
+    assert state == {"_future"}
+    src = "class E:\n    def tick(self, m):\n        self._future = m._future\n        m.x = 1\n"
+    assert _reach_ins(state, {"e": src}) == ["e:3 m._future"]
+
+
 def _long_modules() -> dict[str, int]:
     lines = {p.relative_to(ROOT).as_posix(): len(p.read_text().splitlines()) for p in MODULES.values()}
     return {path: n for path, n in lines.items() if n > MAX_LINES}

@@ -376,7 +376,7 @@ class _Executor(_Admission):
                 if ex.wrap is not None:
                     _wrap_into(err, ex.wrap, w.tmp)
             snap.seq += 1
-            if m._pose_streams or m._feedback_q is not None:
+            if snap.keep_measured:
                 m._keep_measured(st.position)
 
     # ------------------------------------------------------------ offload (agentsdk.offload)

@@ -30,7 +30,7 @@ import pytest
 
 import agentsdk
 from agentsdk.limits import StepLimiter
-from agentsdk.motion import MotionManager
+from agentsdk.motion._executor import _Executor
 from agentsdk.safety import SafetyLayer
 from agentsdk.trajectory import Trajectory, TrajectoryPoint
 
@@ -238,6 +238,104 @@ def test_the_package_order_guard_finds_an_upward_import() -> None:
     assert _package_violations(order, {"p._a": {("p", "lazy")}}) != []
 
 
+#: packages split by objects whose objects are composed, never inherited from one another: no class of
+#: the package subclasses another class of the package (so a chain of layers sharing one ``self`` cannot
+#: come back). Each names the classes excepted (value types, enums, exceptions), none so far.
+NO_INHERITANCE: dict[str, frozenset[str]] = {
+    "agentsdk.motion": frozenset(),
+}
+
+
+def _base_name(base: ast.expr) -> str | None:
+    """The class name a base expression refers to (``Base``, ``mod.Base``, ``Base[T]``)."""
+    if isinstance(base, ast.Subscript):
+        base = base.value
+    if isinstance(base, ast.Attribute):
+        return base.attr
+    if isinstance(base, ast.Name):
+        return base.id
+    return None
+
+
+def _inheritance_violations(sources: dict[str, str], allowed: frozenset[str]) -> list[str]:
+    """``module: class C(B)`` for every class of ``sources`` (one package's modules) whose base is a
+    class the package defines, apart from the ``allowed`` subclasses."""
+    trees = {m: ast.parse(src, filename=m) for m, src in sources.items()}
+    defined = {n.name for tree in trees.values() for n in ast.walk(tree) if isinstance(n, ast.ClassDef)}
+    bad = []
+    for m, tree in sorted(trees.items()):
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.ClassDef) or node.name in allowed:
+                continue
+            bad += [f"{m}: class {node.name}({ast.unparse(b)})" for b in node.bases if _base_name(b) in defined]
+    return bad
+
+
+@pytest.mark.parametrize("pkg", sorted(NO_INHERITANCE))
+def test_split_packages_compose_objects(pkg: str) -> None:
+    """The objects of a package split by objects hold their collaborators; none inherits another's methods."""
+    sources = {m: MODULES[m].read_text() for m in MODULES if m.startswith(pkg + ".")}
+    assert sources, f"{pkg} has no modules"
+    bad = _inheritance_violations(sources, NO_INHERITANCE[pkg])
+    assert not bad, f"classes of {pkg} that subclass another class of the package:\n" + "\n".join(bad)
+
+
+def test_the_composition_guard_finds_a_chain() -> None:
+    """The subclassing check is not vacuous: a chain of layers over modules is found, stdlib bases are not."""
+    sources = {
+        "p._a": "import enum\nclass _Core:\n    pass\nclass Code(enum.IntEnum):\n    A = 1\n",
+        "p._b": "from . import _a\nclass _Stops(_a._Core):\n    pass\nclass Err(ValueError):\n    pass\n",
+        "p._c": "from ._b import _Stops\nclass Manager(_Stops):\n    pass\nclass Box(Generic[T]):\n    pass\n"
+                "class Gen(Box[int]):\n    pass\n",
+    }
+    assert _inheritance_violations(sources, frozenset()) == [
+        "p._b: class _Stops(_a._Core)",
+        "p._c: class Manager(_Stops)",
+        "p._c: class Gen(Box[int])",
+    ]
+    assert _inheritance_violations(sources, frozenset({"_Stops", "Manager", "Gen"})) == []
+
+
+def _private_state(source: str, cls: str) -> set[str]:
+    """The private attributes class ``cls`` of ``source`` assigns on ``self`` (its state)."""
+    node = next(n for n in ast.parse(source).body if isinstance(n, ast.ClassDef) and n.name == cls)
+    return {
+        a.attr for a in ast.walk(node)
+        if isinstance(a, ast.Attribute) and isinstance(a.ctx, ast.Store) and isinstance(a.value, ast.Name)
+        and a.value.id == "self" and a.attr.startswith("_")
+    }
+
+
+def _reach_ins(state: set[str], sources: dict[str, str]) -> list[str]:
+    """``module:line expr`` of every read or write of one of the ``state`` attributes on another object
+    than ``self`` in ``sources`` (another module's classes may name their own ``self._future``)."""
+    return [
+        f"{m}:{a.lineno} {ast.unparse(a)}"
+        for m, src in sorted(sources.items())
+        for a in ast.walk(ast.parse(src))
+        if isinstance(a, ast.Attribute) and a.attr in state
+        and not (isinstance(a.value, ast.Name) and a.value.id in ("self", "cls"))
+    ]
+
+
+def test_the_motion_handle_keeps_its_state() -> None:
+    """Nobody outside motion/_handle.py reads or writes a Motion's private state (its future, feedback
+    snapshot, pose streams): the executor resolves and publishes through the handle's own methods."""
+    state = _private_state(MODULES["agentsdk.motion._handle"].read_text(), "Motion")
+    assert {"_future", "_snap", "_feedback_q", "_pose_streams"} <= state
+    others = {m: p.read_text() for m, p in MODULES.items() if m != "agentsdk.motion._handle"}
+    bad = _reach_ins(state, others)
+    assert not bad, "reach-ins into a Motion's private state:\n" + "\n".join(bad)
+
+
+def test_the_reach_in_guard_finds_one() -> None:
+    """The reach-in check is not vacuous."""
+    state = _private_state("class M:\n    def __init__(self):\n        self._future = 1\n        self.x = 2\n", "M")
+    assert state == {"_future"}
+    src = "class E:\n    def tick(self, m):\n        self._future = m._future\n        m.x = 1\n"
+    assert _reach_ins(state, {"e": src}) == ["e:3 m._future"]
+
+
 def _long_modules() -> dict[str, int]:
     lines = {p.relative_to(ROOT).as_posix(): len(p.read_text().splitlines()) for p in MODULES.values()}
     return {path: n for path, n in lines.items() if n > MAX_LINES}
@@ -264,7 +362,7 @@ def test_documented_long_modules_are_long() -> None:
     assert not stale, f"docs/architecture.md explains modules that are not over {MAX_LINES} lines (any more): {stale}"
 
 
-@pytest.mark.parametrize("method", [SafetyLayer._filter, MotionManager._limited], ids=["filter", "executor"])
+@pytest.mark.parametrize("method", [SafetyLayer._filter, _Executor._limited], ids=["filter", "executor"])
 def test_filter_and_executor_do_not_clip_themselves(method: Any) -> None:
     """Neither the safety filter nor the executor's limiter check does clipping arithmetic of its own."""
     fn = ast.parse(textwrap.dedent(inspect.getsource(method))).body[0]
@@ -300,7 +398,7 @@ async def test_filter_and_executor_limit_through_the_same_limiter(monkeypatch: p
         assert result.ok, result
         await robot.command(agentsdk.JointCommand("position", [float(q) + 0.02 for q in goal]))
         await robot.clock.sleep(0.05)
-    assert (MotionManager._limited.__module__, "_limited") in callers, callers
+    assert (_Executor._limited.__module__, "_limited") in callers, callers
     assert (SafetyLayer._filter.__module__, "_filter") in callers, callers
 
 

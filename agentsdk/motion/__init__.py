@@ -33,16 +33,19 @@ FollowJointTrajectory action:
 * ``continuous`` joints take the shortest angle from the current state (the trajectory is
   moved by whole turns) and their errors wrap around (tolerances, feedback, results).
 
-The package, one job a module, each importing only the ones above it in this list:
+The package, one job a module, each importing only the ones above it in this list; the objects
+of the last four hold each other (none inherits from another) and share one ``_MotionTable``:
 
 * :mod:`._types`: result codes, phases, results, tolerances, feedback (values)
 * :mod:`._handle`: the :class:`Motion` handle
-* :mod:`._records`: the executor's record of one motion and its tick buffers
+* :mod:`._envelope`: where a motion's samples need no limiting (the tick's shortcut)
+* :mod:`._records`: the executor's record of one motion, its tick buffers, the table of them
 * :mod:`._ownership`: joint ownership, speed scaling, the desired state, how a motion ends
 * :mod:`._stops`: stop planning (where a stop starts, its ramp)
 * :mod:`._admission`: validation and preparation of a trajectory
 * :mod:`._executor`: the per-tick hot path
-* :mod:`._manager`: :class:`MotionManager`, the robot's entry point and the safety layer's stop port
+* :mod:`._manager`: :class:`MotionManager`, the facade that builds them: the robot's entry point
+  and the safety layer's stop port
 """
 
 from __future__ import annotations

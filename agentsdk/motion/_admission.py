@@ -8,6 +8,8 @@ import numpy as np
 
 from ..errors import LimitViolation
 from ..limits import STEP_RTOL as _STEP_RTOL
+from ..limits import PositionBounds, StepLimiter
+from ..loop import ControlLoop
 from ..trajectory import (
     MAX_TIME_FROM_START,
     Trajectory,
@@ -16,15 +18,25 @@ from ..trajectory import (
     time_scale_for_limits,
 )
 from ._envelope import envelope
-from ._records import _Exec
-from ._stops import _StopPlanner
+from ._ownership import _Ownership
+from ._records import _Exec, _MotionTable
 from ._types import _MAX_STRETCH_ITERATIONS, MotionPhase, _turns_to
 
 
-class _Admission(_StopPlanner):
+class _Admission:
     """Checks and prepares a trajectory before it may run (the JTC's validation, on the whole motion)."""
 
-    def _prepare(
+    def __init__(self, loop: ControlLoop, table: _MotionTable, ownership: _Ownership, bounds: PositionBounds,
+                 limiter: StepLimiter) -> None:
+        self.loop = loop
+        self.table = table
+        self.ownership = ownership
+        #: position bounds every trajectory point must respect (URDF limits minus the safety margin)
+        self.bounds = bounds
+        #: the limiter the executor applies (a started motion gets its joints' part and envelope)
+        self.limiter = limiter
+
+    def prepare(
         self, ex: _Exec, traj: Trajectory, q0: np.ndarray, v0: np.ndarray, a0: np.ndarray, t0: float
     ) -> tuple[Trajectory, TrajectorySampler]:
         """Wrap continuous joints to the shortest angle from ``q0``, build the sampler from the start
@@ -38,7 +50,7 @@ class _Admission(_StopPlanner):
                 traj = traj.shifted(offsets)
                 ex.goal = np.asarray(traj.positions[-1], dtype=float).copy()
         lo, hi = self.bounds.lo[idx], self.bounds.hi[idx]
-        vmax, amax = self._vmax[idx], self._amax[idx]
+        vmax, amax = self.table.vmax[idx], self.table.amax[idx]
         if traj.velocities is not None and traj.points[0].time_from_start == 0.0:
             # a first point at time 0 is output at once (JTC): its velocity must continue the current one
             step = np.abs(traj.velocities[0] - v0)
@@ -77,11 +89,12 @@ class _Admission(_StopPlanner):
                             hint=f" even stretched {factor:.3g} times slower (stretch_to_limits)")
         return scaled, sampler
 
-    def _predicted(self, idx: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def predicted(self, idx: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Desired (q, v, a) of joints ``idx`` at robot time ``t``, if nothing changes meanwhile."""
-        q, v, a = self.desired(idx)
+        q, v, a = self.ownership.desired(idx)
+        owner = self.table.owner
         for k, j in enumerate(idx.tolist()):
-            ex = self._owner[j]
+            ex = owner[j]
             if ex is not None and ex.sampler is not None and ex.remote_rest < 0.0:
                 m = int(np.flatnonzero(ex.idx == j)[0])
                 tau = t if ex.phase == MotionPhase.STOPPING else ex.tau + ex.s * (t - ex.t_last)
@@ -90,7 +103,7 @@ class _Admission(_StopPlanner):
                 q[k], v[k], a[k] = eq[m], ev[m] * s, ea[m] * s * s
         return q, v, a
 
-    def _begin(self, ex: _Exec, sampler: TrajectorySampler, q0: np.ndarray, v0: np.ndarray, a0: np.ndarray,
+    def begin(self, ex: _Exec, sampler: TrajectorySampler, q0: np.ndarray, v0: np.ndarray, a0: np.ndarray,
                t0: float) -> None:
         """Make ``ex`` follow ``sampler`` from time ``t0`` (the desired state there is (q0, v0, a0))."""
         ex.sampler = sampler
@@ -98,12 +111,12 @@ class _Admission(_StopPlanner):
         ex.phase = MotionPhase.FOLLOW
         # the trajectory's velocities are in its own time: start at full speed when the start state
         # moves (no velocity jump), else directly at the current scaling (a paused robot stays put)
-        ex.s = 1.0 if np.any(np.abs(v0) > 1e-9) else self._speed
+        ex.s = 1.0 if np.any(np.abs(v0) > 1e-9) else self.table.speed
         ex.sdot = 0.0
         ex.des_q, ex.des_v, ex.des_a = q0.copy(), v0.copy(), a0.copy()
         ex.vt, ex.at = v0.copy(), a0.copy()
         ex.path_unbounded = bool(np.all(ex.path_tol == np.inf))
         # what the tick may skip of the limiter for this motion (the sampler's peaks are known from the check)
         if ex.limits is None:
-            ex.limits = self._limiter.select(ex.idx)
+            ex.limits = self.limiter.select(ex.idx)
         ex.env = envelope(sampler, ex.limits, self.loop.period)

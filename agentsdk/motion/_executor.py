@@ -9,11 +9,14 @@ from typing import Any
 import numpy as np
 
 from ..errors import CommandRejected
-from ..loop import Phase, Setpoint, StateView
-from ..offload import OffloadedGoal, OffloadRequest
+from ..limits import StepGuard, StepLimiter
+from ..loop import ControlLoop, Phase, Setpoint, StateView
+from ..offload import OffloadedGoal, OffloadRequest, TrajectoryOffload
 from ..trajectory import Trajectory
 from ._admission import _Admission
-from ._records import _Exec, _TickBuffers
+from ._ownership import _Ownership
+from ._records import _Exec, _MotionTable, _TickBuffers
+from ._stops import _StopPlanner
 from ._types import (
     _BOUND_TOL,
     _POS,
@@ -35,55 +38,91 @@ def _wrap_into(x: np.ndarray, wrap: np.ndarray, tmp: np.ndarray) -> None:
     np.copyto(x, tmp, where=wrap)
 
 
-class _Executor(_Admission):
+class _Executor:
     """Runs every motion in the control tick: samples, checks tolerances, limits, writes (allocation-free)."""
 
-    def _install(self, ex: _Exec) -> None:
-        for j in ex.idx.tolist():
-            self._owner[j] = ex
-        self.owned_mask[ex.idx] = True
-        self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+    def __init__(self, loop: ControlLoop, table: _MotionTable, ownership: _Ownership, stops: _StopPlanner,
+                 admission: _Admission, limiter: StepLimiter, guard: StepGuard | None,
+                 offload: TrajectoryOffload | None) -> None:
+        self.loop = loop
+        self.table = table
+        self.ownership = ownership
+        self.stops = stops
+        self.admission = admission
+        #: the limiter every sample passes through: the safety layer's, else the position bounds alone
+        self._limiter = limiter
+        #: the safety layer's limiter the setpoints pass through (None: none), so that a planned step
+        #: it would clip is caught here and reported, never clipped silently
+        self._guard = guard
+        #: the live origin of each joint's step window (the setpoint the limiter measures from), or None
+        self._origin = None if guard is None else guard.origin
+        #: the backend's controller runs whole trajectories (goals) instead of streamed setpoints, or None
+        self._offload = offload
+        # what the tick calls on its collaborators, bound once (no attribute chain per tick)
+        self._advance = ownership.advance
+        self._finish = ownership.finish
+        self._resolve = ownership.resolve
+        self._abort = stops.abort
+        self._begin_stop = stops.begin_stop
 
-    def _start_ramp(self, idx: np.ndarray, q: Any, v: Any, a: Any, code: ResultCode | None, msg: str,
-                    on_done: Any = None) -> _Exec:
+    def install(self, ex: _Exec) -> None:
+        """Run ``ex`` (its joints are now its own) from the next tick on."""
+        self.ownership.own(ex)
+        self._add_hook(ex)
+
+    def schedule(self, ex: _Exec) -> None:
+        """Run the scheduled ``ex`` from the next tick on: it waits for its start time, then takes its joints."""
+        self.table.pending.append(ex)
+        self._add_hook(ex)
+
+    def _add_hook(self, ex: _Exec) -> None:
+        update = self.update
+        self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: update(ex, t, st, sp))
+
+    def start_ramp(self, idx: np.ndarray, q: Any, v: Any, a: Any, code: ResultCode | None, msg: str,
+                   on_done: Any = None) -> _Exec:
+        """A stop ramp of joints ``idx`` from (q, v, a), run from now; it ends with ``code`` (None: no motion)."""
         t0 = self.loop.stamp
-        sampler = self._plan_stop_sampler(idx, q, v, a, t0)
+        sampler = self.stops.plan_stop_sampler(idx, q, v, a, t0)
         n = len(idx)
         ex = _Exec(None, idx, sampler, t0, np.full(n, np.inf), np.full(n, np.inf), 0.0, goal=q.copy(),
                    phase=MotionPhase.STOPPING, stop_code=code, stop_msg=msg, on_done=on_done)
         ex.tau = ex.t_last = t0
         ex.des_q, ex.des_v, ex.des_a = q.copy(), v.copy(), a.copy()
-        self._install(ex)
+        self.install(ex)
         return ex
 
-    def _preempt(self, idx: np.ndarray) -> None:
+    def preempt(self, idx: np.ndarray) -> None:
+        """End (PREEMPTED) what drives joints ``idx``; its other joints come to rest along a stop ramp."""
         seen: list[_Exec] = []
+        owner = self.table.owner
         for j in idx.tolist():
-            ex = self._owner[j]
+            ex = owner[j]
             if ex is not None and ex not in seen:
                 seen.append(ex)
         taken = set(idx.tolist())
         for ex in seen:
             rest = np.array([j for j in ex.idx.tolist() if j not in taken], dtype=np.intp)
-            q, v, a = self.desired(rest) if len(rest) else (None, None, None)
+            q, v, a = self.ownership.desired(rest) if len(rest) else (None, None, None)
             self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
             if len(rest):
                 # joints the new trajectory does not cover come to rest smoothly
-                self._start_ramp(rest, q, v, a, None, "")
+                self.start_ramp(rest, q, v, a, None, "")
 
     def _activate(self, ex: _Exec, t: float) -> bool:
         """A scheduled motion's start time has come: take over its joints from whatever drives them."""
-        if ex in self._pending:
-            self._pending.remove(ex)
+        pending = self.table.pending
+        if ex in pending:
+            pending.remove(ex)
         idx = ex.idx
-        q0, v0, a0 = self.desired(idx)
+        q0, v0, a0 = self.ownership.desired(idx)
         traj = ex.pending_traj
         assert traj is not None
         try:
             late = t - ex.t0
             if late > 1e-9:  # the start fell between two ticks: what elapsed since is skipped
                 traj = traj.after(late)
-            traj, sampler = self._prepare(ex, traj, q0, v0, a0, t)
+            traj, sampler = self.admission.prepare(ex, traj, q0, v0, a0, t)
         except CommandRejected as exc:
             ex.phase = MotionPhase.DEAD
             if ex.motion is not None:
@@ -93,14 +132,15 @@ class _Executor(_Admission):
             return False
         if ex.motion is not None:
             ex.motion.trajectory = traj
-        self._preempt_offloaded()
-        self._preempt(idx)
-        self._own(ex)
-        self._begin(ex, sampler, q0, v0, a0, t)
-        self._try_offload(ex, traj)
+        self.preempt_offloaded()
+        self.preempt(idx)
+        self.ownership.own(ex)
+        self.admission.begin(ex, sampler, q0, v0, a0, t)
+        self.try_offload(ex, traj)
         return True
 
-    def _update(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
+    def update(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
+        """One tick of ``ex`` at robot time ``t``: sample, check, limit, write; False once it has ended."""
         if ex.phase == MotionPhase.DEAD:
             return False
         if ex.phase == MotionPhase.PENDING:
@@ -117,7 +157,7 @@ class _Executor(_Admission):
             ex.t_last = t  # the controller has not taken the goal yet: its trajectory time has not begun
         dt = t - ex.t_last
         s = ex.s
-        if dt > 0.0 and s == self._speed and ex.phase != MotionPhase.STOPPING:  # _advance's common case, inline
+        if dt > 0.0 and s == self.table.speed and ex.phase != MotionPhase.STOPPING:  # _advance's common case, inline
             if dt > self.loop.period:
                 dt = self.loop.period
             tau = ex.tau = ex.tau + s * dt
@@ -376,11 +416,11 @@ class _Executor(_Admission):
                 if ex.wrap is not None:
                     _wrap_into(err, ex.wrap, w.tmp)
             snap.seq += 1
-            if m._pose_streams or m._feedback_q is not None:
+            if snap.keep_measured:
                 m._keep_measured(st.position)
 
     # ------------------------------------------------------------ offload (agentsdk.offload)
-    def _try_offload(self, ex: _Exec, traj: Trajectory) -> None:
+    def try_offload(self, ex: _Exec, traj: Trajectory) -> None:
         """Hand ``ex``'s validated trajectory to the backend's controller as one goal, where it can take it.
 
         Only a motion that alone drives the robot (the other joints hold) and ends at rest is
@@ -389,7 +429,7 @@ class _Executor(_Admission):
         """
         if self._offload is None or ex.motion is None or ex.end_moving:
             return
-        if any(o is not None and o is not ex for o in self._owner):
+        if any(o is not None and o is not ex for o in self.table.owner):
             return  # another motion or stop ramp drives joints: streamed
         names, sp = self.loop.names, self.loop.setpoint
         others = np.ones(len(names), dtype=bool)
@@ -402,15 +442,15 @@ class _Executor(_Admission):
         ex.remote, ex.s, ex.sdot = remote, 1.0, 0.0
         ex.remote_q, ex.remote_v = np.zeros(len(ex.idx)), np.zeros(len(ex.idx))
 
-    def _preempt_offloaded(self) -> None:
+    def preempt_offloaded(self) -> None:
         """A new motion on any joint preempts an offloaded goal (the controller runs one trajectory at a time)."""
-        for ex in [o for o in dict.fromkeys(self._owner) if o is not None and o.remote is not None]:
+        for ex in [o for o in dict.fromkeys(self.table.owner) if o is not None and o.remote is not None]:
             if ex.remote_rest >= 0.0:  # its goal has ended: the joints hold where the setpoint is
                 self._finish(ex, None, "")
                 continue
-            q, v, a = self._desired_next(ex)
+            q, v, a = self.ownership.desired_next(ex)
             self._finish(ex, ResultCode.PREEMPTED, "preempted by a newer trajectory")
-            self._start_ramp(ex.idx, q, v, a, None, "")
+            self.start_ramp(ex.idx, q, v, a, None, "")
 
     def _update_remote(self, ex: _Exec, remote: OffloadedGoal, t: float, st: StateView, sp: Setpoint,
                        q: np.ndarray, v: np.ndarray, a: np.ndarray, err: np.ndarray, elapsed: float) -> bool:

@@ -90,11 +90,24 @@ class Motion:
         snap = self._snap
         if snap is None:
             snap = self._snap = _FeedbackSnapshot()
+            snap.keep_measured = self._pose_streams > 0
         return snap
 
     def _keep_measured(self, position: np.ndarray) -> None:
-        """Keep the measured positions of this tick while a feedback stream wants link poses."""
-        self._feedback_q = position.copy() if self._pose_streams else None
+        """Keep the measured positions of every joint at this tick.
+
+        The executor calls this while the snapshot's ``keep_measured`` says a feedback stream wants link poses.
+        """
+        self._feedback_q = position.copy()
+
+    def _count_pose_streams(self, delta: int) -> None:
+        """A feedback stream with link poses starts (+1) or ends (-1); the snapshot says whether any runs."""
+        self._pose_streams += delta
+        keep = self._pose_streams > 0
+        if not keep:
+            self._feedback_q = None
+        if self._snap is not None:
+            self._snap.keep_measured = keep
 
     # awaitable ------------------------------------------------------------
     def __await__(self) -> Generator[Any, None, MotionResult]:
@@ -177,7 +190,7 @@ class Motion:
         next_t = clock.now()
         last: Feedback | None = None
         if kin is not None:
-            self._pose_streams += 1  # from now on every tick keeps the full measured state
+            self._count_pose_streams(1)  # from now on every tick keeps the full measured state
         try:
             while True:
                 fb = self._feedback
@@ -197,7 +210,7 @@ class Motion:
                 await clock.sleep_until(next_t)
         finally:
             if kin is not None:
-                self._pose_streams -= 1
+                self._count_pose_streams(-1)
 
     def _with_poses(self, fb: Feedback, q: np.ndarray | None, links: tuple[str, ...], kin: Kinematics) -> Feedback:
         """``fb`` plus the poses of ``links`` at its measured state and at its desired positions."""
@@ -231,9 +244,12 @@ class _FeedbackSnapshot:
     arrays when the motion ends (the executor may reuse its buffers for a stop afterwards).
     """
 
-    __slots__ = ("actual_q", "actual_v", "err", "progress", "q", "seq", "time", "v")
+    __slots__ = ("actual_q", "actual_v", "err", "keep_measured", "progress", "q", "seq", "time", "v")
 
     def __init__(self) -> None:
+        #: a feedback stream wants link poses: the executor hands every tick's measured positions to
+        #: :meth:`Motion._keep_measured` (set by the motion only)
+        self.keep_measured = False
         self.seq = 0
         self.time = 0.0
         self.progress = 0.0

@@ -1,29 +1,103 @@
-"""The :class:`MotionManager`: the motion layer's public face to the robot and its safety stop port."""
+"""The :class:`MotionManager`: the motion layer's public face to the robot and its safety stop port.
+
+A thin facade: it builds the motion layer's objects (ownership, stop planner, admission, executor),
+wires each with exactly the collaborators it needs and the one :class:`~._records._MotionTable` they
+share, and keeps the public methods the robot, the safety layer and the applications call.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .. import scope
 from ..config import format_value
-from ..errors import InvalidValueError, LimitViolation, UnknownJointError
-from ..loop import HookHandle, Phase, Setpoint, StateView
+from ..errors import ConfigurationError, InvalidValueError, LimitViolation, UnknownJointError
+from ..limits import PositionBounds, StepGuard, StepLimiter
+from ..loop import ControlLoop, HookHandle, Phase, Setpoint, StateView
+from ..offload import TrajectoryOffload
 from ..trajectory import (
     Trajectory,
     plan_point_to_point,
 )
+from ._admission import _Admission
 from ._executor import _Executor
 from ._handle import Motion
-from ._records import _Exec
+from ._ownership import _Ownership
+from ._records import _Exec, _MotionTable
+from ._stops import _StopPlanner
 from ._types import MotionPhase, ResultCode, Tolerances, _per_joint, _turns_to
 
+if TYPE_CHECKING:
+    from ..kinematics import Kinematics
 
-class MotionManager(_Executor):
-    """Owns the running motions of one robot; one executor per motion, run in the control tick."""
+
+class MotionManager:
+    """Owns the running motions of one robot; one executor record per motion, run in the control tick.
+
+    Implements the safety layer's :class:`~agentsdk.safety.StopPort` and the handle's ``_MotionOwner``.
+    """
+
+    def __init__(
+        self, loop: ControlLoop, bounds: PositionBounds, decel_scale: float = 1.0, guard: StepGuard | None = None
+    ) -> None:
+        self.loop = loop
+        #: position bounds every trajectory point must respect (URDF limits minus the safety margin)
+        self.bounds = bounds
+        #: scale of max_acceleration used by stop ramps
+        self.decel_scale = decel_scale
+        table = self._table = _MotionTable(loop)
+        #: joints currently driven by a motion or a stop ramp (read-only for other modules)
+        self.owned_mask = table.owned_mask
+        n = len(loop.joints)
+        #: the safety layer's limiter (None: none): told where stops restart, reported what it would clip
+        self._guard = guard
+        # the limiter the executor applies: the safety layer's, else (no guard) the position bounds alone
+        limiter = guard.limiter if guard is not None else StepLimiter(
+            bounds.lo, bounds.hi, None, np.full(n, np.inf), np.full(n, np.inf))
+        backend = getattr(loop, "backend", None)
+        # the backend's controller runs whole trajectories (goals) instead of streamed setpoints
+        offload = backend if isinstance(backend, TrajectoryOffload) else None
+        own = self._ownership = _Ownership(loop, table)
+        stops = self._stops = _StopPlanner(loop, table, own, bounds, decel_scale, guard)
+        admission = self._admission = _Admission(loop, table, own, bounds, limiter)
+        self._executor = _Executor(loop, table, own, stops, admission, limiter, guard, offload)
+        #: the robot's kinematics (set by the Robot), for link poses in motion feedback
+        self.kinematics_source: Callable[[], Kinematics] | None = None
+        #: the robot's sensors (set by the Robot), for ``motion.feedback(sensors=...)``
+        self.sensors_source: Callable[[], Any] | None = None
+
+    def kinematics(self) -> Kinematics:
+        """The robot's :class:`~agentsdk.kinematics.Kinematics` (raises if it has none)."""
+        if self.kinematics_source is None:
+            raise ConfigurationError("link poses need the robot's kinematics; this motion manager has no robot")
+        return self.kinematics_source()
+
+    # ------------------------------------------------------------ speed scaling, queries
+    @property
+    def speed_scaling(self) -> float:
+        """The speed scaling factor every trajectory follows (1.0: as timed, 0.0: paused)."""
+        return self._ownership.speed_scaling
+
+    def set_speed_scaling(self, factor: float) -> None:
+        """Set the speed scaling factor in [0, 1]; running trajectories follow it smoothly."""
+        self._ownership.set_speed_scaling(factor)
+
+    def owner_of(self, idx: np.ndarray) -> tuple[int, Motion | None] | None:
+        """The first of joints ``idx`` driven (or reserved by a scheduled motion), with its motion."""
+        return self._ownership.owner_of(idx)
+
+    def desired(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Current desired (q, v, a) for joints: from their executor, else the setpoint/state."""
+        return self._ownership.desired(idx)
+
+    def _request_stop(self, motion: Motion, code: ResultCode, msg: str) -> None:
+        """Stop ``motion`` along a stop ramp, then resolve it with ``code`` (the handle's cancel, stop_early)."""
+        self._stops.request_stop(motion, code, msg)
 
     # ------------------------------------------------------------- start
     def follow(
@@ -74,31 +148,31 @@ class MotionManager(_Executor):
                    goal=np.asarray(traj.positions[-1], dtype=float).copy())
         ex.stretch = bool(stretch_to_limits)
         ex.end_moving = traj.velocities is not None and bool(np.any(traj.velocities[-1] != 0.0))
-        wrap = self._continuous[idx]
+        wrap = self._table.continuous[idx]
         ex.wrap = wrap if wrap.any() else None
         if t_start > now:
             # scheduled: validated now against the state predicted for its start, again when it starts
-            q0, v0, a0 = self._predicted(idx, t_start)
-            traj, _ = self._prepare(ex, traj, q0, v0, a0, t_start)
+            q0, v0, a0 = self._admission.predicted(idx, t_start)
+            traj, _ = self._admission.prepare(ex, traj, q0, v0, a0, t_start)
             ex.pending_traj = traj
             ex.phase = MotionPhase.PENDING
             motion = Motion(self, idx, names, traj, t_start)
             ex.motion = motion
             self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
-            self._pending.append(ex)
-            self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: self._update(ex, t, st, sp))
+            self._executor.schedule(ex)
             scope.register(motion)
             return motion
         q0, v0, a0 = self.desired(idx)
-        traj, sampler = self._prepare(ex, traj, q0, v0, a0, t_start)
+        traj, sampler = self._admission.prepare(ex, traj, q0, v0, a0, t_start)
         motion = Motion(self, idx, names, traj, t_start)
         ex.motion = motion
-        self._preempt_offloaded()
-        self._preempt(idx)
+        executor = self._executor
+        executor.preempt_offloaded()
+        executor.preempt(idx)
         self._drop_pending(idx, ResultCode.PREEMPTED, "preempted by a newer trajectory")
-        self._begin(ex, sampler, q0, v0, a0, t_start)
-        self._install(ex)
-        self._try_offload(ex, traj)
+        self._admission.begin(ex, sampler, q0, v0, a0, t_start)
+        executor.install(ex)
+        executor.try_offload(ex, traj)
         scope.register(motion)
         return motion
 
@@ -131,7 +205,7 @@ class MotionManager(_Executor):
                 raise InvalidValueError(f"move_to: duration must be a number of seconds, got {duration!r}") from None
         self.bounds.check(goal, idx)
         q0, v0, a0 = self.desired(idx)
-        wrap = self._continuous[idx]
+        wrap = self._table.continuous[idx]
         if wrap.any():
             goal = goal + np.where(wrap, _turns_to(q0, goal), 0.0)
         joints = [ctl.joints[i] for i in idx.tolist()]
@@ -139,9 +213,9 @@ class MotionManager(_Executor):
         return self.follow(traj, tol)
 
     def _drop_pending(self, idx: np.ndarray, code: ResultCode, msg: str) -> None:
-        for ex in list(self._pending):
+        for ex in list(self._table.pending):
             if np.intersect1d(ex.idx, idx).size:
-                self._finish(ex, code, msg)
+                self._ownership.finish(ex, code, msg)
 
     async def stop_all_ramp(self, damp_only: bool = False, damping: float = 5.0, *,
                             from_reference: bool = False) -> None:
@@ -174,13 +248,14 @@ class MotionManager(_Executor):
             if from_reference:
                 q0, v0, a0, meas = q, v, a, np.zeros(len(idx), dtype=bool)
             else:
-                q0, v0, a0, meas = self._stop_start(idx, q, v, a, None)
-            for ex in [*set(self._owner), *self._pending]:
+                q0, v0, a0, meas = self._stops.stop_start(idx, q, v, a, None)
+            for ex in self._records():
                 if ex is not None:
-                    self._finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
+                    self._ownership.finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
             if meas.any() and self._guard is not None:
                 self._guard.rebase(idx[meas], q0[meas])
-            self._start_ramp(idx, q0, v0, a0, None, "", on_done=lambda: None if done.done() else done.set_result(None))
+            self._executor.start_ramp(idx, q0, v0, a0, None, "",
+                                      on_done=lambda: None if done.done() else done.set_result(None))
         try:
             await done
         finally:
@@ -189,25 +264,25 @@ class MotionManager(_Executor):
 
     def abort_all(self, reason: str = "robot closed") -> None:
         """Resolve every motion ABORTED (no ramp: the caller takes over the joints)."""
-        for ex in [*set(self._owner), *self._pending]:
+        for ex in self._records():
             if ex is not None and ex.motion is not None:
-                self._finish(ex, ResultCode.ABORTED, f"aborted: {reason}")
+                self._ownership.finish(ex, ResultCode.ABORTED, f"aborted: {reason}")
 
     def end_all(self, reason: str) -> None:
         """End every motion (ABORTED) and every stop ramp now, leaving the setpoint where it is.
 
         Used by ``reset()``: nothing may keep driving the joints over time afterwards.
         """
-        for ex in [*set(self._owner), *self._pending]:
+        for ex in self._records():
             if ex is not None:
-                self._finish(ex, ResultCode.ABORTED if ex.motion is not None else None, f"aborted: {reason}")
+                self._ownership.finish(ex, ResultCode.ABORTED if ex.motion is not None else None, f"aborted: {reason}")
 
     def fail_all(self, exc: BaseException) -> None:
         """Fail every motion with ``exc`` (the control loop died)."""
-        for ex in [*set(self._owner), *self._pending]:
+        for ex in self._records():
             if ex is None:
                 continue
-            self._release(ex)
+            self._ownership.release(ex)
             if ex.motion is not None:
                 ex.motion._fail(exc)
             ex.phase = MotionPhase.DEAD
@@ -218,8 +293,9 @@ class MotionManager(_Executor):
         A planned motion is never clipped silently: the motion aborts (ABORTED) and stops from
         the measured state; a stop ramp that reaches a joint's bounds is reported once.
         """
+        owner = self._table.owner
         for j in idx.tolist():
-            ex = self._owner[j]
+            ex = owner[j]
             if ex is None or ex.reported_clip:
                 continue
             ex.reported_clip = True
@@ -227,4 +303,8 @@ class MotionManager(_Executor):
                 self._guard.report("clip", detail, self.loop.names[j])
             if ex.phase in (MotionPhase.FOLLOW, MotionPhase.SETTLE):
                 q, v, a = ex.des_q, ex.des_v, ex.des_a
-                self._abort(ex, ResultCode.ABORTED, f"aborted: {detail}", self.loop.stamp, q, v, a, None)
+                self._stops.abort(ex, ResultCode.ABORTED, f"aborted: {detail}", self.loop.stamp, q, v, a, None)
+
+    def _records(self) -> list[_Exec | None]:
+        """Every record that drives joints (once each, None among them) and every scheduled one."""
+        return [*set(self._table.owner), *self._table.pending]

@@ -1,4 +1,6 @@
-"""The executor's record of one motion or stop ramp and its preallocated tick buffers."""
+"""The executor's record of one motion or stop ramp, its preallocated tick buffers, and the table of them
+that the motion layer's objects share (:class:`_MotionTable`).
+"""
 
 from __future__ import annotations
 
@@ -163,3 +165,31 @@ class _Exec:
     #: robot time since which the joints of an ended offloaded goal are still (-1: the goal runs)
     remote_rest: float = -1.0
     remote_v: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+class _MotionTable:
+    """The state the motion layer's objects share: which record drives which joint, the scheduled
+    ones, the speed scaling factor, and the joints' limits they all plan with.
+
+    One instance per :class:`~agentsdk.motion.MotionManager`, passed to the ownership, the stop
+    planner, the admission and the executor (no object keeps a copy of any of it).
+    """
+
+    __slots__ = ("amax", "continuous", "owned_mask", "owner", "pending", "speed", "vmax")
+
+    def __init__(self, loop: ControlLoop) -> None:
+        joints = loop.joints
+        n = len(joints)
+        #: the record driving each joint (a motion or a stop ramp), or None
+        self.owner: list[_Exec | None] = [None] * n
+        #: motions scheduled to start later (``start_time`` in the future)
+        self.pending: list[_Exec] = []
+        #: joints currently driven by a record (read-only outside the ownership; changed in place only)
+        self.owned_mask = np.zeros(n, dtype=bool)
+        #: the speed scaling factor every trajectory follows (1.0: as timed, 0.0: paused)
+        self.speed = 1.0
+        #: the joints' velocity and acceleration limits (read-only)
+        self.vmax = np.array([j.max_velocity for j in joints], dtype=np.float64)
+        self.amax = np.array([j.max_acceleration for j in joints], dtype=np.float64)
+        #: continuous joints: shortest-angle start, wrapped errors (read-only)
+        self.continuous = np.array([j.type == "continuous" for j in joints], dtype=bool)

@@ -31,7 +31,7 @@ import pytest
 import agentsdk
 from agentsdk.limits import StepLimiter
 from agentsdk.motion import MotionManager
-from agentsdk.safety import SafetyLayer
+from agentsdk.safety._filter import CommandFilter
 from agentsdk.trajectory import Trajectory, TrajectoryPoint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -264,7 +264,7 @@ def test_documented_long_modules_are_long() -> None:
     assert not stale, f"docs/architecture.md explains modules that are not over {MAX_LINES} lines (any more): {stale}"
 
 
-@pytest.mark.parametrize("method", [SafetyLayer._filter, MotionManager._limited], ids=["filter", "executor"])
+@pytest.mark.parametrize("method", [CommandFilter.tick, MotionManager._limited], ids=["filter", "executor"])
 def test_filter_and_executor_do_not_clip_themselves(method: Any) -> None:
     """Neither the safety filter nor the executor's limiter check does clipping arithmetic of its own."""
     fn = ast.parse(textwrap.dedent(inspect.getsource(method))).body[0]
@@ -301,7 +301,7 @@ async def test_filter_and_executor_limit_through_the_same_limiter(monkeypatch: p
         await robot.command(agentsdk.JointCommand("position", [float(q) + 0.02 for q in goal]))
         await robot.clock.sleep(0.05)
     assert (MotionManager._limited.__module__, "_limited") in callers, callers
-    assert (SafetyLayer._filter.__module__, "_filter") in callers, callers
+    assert (CommandFilter.tick.__module__, "tick") in callers, callers
 
 
 #: MuJoCo calls that compile or load a model

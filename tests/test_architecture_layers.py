@@ -11,6 +11,9 @@
   there is still long (the list of exceptions stays true).
 * The position limiting math exists once: the safety filter and the trajectory executor call
   the same :class:`agentsdk.limits.StepLimiter` methods.
+* Inside a package split by objects no class extends another class of its package (value types,
+  enums, exceptions and pydantic models excepted): its objects are separate, each built with its
+  collaborators, not layers of one ``self``.
 * The host-side model is compiled in one place (:func:`agentsdk.hostmodel.compile_spec`): the
   kinematics, the dynamics and the core build no MuJoCo model of their own.
 """
@@ -302,6 +305,138 @@ async def test_filter_and_executor_limit_through_the_same_limiter(monkeypatch: p
         await robot.clock.sleep(0.05)
     assert (MotionManager._limited.__module__, "_limited") in callers, callers
     assert (CommandFilter.tick.__module__, "tick") in callers, callers
+
+
+#: packages whose classes are separate objects: none extends another class of its package
+OBJECT_PACKAGES = ["agentsdk.safety"]
+
+#: bases that make a class a value type, an enum, an exception or a pydantic model (last name of the base)
+_VALUE_BASES = frozenset({
+    "Enum", "IntEnum", "StrEnum", "Flag", "IntFlag", "BaseException", "Exception", "BaseModel",
+    "NamedTuple", "TypedDict", "Protocol",
+})
+
+
+def _package_sources(package: str) -> dict[str, str]:
+    return {m: p.read_text() for m, p in MODULES.items() if m == package or m.startswith(package + ".")}
+
+
+def _subclass_chains(package: str, sources: dict[str, str]) -> list[str]:
+    """``module: Class(Base)`` for every class in ``sources`` (module -> source text of ``package``) that
+    extends a class defined in the package, unless that base is a value type (a frozen dataclass), an
+    enum, an exception or a pydantic model, itself or through its own bases."""
+    trees = {m: ast.parse(src, filename=m) for m, src in sources.items()}
+    classes = {
+        (m, node.name): node for m, tree in trees.items() for node in tree.body if isinstance(node, ast.ClassDef)
+    }
+
+    def absolute(module: str, node: ast.ImportFrom) -> str:
+        if not node.level:
+            return node.module or ""
+        is_pkg = any(other.startswith(module + ".") for other in sources)
+        base = module.split(".") if is_pkg else module.split(".")[:-1]
+        base = base[: len(base) - (node.level - 1)]
+        return ".".join([*base, node.module] if node.module else base)
+
+    # per module: a local name -> the package class or package module it stands for
+    names: dict[str, dict[str, tuple[str, str] | str]] = {}
+    for m, tree in trees.items():
+        local: dict[str, tuple[str, str] | str] = {name: (m, name) for mm, name in classes if mm == m}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                src = absolute(m, node)
+                for a in node.names:
+                    if f"{src}.{a.name}" in sources:
+                        local[a.asname or a.name] = f"{src}.{a.name}"
+                    elif (src, a.name) in classes:
+                        local[a.asname or a.name] = (src, a.name)
+            elif isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name in sources and a.asname:
+                        local[a.asname] = a.name
+        names[m] = local
+
+    def resolve(m: str, expr: ast.expr) -> tuple[str, str] | None:
+        """The package class a base expression names (None: not one of the package)."""
+        if isinstance(expr, ast.Name):
+            hit = names[m].get(expr.id)
+            return hit if isinstance(hit, tuple) else None
+        if isinstance(expr, ast.Attribute):
+            if isinstance(expr.value, ast.Name):
+                mod = names[m].get(expr.value.id)
+            else:
+                mod = ast.unparse(expr.value)
+            if isinstance(mod, str) and (mod, expr.attr) in classes:
+                return mod, expr.attr
+        return None
+
+    def is_value(key: tuple[str, str], seen: frozenset[tuple[str, str]] = frozenset()) -> bool:
+        node = classes[key]
+        for dec in node.decorator_list:
+            if isinstance(dec, ast.Call) and "dataclass" in ast.unparse(dec.func) and any(
+                k.arg == "frozen" and isinstance(k.value, ast.Constant) and k.value.value is True for k in dec.keywords
+            ):
+                return True
+        for base in node.bases:
+            if ast.unparse(base).rpartition(".")[2] in _VALUE_BASES:
+                return True
+            inner = resolve(key[0], base)
+            if inner is not None and inner not in seen and is_value(inner, seen | {key}):
+                return True
+        return False
+
+    found = []
+    for (m, name), node in classes.items():
+        for base in node.bases:
+            target = resolve(m, base)
+            if target is not None and not is_value(target):
+                found.append(f"{m}: {name}({ast.unparse(base)})")
+    return sorted(found)
+
+
+@pytest.mark.parametrize("package", OBJECT_PACKAGES)
+def test_no_class_extends_another_of_its_package(package: str) -> None:
+    """The objects of a package split by objects are separate (no inheritance chain of one ``self``)."""
+    sources = _package_sources(package)
+    assert len(sources) > 1, f"{package} is not a package of agentsdk"
+    found = _subclass_chains(package, sources)
+    assert not found, (
+        f"classes of {package} extending another class of the package (build a separate object and pass "
+        "it in the constructor):\n" + "\n".join(found)
+    )
+
+
+def test_the_subclass_guard_finds_a_chain() -> None:
+    """The subclass guard is not vacuous: a chain of layers is found, value types pass."""
+    sources = {
+        "p": "from ._c import C\n",
+        "p._a": "class _Core:\n    pass\n",
+        "p._b": "from ._a import _Core\n\n\nclass _Filter(_Core):\n    pass\n",
+        "p._c": textwrap.dedent("""
+            import enum
+            from dataclasses import dataclass
+            from . import _b
+            from ._b import _Filter as F
+
+
+            class C(_b._Filter): ...
+            class D(F): ...
+            class E(enum.Enum):
+                A = 1
+            class Err(Exception): ...
+            class SubErr(Err): ...
+            @dataclass(frozen=True)
+            class V: ...
+            class W(V): ...
+            class Local: ...
+            class Same(Local): ...
+        """),
+    }
+    assert _subclass_chains("p", sources) == [
+        "p._b: _Filter(_Core)", "p._c: C(_b._Filter)", "p._c: D(F)", "p._c: Same(Local)",
+    ]
+    del sources["p._b"], sources["p._c"]
+    assert _subclass_chains("p", sources) == []
 
 
 #: MuJoCo calls that compile or load a model

@@ -11,6 +11,9 @@
   there is still long (the list of exceptions stays true).
 * The position limiting math exists once: the safety filter and the trajectory executor call
   the same :class:`agentsdk.limits.StepLimiter` methods.
+* Inside a package split by objects no class extends another class of its package (value types,
+  enums, exceptions and pydantic models excepted): its objects are separate, each built with its
+  collaborators, not layers of one ``self``.
 * The host-side model is compiled in one place (:func:`agentsdk.hostmodel.compile_spec`): the
   kinematics, the dynamics and the core build no MuJoCo model of their own.
 """
@@ -31,7 +34,7 @@ import pytest
 import agentsdk
 from agentsdk.limits import StepLimiter
 from agentsdk.motion._executor import _Executor
-from agentsdk.safety import SafetyLayer
+from agentsdk.safety._filter import CommandFilter
 from agentsdk.trajectory import Trajectory, TrajectoryPoint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -238,64 +241,6 @@ def test_the_package_order_guard_finds_an_upward_import() -> None:
     assert _package_violations(order, {"p._a": {("p", "lazy")}}) != []
 
 
-#: packages split by objects whose objects are composed, never inherited from one another: no class of
-#: the package subclasses another class of the package (so a chain of layers sharing one ``self`` cannot
-#: come back). Each names the classes excepted (value types, enums, exceptions), none so far.
-NO_INHERITANCE: dict[str, frozenset[str]] = {
-    "agentsdk.motion": frozenset(),
-}
-
-
-def _base_name(base: ast.expr) -> str | None:
-    """The class name a base expression refers to (``Base``, ``mod.Base``, ``Base[T]``)."""
-    if isinstance(base, ast.Subscript):
-        base = base.value
-    if isinstance(base, ast.Attribute):
-        return base.attr
-    if isinstance(base, ast.Name):
-        return base.id
-    return None
-
-
-def _inheritance_violations(sources: dict[str, str], allowed: frozenset[str]) -> list[str]:
-    """``module: class C(B)`` for every class of ``sources`` (one package's modules) whose base is a
-    class the package defines, apart from the ``allowed`` subclasses."""
-    trees = {m: ast.parse(src, filename=m) for m, src in sources.items()}
-    defined = {n.name for tree in trees.values() for n in ast.walk(tree) if isinstance(n, ast.ClassDef)}
-    bad = []
-    for m, tree in sorted(trees.items()):
-        for node in ast.walk(tree):
-            if not isinstance(node, ast.ClassDef) or node.name in allowed:
-                continue
-            bad += [f"{m}: class {node.name}({ast.unparse(b)})" for b in node.bases if _base_name(b) in defined]
-    return bad
-
-
-@pytest.mark.parametrize("pkg", sorted(NO_INHERITANCE))
-def test_split_packages_compose_objects(pkg: str) -> None:
-    """The objects of a package split by objects hold their collaborators; none inherits another's methods."""
-    sources = {m: MODULES[m].read_text() for m in MODULES if m.startswith(pkg + ".")}
-    assert sources, f"{pkg} has no modules"
-    bad = _inheritance_violations(sources, NO_INHERITANCE[pkg])
-    assert not bad, f"classes of {pkg} that subclass another class of the package:\n" + "\n".join(bad)
-
-
-def test_the_composition_guard_finds_a_chain() -> None:
-    """The subclassing check is not vacuous: a chain of layers over modules is found, stdlib bases are not."""
-    sources = {
-        "p._a": "import enum\nclass _Core:\n    pass\nclass Code(enum.IntEnum):\n    A = 1\n",
-        "p._b": "from . import _a\nclass _Stops(_a._Core):\n    pass\nclass Err(ValueError):\n    pass\n",
-        "p._c": "from ._b import _Stops\nclass Manager(_Stops):\n    pass\nclass Box(Generic[T]):\n    pass\n"
-                "class Gen(Box[int]):\n    pass\n",
-    }
-    assert _inheritance_violations(sources, frozenset()) == [
-        "p._b: class _Stops(_a._Core)",
-        "p._c: class Manager(_Stops)",
-        "p._c: class Gen(Box[int])",
-    ]
-    assert _inheritance_violations(sources, frozenset({"_Stops", "Manager", "Gen"})) == []
-
-
 def _private_state(source: str, cls: str) -> set[str]:
     """The private attributes class ``cls`` of ``source`` assigns on ``self`` (its state)."""
     node = next(n for n in ast.parse(source).body if isinstance(n, ast.ClassDef) and n.name == cls)
@@ -362,7 +307,7 @@ def test_documented_long_modules_are_long() -> None:
     assert not stale, f"docs/architecture.md explains modules that are not over {MAX_LINES} lines (any more): {stale}"
 
 
-@pytest.mark.parametrize("method", [SafetyLayer._filter, _Executor._limited], ids=["filter", "executor"])
+@pytest.mark.parametrize("method", [CommandFilter.tick, _Executor._limited], ids=["filter", "executor"])
 def test_filter_and_executor_do_not_clip_themselves(method: Any) -> None:
     """Neither the safety filter nor the executor's limiter check does clipping arithmetic of its own."""
     fn = ast.parse(textwrap.dedent(inspect.getsource(method))).body[0]
@@ -399,7 +344,139 @@ async def test_filter_and_executor_limit_through_the_same_limiter(monkeypatch: p
         await robot.command(agentsdk.JointCommand("position", [float(q) + 0.02 for q in goal]))
         await robot.clock.sleep(0.05)
     assert (_Executor._limited.__module__, "_limited") in callers, callers
-    assert (SafetyLayer._filter.__module__, "_filter") in callers, callers
+    assert (CommandFilter.tick.__module__, "tick") in callers, callers
+
+
+#: packages whose classes are separate objects: none extends another class of its package
+OBJECT_PACKAGES = ["agentsdk.motion", "agentsdk.safety"]
+
+#: bases that make a class a value type, an enum, an exception or a pydantic model (last name of the base)
+_VALUE_BASES = frozenset({
+    "Enum", "IntEnum", "StrEnum", "Flag", "IntFlag", "BaseException", "Exception", "BaseModel",
+    "NamedTuple", "TypedDict", "Protocol",
+})
+
+
+def _package_sources(package: str) -> dict[str, str]:
+    return {m: p.read_text() for m, p in MODULES.items() if m == package or m.startswith(package + ".")}
+
+
+def _subclass_chains(package: str, sources: dict[str, str]) -> list[str]:
+    """``module: Class(Base)`` for every class in ``sources`` (module -> source text of ``package``) that
+    extends a class defined in the package, unless that base is a value type (a frozen dataclass), an
+    enum, an exception or a pydantic model, itself or through its own bases."""
+    trees = {m: ast.parse(src, filename=m) for m, src in sources.items()}
+    classes = {
+        (m, node.name): node for m, tree in trees.items() for node in tree.body if isinstance(node, ast.ClassDef)
+    }
+
+    def absolute(module: str, node: ast.ImportFrom) -> str:
+        if not node.level:
+            return node.module or ""
+        is_pkg = any(other.startswith(module + ".") for other in sources)
+        base = module.split(".") if is_pkg else module.split(".")[:-1]
+        base = base[: len(base) - (node.level - 1)]
+        return ".".join([*base, node.module] if node.module else base)
+
+    # per module: a local name -> the package class or package module it stands for
+    names: dict[str, dict[str, tuple[str, str] | str]] = {}
+    for m, tree in trees.items():
+        local: dict[str, tuple[str, str] | str] = {name: (m, name) for mm, name in classes if mm == m}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                src = absolute(m, node)
+                for a in node.names:
+                    if f"{src}.{a.name}" in sources:
+                        local[a.asname or a.name] = f"{src}.{a.name}"
+                    elif (src, a.name) in classes:
+                        local[a.asname or a.name] = (src, a.name)
+            elif isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name in sources and a.asname:
+                        local[a.asname] = a.name
+        names[m] = local
+
+    def resolve(m: str, expr: ast.expr) -> tuple[str, str] | None:
+        """The package class a base expression names (None: not one of the package)."""
+        if isinstance(expr, ast.Name):
+            hit = names[m].get(expr.id)
+            return hit if isinstance(hit, tuple) else None
+        if isinstance(expr, ast.Attribute):
+            if isinstance(expr.value, ast.Name):
+                mod = names[m].get(expr.value.id)
+            else:
+                mod = ast.unparse(expr.value)
+            if isinstance(mod, str) and (mod, expr.attr) in classes:
+                return mod, expr.attr
+        return None
+
+    def is_value(key: tuple[str, str], seen: frozenset[tuple[str, str]] = frozenset()) -> bool:
+        node = classes[key]
+        for dec in node.decorator_list:
+            if isinstance(dec, ast.Call) and "dataclass" in ast.unparse(dec.func) and any(
+                k.arg == "frozen" and isinstance(k.value, ast.Constant) and k.value.value is True for k in dec.keywords
+            ):
+                return True
+        for base in node.bases:
+            if ast.unparse(base).rpartition(".")[2] in _VALUE_BASES:
+                return True
+            inner = resolve(key[0], base)
+            if inner is not None and inner not in seen and is_value(inner, seen | {key}):
+                return True
+        return False
+
+    found = []
+    for (m, name), node in classes.items():
+        for base in node.bases:
+            target = resolve(m, base)
+            if target is not None and not is_value(target):
+                found.append(f"{m}: {name}({ast.unparse(base)})")
+    return sorted(found)
+
+
+@pytest.mark.parametrize("package", OBJECT_PACKAGES)
+def test_no_class_extends_another_of_its_package(package: str) -> None:
+    """The objects of a package split by objects are separate (no inheritance chain of one ``self``)."""
+    sources = _package_sources(package)
+    assert len(sources) > 1, f"{package} is not a package of agentsdk"
+    found = _subclass_chains(package, sources)
+    assert not found, (
+        f"classes of {package} extending another class of the package (build a separate object and pass "
+        "it in the constructor):\n" + "\n".join(found)
+    )
+
+
+def test_the_subclass_guard_finds_a_chain() -> None:
+    """The subclass guard is not vacuous: a chain of layers is found, value types pass."""
+    sources = {
+        "p": "from ._c import C\n",
+        "p._a": "class _Core:\n    pass\n",
+        "p._b": "from ._a import _Core\n\n\nclass _Filter(_Core):\n    pass\n",
+        "p._c": textwrap.dedent("""
+            import enum
+            from dataclasses import dataclass
+            from . import _b
+            from ._b import _Filter as F
+
+
+            class C(_b._Filter): ...
+            class D(F): ...
+            class E(enum.Enum):
+                A = 1
+            class Err(Exception): ...
+            class SubErr(Err): ...
+            @dataclass(frozen=True)
+            class V: ...
+            class W(V): ...
+            class Local: ...
+            class Same(Local): ...
+        """),
+    }
+    assert _subclass_chains("p", sources) == [
+        "p._b: _Filter(_Core)", "p._c: C(_b._Filter)", "p._c: D(F)", "p._c: Same(Local)",
+    ]
+    del sources["p._b"], sources["p._c"]
+    assert _subclass_chains("p", sources) == []
 
 
 #: MuJoCo calls that compile or load a model

@@ -76,7 +76,8 @@ async def test_a_realtime_robot_blocked_after_ticking_is_stopped_a_timeout_after
     timeout = 0.2
     async with agentsdk.connect("mock", robot="arm3", realtime=True, safety={"stall_timeout": timeout}) as robot:
         safety: Any = robot.safety
-        assert safety._stall is not None and safety._stall._interval == pytest.approx(timeout / 10)
+        stall = safety._watchdogs._stall  # the stall thread's wiring lives in the safety layer's watchdogs
+        assert stall is not None and stall._interval == pytest.approx(timeout / 10)
         await robot.command(JointCommand("position", {"joint1": 0.0}))
         await robot.clock.sleep(0.1)
         t0 = time.monotonic()

@@ -30,14 +30,17 @@ simulated robot cannot move while it stalls and there is nothing to protect:
 the watchdog is off there unless ``stall_in_lockstep`` is set (to catch a
 behavior's blocking calls in simulation before they reach hardware).
 
-The package, one job a module, each importing only the ones above it in this list:
+The package, one job a module, each importing only the ones above it in this list; each module
+holds one object, none a subclass of another (the facade builds them and passes each its collaborators):
 
 * :mod:`._config`: :class:`SafetyConfig`
-* :mod:`._state`: the state machine and latch, the event log, the :class:`StopPort` motions implement
-* :mod:`._filter`: command limiting and the per-tick filter (through :class:`~agentsdk.limits.StepLimiter`)
-* :mod:`._stops`: e-stops and controlled stops, reset and enable
-* :mod:`._watchdogs`: the per-tick checks, the command watchdog, sensor faults, the loop-stall watchdog
-* :mod:`._layer`: :class:`SafetyLayer` and its command gate :meth:`SafetyLayer.admit`
+* :mod:`._state`: ``SafetyCore`` (the state machine, the latch, the event log), the :class:`StopPort` motions implement
+* :mod:`._filter`: ``CommandFilter`` (command limiting and the per-tick filter, through
+  :class:`~agentsdk.limits.StepLimiter`)
+* :mod:`._stops`: ``Stops`` (e-stops and controlled stops, reset and enable)
+* :mod:`._watchdogs`: ``Watchdogs`` (the per-tick checks, the command watchdog, sensor faults, the loop-stall watchdog)
+* :mod:`._layer`: :class:`SafetyLayer`, the facade that builds and wires them, and its command gate
+  :meth:`SafetyLayer.admit`
 """
 
 from __future__ import annotations

@@ -1,4 +1,11 @@
-"""The :class:`SafetyLayer`: built around one control loop, the one command gate (:meth:`~SafetyLayer.admit`)."""
+"""The :class:`SafetyLayer`: builds and wires the safety objects around one control loop, and is the command gate.
+
+Who holds whom (each object gets exactly its collaborators; calls only point down this list)::
+
+    SafetyLayer ─→ Watchdogs ─→ Stops ─→ CommandFilter ─→ SafetyCore
+         │             │          │            │
+         └─────────────┴──────────┴────────────┴─→ StopPort (the motion manager, attached later)
+"""
 
 from __future__ import annotations
 
@@ -6,45 +13,39 @@ import asyncio
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from ..checks import MeasuredPositionCheck, SafetyCheck
-from ..clock import RealtimeClock
 from ..commands import resolve_command
-from ..errors import (
-    CommandRejected,
-    InvalidValueError,
-)
-from ..limits import PositionBounds, StepGuard
+from ..errors import CommandRejected
+from ..limits import PositionBounds, StepGuard, StepLimiter
 from ..loop import ControlLoop, HookHandle, Phase
-from ..stall import StallWatchdog
 from ..types import AppliedCommand, JointCommand
 from ._config import SafetyConfig
-from ._state import SAFETY_OBSERVE_ORDER, StopPort
-from ._watchdogs import _Watchdogs
+from ._filter import CommandFilter
+from ._state import SAFETY_OBSERVE_ORDER, SafetyCore, SafetyEvent, SafetyState, StopPort, _NoMotions
+from ._stops import Stops
+from ._watchdogs import Watchdogs
 
 if TYPE_CHECKING:
     from ..following import FollowingErrorCheck
 
 
+class SafetyLayer:
+    """Wraps one control loop. Created by :func:`agentsdk.connect`; reach it as ``robot.safety``.
 
-class SafetyLayer(_Watchdogs):
-    """Wraps one control loop. Created by :func:`agentsdk.connect`; reach it as ``robot.safety``."""
+    A facade: the state machine, latch and event log (``SafetyCore``), the command filter
+    (``CommandFilter``), the stops (``Stops``) and the watchdogs (``Watchdogs``) are separate
+    objects it builds and wires; it owns the command gate :meth:`admit`.
+    """
 
     def __init__(
         self, loop: ControlLoop, config: SafetyConfig, bounds: PositionBounds, motions: StopPort | None = None
     ) -> None:
-        super().__init__(loop, config, bounds, motions)
-        self._handles = [
-            loop.add_hook(Phase.LIMIT, self._filter),
-            loop.add_hook(Phase.OBSERVE, self._on_tick, order=SAFETY_OBSERVE_ORDER),
-            loop.add_fault_listener(self._on_fault),
-        ]
-        origin = self._written.view()
-        origin.flags.writeable = False
-        #: what the motion manager checks its planned steps against before writing (a planned motion
-        #: is never clipped silently; an abort that resets a reference to the measured state says so)
-        self.step_guard = StepGuard(self.limiter, origin, self._rebase_reference, self.record)
+        self.loop = loop
+        self.config = config
+        #: the stop port of the motion manager (see :meth:`attach_motions`)
+        self.motions: StopPort = _NoMotions(len(loop.joints)) if motions is None else motions
+        #: the one limiting rule (position bounds, step per period, velocity and effort limits)
+        self.limiter = limiter = StepLimiter.for_joints(loop.joints, bounds, config.max_position_step, loop.period)
         #: the plausibility gate of every reading (None: sensor_check off)
         self.sensor_gate = (
             loop.install_sensor_gate(
@@ -54,6 +55,27 @@ class SafetyLayer(_Watchdogs):
             if config.sensor_check
             else None
         )
+        self._core = core = SafetyCore(loop)
+        self._filter = command_filter = CommandFilter(loop, config, limiter, core, self.motions)
+        self._stops = stops = Stops(loop, config, limiter, core, command_filter, self.motions)
+        self._watchdogs = watchdogs = Watchdogs(
+            loop, config, core, command_filter, stops, self.motions, self.sensor_gate
+        )
+        # the gate's calls, bound once
+        self._check_motion_allowed = core.check_motion_allowed
+        self._limit_command = command_filter.limit_command
+        self._limit_feedforward = command_filter.limit_feedforward
+        self._ramp_start = command_filter.ramp_start
+        self._start_ramp = command_filter.start_ramp
+        self._feed = watchdogs.feed
+        self._handles = [
+            loop.add_hook(Phase.LIMIT, command_filter.tick),
+            loop.add_hook(Phase.OBSERVE, watchdogs.tick, order=SAFETY_OBSERVE_ORDER),
+            loop.add_fault_listener(stops.on_fault),
+        ]
+        #: what the motion manager checks its planned steps against before writing (a planned motion
+        #: is never clipped silently; an abort that resets a reference to the measured state says so)
+        self.step_guard = StepGuard(limiter, command_filter.origin(), command_filter.rebase_reference, core.record)
         if config.position_limit_tolerance is not None:
             self.add_check(
                 MeasuredPositionCheck(loop.joints, config.position_limit_tolerance, config.position_limit_stop)
@@ -72,43 +94,134 @@ class SafetyLayer(_Watchdogs):
     def attach_motions(self, motions: StopPort) -> None:
         """Connect the motion manager (through the :class:`StopPort` this layer defines)."""
         self.motions = motions
+        self._filter.motions = motions
+        self._stops.motions = motions
+        self._watchdogs.motions = motions
 
     # ---------------------------------------------------------- lifecycle
     def start(self) -> None:
         """Start the heartbeat and the stall watchdog thread (called by connect once the loop runs)."""
-        self._aloop = asyncio.get_running_loop()
-        np.copyto(self._written, self.loop.setpoint.position)
-        self._goal = self._written.copy()
-        timeout = self.config.stall_timeout
-        if self.stall_watchdog_active and timeout is not None and self._stall is None:
-            loop = self.loop
-            self._stall = StallWatchdog(
-                timeout, f"agentsdk-stall-watchdog-{loop.backend.name}",
-                idle=lambda: loop.torque_off or loop.closed,
-                emergency_stop=lambda: loop.emergency_stop(0),
-                on_stall=self._on_stall,
-            )
-            if isinstance(loop.clock, RealtimeClock):  # every tick beats, at the time the tick read anyway
-                loop.add_hook(Phase.OBSERVE, self._stall.tick_beats(loop.clock.origin))
-            self._stall.start()
+        self._stops.bind(asyncio.get_running_loop())
+        self._filter.restart(self.loop.setpoint.position)
+        self._watchdogs.start_stall_watchdog()
 
     async def shutdown(self) -> None:
         """Stop the watchdog thread and heartbeat, end stop tasks (awaited); called by Robot.close()."""
-        stall = self._stall
-        if stall is not None:
-            stall.stop_now()
-        tasks = list(self._stop_tasks)
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.gather(*tasks, return_exceptions=True)
-        if stall is not None:
-            await stall.stop()
+        self._watchdogs.stop_stall_watchdog_now()
+        await self._stops.cancel()
+        await self._watchdogs.stop_stall_watchdog()
 
     def shutdown_now(self) -> None:
         """Synchronous part of :meth:`shutdown` (no event loop): signal the watchdog thread to stop."""
-        if self._stall is not None:
-            self._stall.stop_now()
+        self._watchdogs.stop_stall_watchdog_now()
+
+    # ---------------------------------------------------------- state and events (SafetyCore)
+    @property
+    def state(self) -> SafetyState:
+        """OK, HOLD, ESTOP, DISABLED or FAULT (an e-stop latched from another thread shows at once)."""
+        return self._core.state
+
+    @property
+    def cause(self) -> BaseException | None:
+        """The exception behind a FAULT, or None."""
+        return self._core._cause
+
+    @property
+    def events(self) -> tuple[SafetyEvent, ...]:
+        """Recorded safety events, oldest first (the last 10,000), including ones from the watchdog thread."""
+        return self._core.events
+
+    @property
+    def event_count(self) -> int:
+        """How many events were ever recorded (a cursor for :meth:`events_since`)."""
+        return self._core._event_count
+
+    def events_since(self, count: int) -> list[SafetyEvent]:
+        """Events recorded after the first ``count`` (``count`` from :attr:`event_count`)."""
+        return self._core.events_since(count)
+
+    def record(self, kind: str, detail: str, joint: str | None = None) -> SafetyEvent:
+        """Append an event (any thread) stamped with the robot time of the latest state."""
+        return self._core.record(kind, detail, joint)
+
+    def check_fault(self) -> None:
+        """Raise :class:`~agentsdk.errors.SafetyFault` (with the cause) while in FAULT."""
+        self._core.check_fault()
+
+    def check_motion_allowed(self) -> None:
+        """Raise :class:`~agentsdk.errors.EStopActive` / :class:`~agentsdk.errors.SafetyFault` unless OK or HOLD."""
+        self._core.check_motion_allowed()
+
+    def latch_cause(self) -> str:
+        """The detail of the event that latched the e-stop (the first stopping event since the last reset)."""
+        return self._core.latch_cause()
+
+    # ---------------------------------------------------------- stops (Stops)
+    @property
+    def stop_in_progress(self) -> bool:
+        """True while a controlled stop (category 1 or 2) is decelerating the robot."""
+        return self._stops.stop_in_progress
+
+    async def estop(self, category: int = 1) -> None:
+        """Latch an e-stop of the given category and wait until its end state is reached.
+
+        The stop runs in its own task: cancelling the caller does not interrupt it.
+        """
+        await self._stops.estop(category)
+
+    def estop_threadsafe(self, category: int = 0) -> None:
+        """Latch an e-stop from any thread. Category 0 acts at once in the calling thread;
+        categories 1 and 2 are scheduled on the robot's event loop (category 0 if it is gone).
+        """
+        self._stops.estop_threadsafe(category)
+
+    async def wait_stopped(self) -> None:
+        """Wait until every stop in progress has reached its end state (returns at once if none)."""
+        await self._stops.wait_stopped()
+
+    async def reset(self) -> None:
+        """Clear the latch (ESTOP -> DISABLED) or recover a FAULT. Never moves the robot.
+
+        A stop in progress completes first. Anything still driving the joints over time
+        (a trajectory, a stop ramp) ends here; the setpoint stays exactly as the stop
+        left it: torque off stays off, a hold keeps holding where it is.
+        """
+        await self._stops.reset()
+        self._watchdogs.rearm_after_reset()
+
+    async def enable(self) -> None:
+        """Allow motion again: hold the current position with torque on (ESTOP must be reset first)."""
+        await self._stops.enable()
+        self._watchdogs.rearm_commands()
+
+    # ---------------------------------------------------------- watchdogs (Watchdogs)
+    def add_check(self, check: SafetyCheck) -> HookHandle:
+        """Run ``check(t, state)`` every tick while motion is allowed; a returned violation latches an e-stop."""
+        return self._watchdogs.add_check(check)
+
+    @property
+    def stall_watchdog_active(self) -> bool:
+        """True if the stall watchdog watches this robot (see :mod:`agentsdk.safety`).
+
+        That is: a ``stall_timeout`` is set and the robot runs in real time, or in lockstep with
+        ``stall_in_lockstep``.
+        """
+        return self._watchdogs.stall_watchdog_active
+
+    @property
+    def stall_traceback(self) -> str | None:
+        """Stack of the event-loop thread when the stall watchdog fired (None since the last reset)."""
+        return self._watchdogs.stall_traceback
+
+    @property
+    def stall_detected_at(self) -> float | None:
+        """Wall-clock time (``time.monotonic``) the stall watchdog fired, or None."""
+        return self._watchdogs.stall_detected_at
+
+    @property
+    def stall_latency(self) -> float | None:
+        """How long after the last heartbeat the stall watchdog fired (s), or None."""
+        return self._watchdogs.stall_latency
 
     # ---------------------------------------------------------- the command gate
     def admit(self, cmd: JointCommand) -> AppliedCommand:
@@ -123,7 +236,7 @@ class SafetyLayer(_Watchdogs):
         """
         loop = self.loop
         backend = loop.backend
-        self.check_motion_allowed()
+        self._check_motion_allowed()
         idx, values, vel, eff = resolve_command(cmd, loop.names, loop.index, backend.capabilities.modes, backend.name)
         assert isinstance(cmd, JointCommand)  # resolve_command checked it
         owner = self.motions.owner_of(idx)
@@ -132,22 +245,16 @@ class SafetyLayer(_Watchdogs):
                 f"joint {loop.names[owner[0]]!r} is driven by a running trajectory (or reserved by a "
                 "scheduled one); cancel it (motion.cancel()) before sending direct commands"
             )
-        values = self._limit_command(cmd.mode, idx, values)
+        mode = cmd.mode
+        values = self._limit_command(mode, idx, values)
         vel, eff = self._limit_feedforward(idx, vel, eff)
-        loop.apply(cmd.mode, idx, values, vel, eff, position_now=self._ramp_start(cmd.mode, idx))
-        self._feed(cmd.mode, idx, values)
+        loop.apply(mode, idx, values, vel, eff, position_now=self._ramp_start(mode, idx))
+        self._feed(idx)
+        self._start_ramp(mode, idx, values)
         names = [loop.names[i] for i in idx.tolist()]
         return AppliedCommand(
-            cmd.mode,
+            mode,
             MappingProxyType(dict(zip(names, values.tolist(), strict=True))),
             None if vel is None else MappingProxyType(dict(zip(names, vel.tolist(), strict=True))),
             None if eff is None else MappingProxyType(dict(zip(names, eff.tolist(), strict=True))),
         )
-
-    def add_check(self, check: SafetyCheck) -> HookHandle:
-        """Run ``check(t, state)`` every tick while motion is allowed; a returned violation latches an e-stop."""
-        if not callable(check):
-            raise InvalidValueError(f"a safety check must be callable, got {check!r}")
-        self._checks.append(check)
-        checks = self._checks
-        return HookHandle(lambda: checks.remove(check) if check in checks else None, lambda: check in checks)

@@ -2,34 +2,21 @@
 
 from __future__ import annotations
 
-import asyncio
 import enum
 import logging
 import threading
-import time
 from collections import deque
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from ..backend import ModeCode
-from ..checks import SafetyCheck
 from ..errors import (
     EStopActive,
     SafetyFault,
 )
-from ..limits import PositionBounds, StepLimiter
 from ..loop import ControlLoop
-from ..plausibility import SensorGate
-from ..stall import StallWatchdog
-from ..types import MODES
-from ._config import SafetyConfig
-
-if TYPE_CHECKING:
-    pass
-
-
 
 log = logging.getLogger("agentsdk.safety")
 
@@ -119,19 +106,17 @@ class _NoMotions:
         """Nothing runs: at rest already."""
 
 
-class _SafetyCore:
-    """The safety layer's state: the state machine, the e-stop latch and the event log."""
+class SafetyCore:
+    """The state machine, the e-stop latch and the event log: the bottom object every other one reads.
 
-    #: the plausibility gate of every reading (None: sensor_check off), installed by the layer
-    sensor_gate: SensorGate | None
+    The latch may be set from any thread (the stall watchdog's, a signal handler's through
+    ``estop_threadsafe``): :meth:`latch` and :meth:`clear_latch` take its lock, and :attr:`state`
+    shows a latch set elsewhere at once. Events are recorded from any thread too.
+    """
 
-    def __init__(
-        self, loop: ControlLoop, config: SafetyConfig, bounds: PositionBounds, motions: StopPort | None = None
-    ) -> None:
-        self.loop = loop
-        self.config = config
-        #: the stop port of the motion manager (see :meth:`attach_motions`)
-        self.motions: StopPort = _NoMotions(len(loop.joints)) if motions is None else motions
+    def __init__(self, loop: ControlLoop) -> None:
+        #: the robot time of the latest state (``loop.stamp``) stamps every event
+        self._loop = loop
         self._events: deque[SafetyEvent] = deque(maxlen=10_000)
         self._event_count = 0
         self._events_lock = threading.Lock()
@@ -141,61 +126,8 @@ class _SafetyCore:
         self._latch_lock = threading.Lock()
         #: lowest stop category latched since the last reset (None: not latched)
         self._latch_category: int | None = None
-        #: the loop side has taken over the current latch (see _enforce_latch)
+        #: the loop side has taken over the current latch (see CommandFilter.enforce_latch)
         self._latch_handled = False
-        #: stack of the event-loop thread when the stall watchdog fired
-        self.stall_traceback: str | None = None
-        n = len(loop.joints)
-        #: the one limiting rule (position bounds, step per period, velocity and effort limits)
-        self.limiter = limiter = StepLimiter.for_joints(loop.joints, bounds, config.max_position_step, loop.period)
-        self._lo, self._hi = limiter.lo, limiter.hi
-        self._step = limiter.step
-        #: watched[mode code] -> True if the command watchdog applies to that mode
-        self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
-        self._watch_position = "position" in config.watchdog_modes
-        self._fed = np.zeros(n)  # robot time of the last command per joint
-        #: the limiter's origin: the position setpoint written last tick (always updated in place)
-        self._written = loop.state.position.copy()
-        #: goal of a direct position command being ramped (max_position_step), per joint
-        self._goal = loop.setpoint.position.copy()
-        self._ramping = np.zeros(n, dtype=bool)
-        #: joints put on hold by the command watchdog (not watched again until commanded)
-        self._held = np.zeros(n, dtype=bool)
-        self._vmax, self._emax = limiter.vmax, limiter.emax
-        #: scratch of the per-tick filter's slow path (a joint ramping or outside position mode)
-        self._target = np.zeros(n)
-        self._limited = np.zeros(n)
-        #: scratch masks of the per-tick paths (joints in position mode with torque on; streamed joints;
-        #: stale streams) and the command age per joint: no arrays allocated per tick
-        self._n = n
-        #: ``tobytes()`` of a mode row with every joint in position mode, of an all-true / all-false mask:
-        #: the per-tick checks compare bytes (no array, ~5x cheaper than ufunc + np.count_nonzero)
-        self._all_position = np.full(n, _POS, dtype=np.int8).tobytes()
-        self._all_true = np.ones(n, dtype=bool).tobytes()
-        self._all_false = np.zeros(n, dtype=bool).tobytes()
-        self._streamed = np.zeros(n, dtype=bool)
-        self._stale = np.zeros(n, dtype=bool)
-        self._age = np.zeros(n)
-        #: views of the loop's setpoint rows (made once per setpoint object, not per tick)
-        self._rows_of: object = None
-        self._rows: np.ndarray | None = None
-        #: deceleration available to stop a velocity stream before a position limit
-        self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
-        self._last_warn: dict[tuple[str, int], float] = {}
-        self._stop_tasks: set[asyncio.Task[None]] = set()
-        #: the controlled stop (category 1 or 2) in progress and the category its end state follows
-        self._ramp_stop: asyncio.Task[None] | None = None
-        self._ramp_category = 2
-        self._fault_waiters: set[asyncio.Future[BaseException]] = set()
-        self._checks: list[SafetyCheck] = []
-        self._aloop: asyncio.AbstractEventLoop | None = None
-        #: the event-loop stall watchdog (None: not watched, see :attr:`stall_watchdog_active`)
-        self._stall: StallWatchdog | None = None
-        #: wall-clock time (time.monotonic) the stall watchdog fired, and how long after the last heartbeat
-        self.stall_detected_at: float | None = None
-        self.stall_latency: float | None = None
-        #: a sensor fault since the last reset: stops start from the reference, not the measurement
-        self._distrust_measurement = False
 
     @property
     def state(self) -> SafetyState:
@@ -211,6 +143,26 @@ class _SafetyCore:
         """The exception behind a FAULT, or None."""
         return self._cause
 
+    def enter(self, state: SafetyState) -> None:
+        """Set the state machine's own state (the latch is separate: :meth:`latch`, :meth:`clear_latch`)."""
+        self._state = state
+
+    def fault(self, exc: BaseException) -> None:
+        """Enter FAULT because of ``exc`` (reported by :attr:`cause` and :meth:`check_fault`)."""
+        self._state = SafetyState.FAULT
+        self._cause = exc
+
+    def recovered(self) -> None:
+        """The backend recovered from its fault: forget the cause (the state is set by the caller)."""
+        self._cause = None
+
+    def take_latch(self) -> None:
+        """The loop side handles the current latch now: ESTOP (unless in FAULT)."""
+        self._latch_handled = True
+        if self._state is not SafetyState.FAULT:
+            self._state = SafetyState.ESTOP
+
+    # --------------------------------------------------------------- events
     @property
     def events(self) -> tuple[SafetyEvent, ...]:
         """Recorded safety events, oldest first (the last 10,000), including ones from the watchdog thread."""
@@ -230,14 +182,9 @@ class _SafetyCore:
                 return []
             return list(self._events)[-min(new, len(self._events)):]
 
-    @property
-    def stop_in_progress(self) -> bool:
-        """True while a controlled stop (category 1 or 2) is decelerating the robot."""
-        return any(not t.done() for t in self._stop_tasks)
-
     def record(self, kind: str, detail: str, joint: str | None = None) -> SafetyEvent:
         """Append an event (any thread) stamped with the robot time of the latest state."""
-        ev = SafetyEvent(self.loop.stamp, kind, joint, detail)
+        ev = SafetyEvent(self._loop.stamp, kind, joint, detail)
         with self._events_lock:
             self._events.append(ev)
             self._event_count += 1
@@ -273,44 +220,24 @@ class _SafetyCore:
                 cause = ev.detail if ev.kind in ("estop", "stall") else f"{ev.kind}: {ev.detail}"
         return cause
 
-    # --------------------------------------------------------------- e-stop
-    def _latch(self, category: int) -> bool:
-        """Latch the e-stop (any thread). Returns False if it was already latched."""
+    # --------------------------------------------------------------- latch
+    def latch(self, category: int, *, handled: bool | None = None) -> bool:
+        """Latch the e-stop (any thread). Returns False if it was already latched.
+
+        ``handled``: also say whether the loop side has taken the latch over (None: unchanged).
+        """
         with self._latch_lock:
             first = not self._latched.is_set()
             if self._latch_category is None or category < self._latch_category:
                 self._latch_category = category
             self._latched.set()
+        if handled is not None:
+            self._latch_handled = handled
         return first
 
-    def _enforce_latch(self) -> None:
-        """Loop side, once per latch set from another thread (stall watchdog, estop_threadsafe).
-
-        Category 0: torque is already off; running motions end ABORTED. Categories 1
-        and 2: the stop task scheduled on the loop decelerates them (no freeze here).
-        """
-        self._latch_handled = True
-        if self._state is not SafetyState.FAULT:
-            self._state = SafetyState.ESTOP
-        if self._latch_category == 0:
-            self._ramping[:] = False
-            self.motions.abort_all("e-stop")
-
-    def _on_fault(self, exc: BaseException) -> None:
-        self._state = SafetyState.FAULT
-        self._cause = exc
-        self._ramping[:] = False
-        self.record("fault", str(exc))
-        self.motions.fail_all(exc)
-        for fut in self._fault_waiters:
-            if not fut.done():
-                fut.set_result(exc)
-
-    # -------------------------------------------------------------- limits
-    def _warn(self, kind: str, j: int, msg: str) -> None:
-        """Log a warning at most once per ``warn_interval`` (wall time) per (kind, joint)."""
-        now = time.monotonic()
-        key = (kind, j)
-        if now - self._last_warn.get(key, -1e9) >= self.config.warn_interval:
-            self._last_warn[key] = now
-            log.warning(msg)
+    def clear_latch(self) -> None:
+        """Clear the latch (a reset): nothing latched, no category, nothing for the loop side to take over."""
+        with self._latch_lock:
+            self._latched.clear()
+            self._latch_category = None
+        self._latch_handled = False

@@ -2,54 +2,130 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..backend import SetpointView
+from ..checks import SafetyCheck
+from ..clock import RealtimeClock
 from ..errors import (
+    InvalidValueError,
     SensorFault,
 )
-from ..loop import StateView
+from ..loop import ControlLoop, HookHandle, Phase, StateView
 from ..plausibility import SensorGate
-from ._state import _POS, SafetyState, log
-from ._stops import _Stops
+from ..stall import StallWatchdog
+from ..types import MODES
+from ._config import SafetyConfig
+from ._filter import CommandFilter
+from ._state import _POS, SafetyCore, SafetyState, StopPort, log
+from ._stops import Stops
 
-if TYPE_CHECKING:
-    pass
 
+class Watchdogs:
+    """Watches each tick's state and the event loop; starts a stop (through ``stops``) when a watch fires.
 
+    Owns the registered checks, the command watchdog (when each joint was last commanded, which
+    joints it holds), the reaction to a sensor fault reported by ``sensor_gate`` and the wiring of
+    the loop-stall thread (:class:`~agentsdk.stall.StallWatchdog`), which latches ``core`` from its
+    own thread.
+    """
 
-class _Watchdogs(_Stops):
-    """Watches each tick's state and the event loop; starts a stop when a watch fires."""
+    def __init__(
+        self, loop: ControlLoop, config: SafetyConfig, core: SafetyCore, command_filter: CommandFilter,
+        stops: Stops, motions: StopPort, sensor_gate: SensorGate | None,
+    ) -> None:
+        self._loop = loop
+        self._config = config
+        self._core = core
+        self._stops = stops
+        self._sensor_gate = sensor_gate
+        #: the stop port of the motion manager (replaced by SafetyLayer.attach_motions)
+        self.motions = motions
+        #: bound once: the per-tick calls into the objects below
+        self._latch_is_set = core._latched.is_set
+        self._all_position_on = command_filter.all_position_on
+        self._track_measured = command_filter.track_measured
+        self._begin_stop = stops.begin_stop
+        self._checks: list[SafetyCheck] = []
+        n = len(loop.joints)
+        #: watched[mode code] -> True if the command watchdog applies to that mode
+        self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
+        self._watch_position = "position" in config.watchdog_modes
+        self._fed = np.zeros(n)  # robot time of the last command per joint
+        #: joints put on hold by the command watchdog (not watched again until commanded)
+        self._held = np.zeros(n, dtype=bool)
+        #: scratch masks of the per-tick path (streamed joints, stale streams) and the command age
+        #: per joint: no arrays allocated per tick
+        self._all_false = np.zeros(n, dtype=bool).tobytes()
+        self._streamed = np.zeros(n, dtype=bool)
+        self._stale = np.zeros(n, dtype=bool)
+        self._age = np.zeros(n)
+        #: the event-loop stall watchdog (None: not watched, see :attr:`stall_watchdog_active`)
+        self._stall: StallWatchdog | None = None
+        #: stack of the event-loop thread when the stall watchdog fired (cleared by a reset)
+        self.stall_traceback: str | None = None
+        #: wall-clock time (time.monotonic) the stall watchdog fired, and how long after the last heartbeat
+        self.stall_detected_at: float | None = None
+        self.stall_latency: float | None = None
 
-    # --------------------------------------------------------------- state
-    @property
-    def stall_watchdog_active(self) -> bool:
-        """True if the stall watchdog watches this robot (see the module documentation).
+    # --------------------------------------------------------------- checks
+    def add_check(self, check: SafetyCheck) -> HookHandle:
+        """Run ``check(t, state)`` every tick while motion is allowed; a returned violation latches an e-stop."""
+        if not callable(check):
+            raise InvalidValueError(f"a safety check must be callable, got {check!r}")
+        self._checks.append(check)
+        checks = self._checks
+        return HookHandle(lambda: checks.remove(check) if check in checks else None, lambda: check in checks)
 
-        That is: a ``stall_timeout`` is set and the robot runs in real time, or in lockstep with
-        ``stall_in_lockstep``.
-        """
-        cfg = self.config
-        return cfg.stall_timeout is not None and (self.loop.realtime or cfg.stall_in_lockstep)
+    # ------------------------------------------------------ command watchdog
+    def feed(self, idx: np.ndarray) -> None:
+        """A command was applied to joints ``idx``: they are watched from now; a HOLD ends."""
+        self._fed[idx] = self._loop.stamp
+        self._held[idx] = False
+        core = self._core
+        if core._state is SafetyState.HOLD:
+            core.enter(SafetyState.OK)
+            core.record("resume", "command received; leaving HOLD")
 
-    def _on_tick(self, t: float, st: StateView, sp: SetpointView) -> None:
-        gate = self.sensor_gate
+    def rearm_commands(self) -> None:
+        """Motion was enabled: no joint is held, every joint counts as commanded now."""
+        self._held[:] = False
+        self._fed[:] = self._loop.stamp
+
+    def rearm_after_reset(self) -> None:
+        """The latch was cleared: forget the stall's stack and reported sensor faults, beat the heartbeat."""
+        self.stall_traceback = None
+        if self._sensor_gate is not None:
+            self._sensor_gate.clear()  # a joint still reading nonsense is reported again
+        if self._stall is not None:
+            self._stall.beat()
+
+    def _hold(self, idx: np.ndarray) -> None:
+        loop = self._loop
+        if self._config.hold == "position" and "position" in loop.backend.capabilities.modes:
+            loop.hold_current(idx)
+        else:
+            loop.damp(idx, loop.gain_v[idx])
+
+    # --------------------------------------------------------------- per tick
+    def tick(self, t: float, st: StateView, sp: SetpointView) -> None:
+        """OBSERVE phase, every tick: sensor faults, the checks, then the command watchdog."""
+        gate = self._sensor_gate
         if gate is not None and gate.pending:
             self._sensor_fault(gate)
         all_position = self._all_position_on(sp.mode, sp.enabled)
         if not all_position:
             # the ramp origin of joints outside position mode is their fresh measurement
-            np.copyto(self._written, st.position, where=(sp.mode != _POS) | ~sp.enabled)
-        if self._state is not SafetyState.OK and self._state is not SafetyState.HOLD:
+            self._track_measured(st.position, (sp.mode != _POS) | ~sp.enabled)
+        state = self._core._state
+        if state is not SafetyState.OK and state is not SafetyState.HOLD:
             return
-        if self._latched.is_set():
+        if self._latch_is_set():
             return
         for check in self._checks:
             violation = check(t, st)
             if violation is not None:
-                self.record(violation.kind, violation.detail, violation.joint)
+                self._core.record(violation.kind, violation.detail, violation.joint)
                 log.error("safety check: %s; e-stop category %d", violation.detail, violation.category)
                 self._begin_stop(violation.category, violation.kind)
                 return
@@ -67,15 +143,15 @@ class _Watchdogs(_Stops):
         # stale = streamed & (t - fed > command_timeout)
         stale, age = self._stale, self._age
         np.subtract(t, self._fed, out=age)
-        np.greater(age, self.config.command_timeout, out=stale)
+        np.greater(age, self._config.command_timeout, out=stale)
         np.logical_and(stale, streamed, out=stale)
         if stale.tobytes() != self._all_false:
             idx = np.flatnonzero(stale)
             self._hold(idx)
             self._held[idx] = True
-            self._state = SafetyState.HOLD
-            names = ", ".join(self.loop.names[i] for i in idx.tolist())
-            self.record("watchdog", f"no command for {self.config.command_timeout:g} s; holding {names}")
+            self._core.enter(SafetyState.HOLD)
+            names = ", ".join(self._loop.names[i] for i in idx.tolist())
+            self._core.record("watchdog", f"no command for {self._config.command_timeout:g} s; holding {names}")
             log.warning("command watchdog: holding %s", names)
 
     def _sensor_fault(self, gate: SensorGate) -> None:
@@ -84,31 +160,65 @@ class _Watchdogs(_Stops):
         The state still holds the joint's last plausible reading; the stop starts every joint
         from its reference (the measurement is not trusted), category ``sensor_fault_stop``.
         """
-        loop = self.loop
+        loop = self._loop
+        core = self._core
         first: SensorFault | None = None
         for r in gate.take_new():
             name = loop.names[r.index]
             src = loop.backend.joint_source(r.index)
             where = f" ({src})" if src else ""
             detail = f"sensor fault on joint {name!r}{where}: {r.reason}; the last plausible state is kept"
-            self.record("sensor", detail, name)
+            core.record("sensor", detail, name)
             log.error("%s", detail)
             if first is None:
                 first = SensorFault(detail, joint=name, source=src, quantity=r.quantity, value=r.value)
         if first is None:
             return
-        self._distrust_measurement = True
-        if self._state is not SafetyState.FAULT:
-            self._state = SafetyState.FAULT
-            self._cause = first
-        self._begin_stop(self.config.sensor_fault_stop, "sensor fault")
+        self._stops.distrust_measurement()
+        if core._state is not SafetyState.FAULT:
+            core.fault(first)
+        self._begin_stop(self._config.sensor_fault_stop, "sensor fault")
 
     # ------------------------------------------------------ stall watchdog
+    @property
+    def stall_watchdog_active(self) -> bool:
+        """True if the stall watchdog watches this robot (see the package documentation).
+
+        That is: a ``stall_timeout`` is set and the robot runs in real time, or in lockstep with
+        ``stall_in_lockstep``.
+        """
+        cfg = self._config
+        return cfg.stall_timeout is not None and (self._loop.realtime or cfg.stall_in_lockstep)
+
+    def start_stall_watchdog(self) -> None:
+        """Start the stall watchdog's thread (and its heartbeat on every real-time tick) if it is active."""
+        timeout = self._config.stall_timeout
+        if self.stall_watchdog_active and timeout is not None and self._stall is None:
+            loop = self._loop
+            self._stall = StallWatchdog(
+                timeout, f"agentsdk-stall-watchdog-{loop.backend.name}",
+                idle=lambda: loop.torque_off or loop.closed,
+                emergency_stop=lambda: loop.emergency_stop(0),
+                on_stall=self._on_stall,
+            )
+            if isinstance(loop.clock, RealtimeClock):  # every tick beats, at the time the tick read anyway
+                loop.add_hook(Phase.OBSERVE, self._stall.tick_beats(loop.clock.origin))
+            self._stall.start()
+
+    def stop_stall_watchdog_now(self) -> None:
+        """Signal the stall watchdog's thread to stop (no event loop needed)."""
+        if self._stall is not None:
+            self._stall.stop_now()
+
+    async def stop_stall_watchdog(self) -> None:
+        """Stop the stall watchdog's thread and wait for it."""
+        if self._stall is not None:
+            await self._stall.stop()
+
     def _on_stall(self, last: float, stopped: float, stack: str, where: str) -> None:
         """The stall watchdog's thread found the event loop stuck (torque is already off): latch and say where."""
-        timeout = self.config.stall_timeout
-        self._latch(0)
-        self._latch_handled = False  # the loop side still has to abort motions
+        timeout = self._config.stall_timeout
+        self._core.latch(0, handled=False)  # the loop side still has to abort motions
         self.stall_latency = stopped - last
         self.stall_detected_at = stopped
         self.stall_traceback = stack
@@ -117,5 +227,6 @@ class _Watchdogs(_Stops):
             f"e-stop category 0 latched; loop was at {where}: a blocking call (time.sleep, blocking I/O, "
             "a long computation) in a coroutine; use `await robot.clock.sleep()`, or `asyncio.to_thread()`"
         )
-        self.record("stall", detail)
+        self._core.record("stall", detail)
         log.error("%s\n%s", detail, stack)
+

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import ast
 import asyncio
+import functools
+import gc
+import sys
 import threading
 from collections.abc import AsyncIterator, Iterable, Iterator
 from typing import Any
@@ -11,6 +15,28 @@ import pytest
 import pytest_asyncio
 
 import agentsdk
+
+if sys.version_info < (3, 12):
+    # CPython 3.11 keeps ast.parse's recursion-depth count in one per-interpreter state
+    # (python/cpython#106905): a parse nested inside another one - a garbage collection during the
+    # outer parse runs a finalizer that parses, e.g. an asyncio task's "exception was never retrieved"
+    # log, whose traceback formatting parses the source line for its carets, or a thread switch from
+    # that finalizer to a thread that parses - makes the outer one raise "SystemError: AST constructor
+    # recursion depth mismatch" (seen in pytest's own report code at the end of a loaded run). No
+    # collection during a parse, so no finalizer (and no other Python code) runs inside one.
+    _ast_parse = ast.parse
+
+    @functools.wraps(_ast_parse)
+    def _parse_without_collection(*args: Any, **kwargs: Any) -> Any:
+        if not gc.isenabled():
+            return _ast_parse(*args, **kwargs)
+        gc.disable()
+        try:
+            return _ast_parse(*args, **kwargs)
+        finally:
+            gc.enable()
+
+    ast.parse = _parse_without_collection
 
 
 def lockstep_backends(*, deterministic: bool = False, modes: Iterable[str] = ()) -> list[Any]:

@@ -14,6 +14,7 @@ Static checks over the shipped code (agentsdk/, backends/, behaviors/, bench/):
 from __future__ import annotations
 
 import ast
+import functools
 import re
 import subprocess
 from pathlib import Path
@@ -66,6 +67,17 @@ def _imported_names(tree: ast.AST) -> set[str]:
     return out
 
 
+@functools.cache
+def _parsed(path: Path) -> ast.Module:
+    """A source file's syntax tree, parsed once per session (each file's check reads its whole package)."""
+    return ast.parse(path.read_text(), filename=path.relative_to(ROOT).as_posix())
+
+
+@functools.cache
+def _private_names_of(path: Path) -> frozenset[str]:
+    return frozenset(_defined_private_names(_parsed(path)))
+
+
 def _package_private_names(path: Path) -> set[str]:
     """The private names defined by the other modules of ``path``'s package (none at the top level)."""
     if path.parent in (ROOT / "agentsdk", ROOT):
@@ -73,13 +85,13 @@ def _package_private_names(path: Path) -> set[str]:
     names: set[str] = set()
     for other in path.parent.glob("*.py"):
         if other != path:
-            names |= _defined_private_names(ast.parse(other.read_text(), filename=str(other)))
+            names |= _private_names_of(other)
     return names
 
 
 def _problems(path: Path) -> list[str]:
     rel = path.relative_to(ROOT).as_posix()
-    tree = ast.parse(path.read_text(), filename=rel)
+    tree = _parsed(path)
     package = _package_private_names(path)
     own = _defined_private_names(tree) | package
     imported = _imported_names(tree)

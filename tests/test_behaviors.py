@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from test_behaviors_any_arm import EXPECT, check_report
 
 import agentsdk.robot
 from agentsdk.cli import load_behavior
@@ -44,10 +45,16 @@ def test_every_behavior_is_collected() -> None:
 
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("path", BEHAVIORS, ids=lambda p: p.stem)
-def test_behavior_runs(path: Path, backend: str, connections: list[tuple[str, Any]]) -> None:
-    assert cli_main(["run", str(path), "--backend", backend, "--quiet"]) == 0
+def test_behavior_runs(
+    path: Path, backend: str, connections: list[tuple[str, Any]], capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = cli_main(["run", str(path), "--backend", backend, "--quiet"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
     expected_robot = getattr(load_behavior(str(path)), "ROBOT", "arm3")
     assert connections == [(backend, expected_robot)]
+    if path.stem in EXPECT:  # the arm behaviors' report (tests/test_behaviors_any_arm.py runs them on other arms)
+        check_report(path.stem, out.out)
 
 
 def test_humanoid_wave_defaults_to_the_humanoid(connections: list[tuple[str, Any]]) -> None:

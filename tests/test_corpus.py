@@ -21,7 +21,11 @@ import pytest
 
 from agentsdk.probe import ProbePool
 
-pytestmark = pytest.mark.slow
+# pytest-timeout charges a module fixture to the first test that asks for it:
+# the module fixture probes every corpus file on each simulator,
+# minutes of work on a loaded 2-core machine (83 tests errored there at the default 120 s while the fixture
+# was still progressing). A hung probe is bounded by the pool (300 s per job); this bounds the module.
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
 
 ROOT = Path(__file__).resolve().parent.parent
 README = ROOT / "README.md"

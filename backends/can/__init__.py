@@ -525,6 +525,12 @@ class CanBackend(Backend):
         self._unexpected_ids.clear()
         self._foreign_seen = False
         self._surplus[:] = [0] * self._n
+        # the cycles stopped at the fault: its last cycle's replies (the error among them) are no longer
+        # this cycle's, so the replies to the enable frames below replace them (a reply that arrives after
+        # a cycle's own is kept out of that cycle's data, and the stale error code latched the fault again
+        # at the next cycle whenever a motor's reply there came late)
+        self._got[:] = self._none_got
+        self._err[:] = [0] * self._n
         await self._enable()
 
     async def set_zero(self, joint: str) -> None:

@@ -41,6 +41,7 @@ from .clock import Clock, LockstepClock, RealtimeClock
 from .errors import (
     BackendFault,
     BackendStartError,
+    EStopActive,
     InvalidValueError,
     RobotClosedError,
 )
@@ -272,6 +273,8 @@ class ControlLoop:
         #: set by emergency_stop (any thread); every write is torque-off until enable()
         self._torque_off = False
         self._torque_lock = threading.Lock()
+        #: emergency stops so far (under the torque lock): an enable that spans one leaves torque off
+        self._estops = 0
         self._closed = False
         #: serializes commands (Robot.command, follow)
         self.lock = asyncio.Lock()
@@ -419,14 +422,27 @@ class ControlLoop:
         """Thread-safe: remove torque now; every later write is torque-off until :meth:`enable`."""
         with self._torque_lock:
             self._torque_off = True
+            self._estops += 1
         self.backend.emergency_stop(category)
 
     async def enable(self) -> None:
-        """Re-arm the backend and hold the measured position with torque on."""
+        """Re-arm the backend and hold the measured position with torque on.
+
+        The loop keeps running while the backend re-arms (a bus backend awaits its motors'
+        replies): a fault or an emergency stop that comes meanwhile stands, torque stays off,
+        and this raises (:class:`BackendFault`, :class:`EStopActive`) instead of switching it on.
+        """
+        with self._torque_lock:
+            estops = self._estops
         await self.backend.enable()
+        if self._fault is not None:
+            raise BackendFault(f"the control loop faulted while the backend was enabled ({self._fault}); "
+                               "torque stays off") from self._fault
         self._read()
         self.hold_current()
         with self._torque_lock:
+            if self._estops != estops:
+                raise EStopActive("an emergency stop came while the backend was enabled; torque stays off")
             self._torque_off = False
 
     async def recover(self) -> None:

@@ -16,7 +16,9 @@ import yaml
 
 import agentsdk
 from agentsdk import InvalidValueError, JointCommand, RobotClosedError, SafetyState
+from agentsdk.backends.mock import MockBackend
 from agentsdk.backends.mujoco import MujocoController
+from agentsdk.loop import Phase
 from agentsdk.registry import register_backend, unregister_backend
 from agentsdk.threads import run_blocking
 
@@ -211,3 +213,108 @@ async def test_close_cancelled_while_a_stop_runs_closes_then_reraises(backend: s
         with pytest.raises(asyncio.CancelledError):
             await closing
     assert robot.closed
+
+
+# ------------------------------------------------------------------ a fault while enabling stands
+class _RefaultingMock(MockBackend):
+    """A mock whose motor reports its fault again while it is being enabled (as a CAN motor whose error
+    code comes back in the first cycle after the enable frame): the loop's next step raises."""
+
+    refault = False
+    #: called from another thread while enabling (an e-stop button, the stall watchdog)
+    during_enable: Any = None
+
+    async def _enable(self) -> None:
+        if self.during_enable is not None:
+            await run_blocking(self.during_enable)
+            await asyncio.sleep(0.01)  # the loop ticks meanwhile
+        if not self.refault:
+            return
+        self.step_error = True
+        async with asyncio.timeout(HANG_GUARD):
+            while self.step_error:  # noqa: ASYNC110 -- the running loop's next step consumes it and faults
+                await asyncio.sleep(0.001)
+
+
+async def test_a_fault_during_enable_stands_and_torque_stays_off() -> None:
+    """enable() must not report OK over a fault that arrived while it ran: it raises, the state stays
+    FAULT and torque stays off; after the fault clears, reset() and enable() work as usual. (Realtime:
+    the loop runs while a backend's enable awaits its bus, as CAN's does.)"""
+    register_backend("refaulting-mock", _RefaultingMock)
+    try:
+        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
+            backend = robot.backend
+            assert isinstance(backend, _RefaultingMock)
+            await robot.estop(0)
+            await robot.reset()
+            backend.refault = True
+            with pytest.raises((agentsdk.SafetyFault, agentsdk.BackendFault)):
+                await robot.enable()
+            assert robot.safety.state is SafetyState.FAULT
+            assert not robot.torque_enabled
+            with pytest.raises(agentsdk.AgentSDKError):
+                await robot.command(JointCommand("position", {"joint1": 0.1}))
+            backend.refault = False  # the fault is gone: the usual recovery
+            await robot.reset()
+            await robot.enable()
+            assert robot.safety.state is SafetyState.OK and robot.torque_enabled
+            await robot.command(JointCommand("position", {"joint1": 0.1}))
+            await robot.clock.sleep(0.05)
+    finally:
+        unregister_backend("refaulting-mock")
+
+
+async def test_an_estop_during_enable_stands_and_torque_stays_off() -> None:
+    """An e-stop latched (from another thread) while enable() runs is not overridden: enable()
+    raises EStopActive, the state is ESTOP and torque stays off until reset() and enable()."""
+    register_backend("refaulting-mock", _RefaultingMock)
+    try:
+        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
+            backend = robot.backend
+            assert isinstance(backend, _RefaultingMock)
+            await robot.estop(0)
+            await robot.reset()
+            backend.during_enable = lambda: robot.estop_threadsafe(0)
+            with pytest.raises(agentsdk.EStopActive):
+                await robot.enable()
+            assert robot.safety.state is SafetyState.ESTOP
+            assert not robot.torque_enabled
+            backend.during_enable = None
+            await robot.reset()
+            await robot.enable()
+            assert robot.safety.state is SafetyState.OK and robot.torque_enabled
+    finally:
+        unregister_backend("refaulting-mock")
+
+
+async def test_a_fault_or_estop_while_reset_brings_the_robot_to_rest_stands() -> None:
+    """reset() of a moving robot ramps it to rest first; a fault or an e-stop that comes during that
+    ramp is not cleared by the reset that was already running: it raises, and the state says so."""
+    async with agentsdk.connect("mock", robot="arm3", lag=0.05) as robot:
+        move = asyncio.ensure_future(robot.move_to({"joint1": 0.8}, duration=1.0))
+        try:
+            await robot.clock.sleep(0.3)
+            robot.backend.step_error = True  # the ramp's first step faults
+            with pytest.raises(agentsdk.SafetyFault):
+                await robot.reset()
+            assert robot.safety.state is SafetyState.FAULT
+        finally:
+            await asyncio.gather(move, return_exceptions=True)
+        await robot.reset()
+        await robot.enable()
+        move = asyncio.ensure_future(robot.move_to({"joint1": -0.5}, duration=1.0))
+        try:
+            await robot.clock.sleep(0.3)
+            pressed: list[float] = []
+
+            def press(t: float, st: object, sp: object) -> None:
+                if not pressed:
+                    pressed.append(t)
+                    robot.estop_threadsafe(0)
+
+            robot.add_tick_hook(Phase.OBSERVE, press)
+            with pytest.raises(agentsdk.EStopActive, match="while reset"):
+                await robot.reset()
+            assert pressed and robot.safety.state is SafetyState.ESTOP and not robot.torque_enabled
+        finally:
+            await asyncio.gather(move, return_exceptions=True)

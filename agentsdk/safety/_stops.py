@@ -275,7 +275,7 @@ class Stops:
                 outcome = await self._ramp_to_rest(damp_only=False)
                 if outcome == "rest":
                     self._hold_where_stopped()
-            if core._state is SafetyState.FAULT:  # a fault while coming to rest stands
+            if core.state is SafetyState.FAULT:  # a fault while coming to rest stands
                 core.check_fault()
             if core._latched.is_set():  # so does an e-stop that came after this reset started
                 raise EStopActive("an e-stop latched while reset() brought the robot to rest; it stands "

@@ -327,7 +327,7 @@ class VideoRecorder:
         self._ctl = ctl
         self._names = tuple(robot.joint_names)
         self._description = ctl.description
-        self.backend = robot.backend
+        self.backend = robot.backend.name
         # on MuJoCo, frames are the backend's own qpos (a floating base and passive joints included),
         # drawn with its own model: MujocoBackend's public ``model`` and ``data``
         self._mj_model = getattr(ctl, "model", None) if robot.backend.name == "mujoco" else None

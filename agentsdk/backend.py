@@ -228,9 +228,10 @@ class Backend(ABC):
             warnings.warn(f"comparing a Backend with a string: use robot.backend.name == {other!r}",
                           DeprecationWarning, stacklevel=2)
             return self.name == other
-        return self is other
+        return NotImplemented  # (identity)
 
-    __hash__ = object.__hash__
+    def __hash__(self) -> int:  # the name's: ``robot.backend in {"mujoco", "pybullet"}`` keeps working
+        return hash(self.name)
 
     # the read-only values a backend is built from (set from its spec, see ``_adopt``)
     config: RobotConfig

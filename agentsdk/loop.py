@@ -425,12 +425,14 @@ class ControlLoop:
             self._estops += 1
         self.backend.emergency_stop(category)
 
-    async def enable(self) -> None:
+    async def enable(self, veto: Callable[[], BaseException | None] | None = None) -> None:
         """Re-arm the backend and hold the measured position with torque on.
 
         The loop keeps running while the backend re-arms (a bus backend awaits its motors'
         replies): a fault or an emergency stop that comes meanwhile stands, torque stays off,
         and this raises (:class:`BackendFault`, :class:`EStopActive`) instead of switching it on.
+        ``veto``: asked under the torque lock, just before torque goes on; an exception it returns
+        is raised instead (the safety layer's FAULT or latch, set by any thread meanwhile).
         """
         with self._torque_lock:
             estops = self._estops
@@ -439,10 +441,13 @@ class ControlLoop:
             raise BackendFault(f"the control loop faulted while the backend was enabled ({self._fault}); "
                                "torque stays off") from self._fault
         self._read()
-        self.hold_current()
         with self._torque_lock:
             if self._estops != estops:
                 raise EStopActive("an emergency stop came while the backend was enabled; torque stays off")
+            refused = veto() if veto is not None else None
+            if refused is not None:
+                raise refused
+            self.hold_current()
             self._torque_off = False
 
     async def recover(self) -> None:

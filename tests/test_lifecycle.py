@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any, ClassVar
 
+import numpy as np
 import pytest
 import yaml
 
@@ -264,9 +265,10 @@ async def test_a_fault_during_enable_stands_and_torque_stays_off() -> None:
         unregister_backend("refaulting-mock")
 
 
-async def test_an_estop_during_enable_stands_and_torque_stays_off() -> None:
-    """An e-stop latched (from another thread) while enable() runs is not overridden: enable()
-    raises EStopActive, the state is ESTOP and torque stays off until reset() and enable()."""
+@pytest.mark.parametrize("category", [0, 1, 2])
+async def test_an_estop_during_enable_stands_and_torque_stays_off(category: int) -> None:
+    """An e-stop of any category latched (from another thread) while enable() runs is not overridden:
+    enable() raises EStopActive, the state is ESTOP and torque stays off until reset() and enable()."""
     register_backend("refaulting-mock", _RefaultingMock)
     try:
         async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
@@ -274,7 +276,7 @@ async def test_an_estop_during_enable_stands_and_torque_stays_off() -> None:
             assert isinstance(backend, _RefaultingMock)
             await robot.estop(0)
             await robot.reset()
-            backend.during_enable = lambda: robot.estop_threadsafe(0)
+            backend.during_enable = lambda: robot.estop_threadsafe(category)
             with pytest.raises(agentsdk.EStopActive):
                 await robot.enable()
             assert robot.safety.state is SafetyState.ESTOP
@@ -318,3 +320,61 @@ async def test_a_fault_or_estop_while_reset_brings_the_robot_to_rest_stands() ->
             assert pressed and robot.safety.state is SafetyState.ESTOP and not robot.torque_enabled
         finally:
             await asyncio.gather(move, return_exceptions=True)
+
+
+async def test_a_sensor_fault_during_enable_stands() -> None:
+    """A reading the physics cannot explain (NaN) while enable() runs latches its FAULT; enable() does
+    not enter OK over it."""
+    register_backend("refaulting-mock", _RefaultingMock)
+    try:
+        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
+            backend = robot.backend
+            assert isinstance(backend, _RefaultingMock)
+            await robot.estop(0)
+            await robot.reset()
+            real = backend._read
+
+            def nan_once() -> Any:
+                q, v, e = real()
+                q = np.array(q, dtype=float)
+                q[0] = math.nan
+                del backend._read  # the next readings are the mock's own again
+                return q, v, e
+
+            backend.during_enable = lambda: setattr(backend, "_read", nan_once)
+            with pytest.raises(agentsdk.AgentSDKError):
+                await robot.enable()
+            assert robot.safety.state is SafetyState.FAULT
+            assert isinstance(robot.safety.cause, agentsdk.SensorFault)
+            assert not robot.torque_enabled
+    finally:
+        unregister_backend("refaulting-mock")
+
+
+async def test_an_estop_while_reset_recovers_a_fault_stands() -> None:
+    """reset() of a FAULT recovers the backend; an e-stop latched meanwhile is not cleared by it."""
+    register_backend("refaulting-mock", _RefaultingMock)
+    try:
+        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
+            backend = robot.backend
+            assert isinstance(backend, _RefaultingMock)
+            backend.step_error = True
+            async with asyncio.timeout(HANG_GUARD):
+                while robot.safety.state is not SafetyState.FAULT:  # noqa: ASYNC110 -- the loop's fault
+                    await asyncio.sleep(0.01)
+            real_recover = backend._recover
+
+            async def recover_and_press() -> None:
+                await real_recover()
+                await run_blocking(robot.estop_threadsafe, 0)
+
+            backend._recover = recover_and_press  # type: ignore[method-assign]
+            with pytest.raises(agentsdk.EStopActive, match="while reset"):
+                await robot.reset()
+            assert robot.safety.state is SafetyState.ESTOP and not robot.torque_enabled
+            del backend._recover
+            await robot.reset()
+            await robot.enable()
+            assert robot.safety.state is SafetyState.OK and robot.torque_enabled
+    finally:
+        unregister_backend("refaulting-mock")

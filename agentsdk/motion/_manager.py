@@ -46,10 +46,6 @@ class MotionManager:
         self, loop: ControlLoop, bounds: PositionBounds, decel_scale: float = 1.0, guard: StepGuard | None = None
     ) -> None:
         self.loop = loop
-        #: position bounds every trajectory point must respect (URDF limits minus the safety margin)
-        self.bounds = bounds
-        #: scale of max_acceleration used by stop ramps
-        self.decel_scale = decel_scale
         table = self._table = _MotionTable(loop)
         #: joints currently driven by a motion or a stop ramp (read-only for other modules)
         self.owned_mask = table.owned_mask
@@ -76,6 +72,16 @@ class MotionManager:
         if self.kinematics_source is None:
             raise ConfigurationError("link poses need the robot's kinematics; this motion manager has no robot")
         return self.kinematics_source()
+
+    @property
+    def bounds(self) -> PositionBounds:
+        """Position bounds every trajectory point must respect (URDF limits minus the safety margin)."""
+        return self._admission.bounds
+
+    @property
+    def decel_scale(self) -> float:
+        """Scale of max_acceleration used by stop ramps."""
+        return self._stops.decel_scale
 
     # ------------------------------------------------------------ speed scaling, queries
     @property

@@ -42,8 +42,7 @@ class SafetyLayer:
     ) -> None:
         self.loop = loop
         self.config = config
-        #: the stop port of the motion manager (see :meth:`attach_motions`)
-        self.motions: StopPort = _NoMotions(len(loop.joints)) if motions is None else motions
+        self._motions: StopPort = _NoMotions(len(loop.joints)) if motions is None else motions
         #: the one limiting rule (position bounds, step per period, velocity and effort limits)
         self.limiter = limiter = StepLimiter.for_joints(loop.joints, bounds, config.max_position_step, loop.period)
         #: the plausibility gate of every reading (None: sensor_check off)
@@ -56,10 +55,10 @@ class SafetyLayer:
             else None
         )
         self._core = core = SafetyCore(loop)
-        self._filter = command_filter = CommandFilter(loop, config, limiter, core, self.motions)
-        self._stops = stops = Stops(loop, config, limiter, core, command_filter, self.motions)
+        self._filter = command_filter = CommandFilter(loop, config, limiter, core, self._motions)
+        self._stops = stops = Stops(loop, config, limiter, core, command_filter, self._motions)
         self._watchdogs = watchdogs = Watchdogs(
-            loop, config, core, command_filter, stops, self.motions, self.sensor_gate
+            loop, config, core, command_filter, stops, self._motions, self.sensor_gate
         )
         # the gate's calls, bound once
         self._check_motion_allowed = core.check_motion_allowed
@@ -91,9 +90,18 @@ class SafetyLayer:
                                                  config.following_error_stop)
             self.add_check(self.following)
 
+    @property
+    def motions(self) -> StopPort:
+        """The stop port of the motion manager (see :meth:`attach_motions`; assigning it attaches it)."""
+        return self._motions
+
+    @motions.setter
+    def motions(self, motions: StopPort) -> None:
+        self.attach_motions(motions)
+
     def attach_motions(self, motions: StopPort) -> None:
         """Connect the motion manager (through the :class:`StopPort` this layer defines)."""
-        self.motions = motions
+        self._motions = motions
         self._filter.motions = motions
         self._stops.motions = motions
         self._watchdogs.motions = motions
@@ -239,7 +247,7 @@ class SafetyLayer:
         self._check_motion_allowed()
         idx, values, vel, eff = resolve_command(cmd, loop.names, loop.index, backend.capabilities.modes, backend.name)
         assert isinstance(cmd, JointCommand)  # resolve_command checked it
-        owner = self.motions.owner_of(idx)
+        owner = self._motions.owner_of(idx)
         if owner is not None:
             raise CommandRejected(
                 f"joint {loop.names[owner[0]]!r} is driven by a running trajectory (or reserved by a "

@@ -124,6 +124,8 @@ class SafetyCore:
         self._cause: BaseException | None = None
         self._latched = threading.Event()  # set from any thread
         self._latch_lock = threading.Lock()
+        #: latches so far (each from an unlatched state): a reset clears only the latch it began with
+        self._latches = 0
         #: lowest stop category latched since the last reset (None: not latched)
         self._latch_category: int | None = None
         #: the loop side has taken over the current latch (see CommandFilter.enforce_latch)
@@ -228,12 +230,29 @@ class SafetyCore:
         """
         with self._latch_lock:
             first = not self._latched.is_set()
+            if first:
+                self._latches += 1
             if self._latch_category is None or category < self._latch_category:
                 self._latch_category = category
             self._latched.set()
         if handled is not None:
             self._latch_handled = handled
         return first
+
+    @property
+    def latch_count(self) -> int:
+        """How many times the e-stop latched from an unlatched state (any thread)."""
+        return self._latches
+
+    def refusal(self) -> BaseException | None:
+        """Why motion cannot be switched on now: the FAULT (SafetyFault) or the latch (EStopActive), else None."""
+        if self._state is SafetyState.FAULT:
+            exc = SafetyFault(f"safety FAULT: {self._cause}")
+            exc.__cause__ = self._cause
+            return exc
+        if self._latched.is_set():
+            return EStopActive("an e-stop is latched; call `await robot.reset()` before `await robot.enable()`")
+        return None
 
     def clear_latch(self) -> None:
         """Clear the latch (a reset): nothing latched, no category, nothing for the loop side to take over."""

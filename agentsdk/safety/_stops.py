@@ -260,11 +260,18 @@ class Stops:
         (a trajectory, a stop ramp) ends here; the setpoint stays exactly as the stop
         left it: torque off stays off, a hold keeps holding where it is.
         """
-        await self.wait_stopped()
         core = self._core
+        # what this reset clears: the latch and the FAULT it began with, not one that comes meanwhile
+        latches, faulted = core.latch_count, core._state is SafetyState.FAULT
+        await self.wait_stopped()
         if core._state is SafetyState.FAULT:
+            if not faulted:  # a fault while the stop in progress completed stands
+                core.check_fault()
             await self._loop.recover()
             core.recovered()
+            if core.latch_count != latches:  # recovered, but an e-stop latched meanwhile: that is the state now
+                core.enter(SafetyState.ESTOP)
+        self._check_no_new_latch(latches)
         if core._latched.is_set() and not core._latch_handled:
             self._filter.enforce_latch()
         if not core._latched.is_set() and core._state in (SafetyState.OK, SafetyState.HOLD):
@@ -277,9 +284,7 @@ class Stops:
                     self._hold_where_stopped()
             if core.state is SafetyState.FAULT:  # a fault while coming to rest stands
                 core.check_fault()
-            if core._latched.is_set():  # so does an e-stop that came after this reset started
-                raise EStopActive("an e-stop latched while reset() brought the robot to rest; it stands "
-                                  "(call `await robot.reset()` again)")
+            self._check_no_new_latch(latches)
             self.motions.abort_all("reset")
         self.motions.end_all("reset")
         core.clear_latch()
@@ -288,6 +293,11 @@ class Stops:
         core.enter(SafetyState.DISABLED)
         core.record("reset", "latch cleared; call enable() to allow motion")
 
+    def _check_no_new_latch(self, latches: int) -> None:
+        """Raise EStopActive if an e-stop latched since ``latch_count`` was ``latches`` (it stands)."""
+        if self._core.latch_count != latches:
+            raise EStopActive("an e-stop latched while reset() ran; it stands (call `await robot.reset()` again)")
+
     async def enable(self) -> None:
         """Allow motion again: hold the current position with torque on (ESTOP must be reset first)."""
         core = self._core
@@ -295,7 +305,7 @@ class Stops:
             raise EStopActive("e-stop is latched; call `await robot.reset()` before `await robot.enable()`")
         core.check_fault()
         loop = self._loop
-        await loop.enable()
+        await loop.enable(veto=core.refusal)  # a fault or an e-stop (any category) meanwhile stands
         self._filter.restart(loop.state.position)
         self._filter.cancel_ramps()
         core.enter(SafetyState.OK)

@@ -8,6 +8,7 @@ import importlib.metadata
 import math
 import threading
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -237,56 +238,60 @@ class _RefaultingMock(MockBackend):
                 await asyncio.sleep(0.001)
 
 
-async def test_a_fault_during_enable_stands_and_torque_stays_off() -> None:
+Refaulting = tuple[agentsdk.Robot, _RefaultingMock]
+
+
+@pytest.fixture
+async def refaulting() -> AsyncIterator[Refaulting]:
+    """arm3 on the refaulting mock, in realtime (a bus backend's enable overlaps running cycles)."""
+    register_backend("refaulting-mock", _RefaultingMock)
+    try:
+        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
+            backend = robot.backend
+            assert isinstance(backend, _RefaultingMock)
+            yield robot, backend
+    finally:
+        unregister_backend("refaulting-mock")
+
+
+async def test_a_fault_during_enable_stands_and_torque_stays_off(refaulting: Refaulting) -> None:
     """enable() must not report OK over a fault that arrived while it ran: it raises, the state stays
     FAULT and torque stays off; after the fault clears, reset() and enable() work as usual. (Realtime:
     the loop runs while a backend's enable awaits its bus, as CAN's does.)"""
-    register_backend("refaulting-mock", _RefaultingMock)
-    try:
-        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
-            backend = robot.backend
-            assert isinstance(backend, _RefaultingMock)
-            await robot.estop(0)
-            await robot.reset()
-            backend.refault = True
-            with pytest.raises((agentsdk.SafetyFault, agentsdk.BackendFault)):
-                await robot.enable()
-            assert robot.safety.state is SafetyState.FAULT
-            assert not robot.torque_enabled
-            with pytest.raises(agentsdk.AgentSDKError):
-                await robot.command(JointCommand("position", {"joint1": 0.1}))
-            backend.refault = False  # the fault is gone: the usual recovery
-            await robot.reset()
-            await robot.enable()
-            assert robot.safety.state is SafetyState.OK and robot.torque_enabled
-            await robot.command(JointCommand("position", {"joint1": 0.1}))
-            await robot.clock.sleep(0.05)
-    finally:
-        unregister_backend("refaulting-mock")
+    robot, backend = refaulting
+    await robot.estop(0)
+    await robot.reset()
+    backend.refault = True
+    with pytest.raises((agentsdk.SafetyFault, agentsdk.BackendFault)):
+        await robot.enable()
+    assert robot.safety.state is SafetyState.FAULT
+    assert not robot.torque_enabled
+    with pytest.raises(agentsdk.AgentSDKError):
+        await robot.command(JointCommand("position", {"joint1": 0.1}))
+    backend.refault = False  # the fault is gone: the usual recovery
+    await robot.reset()
+    await robot.enable()
+    assert robot.safety.state is SafetyState.OK and robot.torque_enabled
+    await robot.command(JointCommand("position", {"joint1": 0.1}))
+    await robot.clock.sleep(0.05)
 
 
 @pytest.mark.parametrize("category", [0, 1, 2])
-async def test_an_estop_during_enable_stands_and_torque_stays_off(category: int) -> None:
+async def test_an_estop_during_enable_stands_and_torque_stays_off(refaulting: Refaulting, category: int) -> None:
     """An e-stop of any category latched (from another thread) while enable() runs is not overridden:
     enable() raises EStopActive, the state is ESTOP and torque stays off until reset() and enable()."""
-    register_backend("refaulting-mock", _RefaultingMock)
-    try:
-        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
-            backend = robot.backend
-            assert isinstance(backend, _RefaultingMock)
-            await robot.estop(0)
-            await robot.reset()
-            backend.during_enable = lambda: robot.estop_threadsafe(category)
-            with pytest.raises(agentsdk.EStopActive):
-                await robot.enable()
-            assert robot.safety.state is SafetyState.ESTOP
-            assert not robot.torque_enabled
-            backend.during_enable = None
-            await robot.reset()
-            await robot.enable()
-            assert robot.safety.state is SafetyState.OK and robot.torque_enabled
-    finally:
-        unregister_backend("refaulting-mock")
+    robot, backend = refaulting
+    await robot.estop(0)
+    await robot.reset()
+    backend.during_enable = lambda: robot.estop_threadsafe(category)
+    with pytest.raises(agentsdk.EStopActive):
+        await robot.enable()
+    assert robot.safety.state is SafetyState.ESTOP
+    assert not robot.torque_enabled
+    backend.during_enable = None
+    await robot.reset()
+    await robot.enable()
+    assert robot.safety.state is SafetyState.OK and robot.torque_enabled
 
 
 async def test_a_fault_or_estop_while_reset_brings_the_robot_to_rest_stands() -> None:
@@ -322,59 +327,47 @@ async def test_a_fault_or_estop_while_reset_brings_the_robot_to_rest_stands() ->
             await asyncio.gather(move, return_exceptions=True)
 
 
-async def test_a_sensor_fault_during_enable_stands() -> None:
+async def test_a_sensor_fault_during_enable_stands(refaulting: Refaulting) -> None:
     """A reading the physics cannot explain (NaN) while enable() runs latches its FAULT; enable() does
     not enter OK over it."""
-    register_backend("refaulting-mock", _RefaultingMock)
-    try:
-        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
-            backend = robot.backend
-            assert isinstance(backend, _RefaultingMock)
-            await robot.estop(0)
-            await robot.reset()
-            real = backend._read
+    robot, backend = refaulting
+    await robot.estop(0)
+    await robot.reset()
+    real = backend._read
 
-            def nan_once() -> Any:
-                q, v, e = real()
-                q = np.array(q, dtype=float)
-                q[0] = math.nan
-                del backend._read  # the next readings are the mock's own again
-                return q, v, e
+    def nan_once() -> Any:
+        q, v, e = real()
+        q = np.array(q, dtype=float)
+        q[0] = math.nan
+        del backend._read  # the next readings are the mock's own again
+        return q, v, e
 
-            backend.during_enable = lambda: setattr(backend, "_read", nan_once)
-            with pytest.raises(agentsdk.AgentSDKError):
-                await robot.enable()
-            assert robot.safety.state is SafetyState.FAULT
-            assert isinstance(robot.safety.cause, agentsdk.SensorFault)
-            assert not robot.torque_enabled
-    finally:
-        unregister_backend("refaulting-mock")
+    backend.during_enable = lambda: setattr(backend, "_read", nan_once)
+    with pytest.raises(agentsdk.AgentSDKError):
+        await robot.enable()
+    assert robot.safety.state is SafetyState.FAULT
+    assert isinstance(robot.safety.cause, agentsdk.SensorFault)
+    assert not robot.torque_enabled
 
 
-async def test_an_estop_while_reset_recovers_a_fault_stands() -> None:
+async def test_an_estop_while_reset_recovers_a_fault_stands(refaulting: Refaulting) -> None:
     """reset() of a FAULT recovers the backend; an e-stop latched meanwhile is not cleared by it."""
-    register_backend("refaulting-mock", _RefaultingMock)
-    try:
-        async with agentsdk.connect("refaulting-mock", robot="arm3", realtime=True) as robot:
-            backend = robot.backend
-            assert isinstance(backend, _RefaultingMock)
-            backend.step_error = True
-            async with asyncio.timeout(HANG_GUARD):
-                while robot.safety.state is not SafetyState.FAULT:  # noqa: ASYNC110 -- the loop's fault
-                    await asyncio.sleep(0.01)
-            real_recover = backend._recover
+    robot, backend = refaulting
+    backend.step_error = True
+    async with asyncio.timeout(HANG_GUARD):
+        while robot.safety.state is not SafetyState.FAULT:  # noqa: ASYNC110 -- the loop's fault
+            await asyncio.sleep(0.01)
+    real_recover = backend._recover
 
-            async def recover_and_press() -> None:
-                await real_recover()
-                await run_blocking(robot.estop_threadsafe, 0)
+    async def recover_and_press() -> None:
+        await real_recover()
+        await run_blocking(robot.estop_threadsafe, 0)
 
-            backend._recover = recover_and_press  # type: ignore[method-assign]
-            with pytest.raises(agentsdk.EStopActive, match="while reset"):
-                await robot.reset()
-            assert robot.safety.state is SafetyState.ESTOP and not robot.torque_enabled
-            del backend._recover
-            await robot.reset()
-            await robot.enable()
-            assert robot.safety.state is SafetyState.OK and robot.torque_enabled
-    finally:
-        unregister_backend("refaulting-mock")
+    backend._recover = recover_and_press  # type: ignore[method-assign]
+    with pytest.raises(agentsdk.EStopActive, match="while reset"):
+        await robot.reset()
+    assert robot.safety.state is SafetyState.ESTOP and not robot.torque_enabled
+    del backend._recover
+    await robot.reset()
+    await robot.enable()
+    assert robot.safety.state is SafetyState.OK and robot.torque_enabled

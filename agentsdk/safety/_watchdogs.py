@@ -100,13 +100,6 @@ class Watchdogs:
         if self._stall is not None:
             self._stall.beat()
 
-    def _hold(self, idx: np.ndarray) -> None:
-        loop = self._loop
-        if self._config.hold == "position" and "position" in loop.backend.capabilities.modes:
-            loop.hold_current(idx)
-        else:
-            loop.damp(idx, loop.gain_v[idx])
-
     # --------------------------------------------------------------- per tick
     def tick(self, t: float, st: StateView, sp: SetpointView) -> None:
         """OBSERVE phase, every tick: sensor faults, the checks, then the command watchdog."""
@@ -147,7 +140,7 @@ class Watchdogs:
         np.logical_and(stale, streamed, out=stale)
         if stale.tobytes() != self._all_false:
             idx = np.flatnonzero(stale)
-            self._hold(idx)
+            self._stops._hold(idx)
             self._held[idx] = True
             self._core.enter(SafetyState.HOLD)
             names = ", ".join(self._loop.names[i] for i in idx.tolist())

@@ -26,9 +26,11 @@ evaluate an expression it has not checked:
   the parent process passes (the description's package, the packages found by
   ``$(find)``, the directories of the package search path).
 * **Limits.** The expansion runs in this module as a separate process (``python
-  -P xacro_sandbox.py``) with an address-space limit, a CPU-time limit, no file
-  writes (``RLIMIT_FSIZE`` 0) and no child processes; the parent kills it at its
-  wall-clock deadline. xacro's module state (its file and macro stacks, the
+  -P xacro_sandbox.py``) with an address-space limit, no file writes
+  (``RLIMIT_FSIZE`` 0) and no child processes; once it has started (imports
+  done) it arms a wall-clock alarm and a CPU-time limit of the job's seconds, and
+  the parent kills it if it has not answered a start-up allowance later.
+  xacro's module state (its file and macro stacks, the
   ``ament_index_python`` module answering ``$(find)``) lives and dies with the
   worker, so nothing in the caller's process changes.
 

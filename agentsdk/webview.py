@@ -18,7 +18,9 @@ Threads and rates: viser serves the page from its own thread. A publisher thread
 :data:`RATE` times a second (wall time), asks the robot's event loop for a snapshot (a tiny
 callback that copies positions, velocities and states: nothing runs inside the control tick),
 and pushes it to the page; plots are redrawn at :data:`PLOT_RATE`. A slow or absent browser
-never slows the control loop; at most one snapshot request is pending at a time.
+never slows the control loop; at most one snapshot request is pending at a time. A page gets the next
+frame only once it has applied the last one (:mod:`agentsdk.webpacing`): a page too slow for 30 frames a
+second gets fewer, newer ones rather than a backlog that would leave it unable to answer a click.
 
 Bound to 127.0.0.1 only. There is deliberately no option to serve on another address: to
 watch from another machine forward the port over SSH (``ssh -L 8080:127.0.0.1:8080 robot-pc``).

@@ -176,7 +176,10 @@ def test_wave_live_in_a_browser_and_the_estop_button(browser: Any, tmp_path: Pat
 
         button = browser.find_element(By.XPATH, "//button[contains(., 'E-STOP')]")
         browser.execute_script("arguments[0].click();", button)  # (a toast may cover it in a small window)
-        text = _wait(browser, "the e-stop", lambda t: "safety: ESTOP" in t, timeout=60)
+        try:
+            text = _wait(browser, "the e-stop", lambda t: "safety: ESTOP" in t, timeout=60)
+        except AssertionError as exc:  # did the press reach the server? (its log says)
+            raise AssertionError(f"{exc}\nthe server's log:\n{''.join(err)}") from None
         assert "category 2" in text
         _wait(browser, "rest", lambda t: "motion: at rest" in t, timeout=60)
         a = _joints(browser)

@@ -238,7 +238,7 @@ async def _awaited_commands(robot: agentsdk.Robot, hasher: _Hasher, start: list[
             hasher.add(type(exc).__name__, str(exc))
         if k % 37 == 5:
             for bad in (JointCommand("position", {"no_such_joint": 0.0}),
-                        JointCommand("position", [float("nan")] + start[1:]),
+                        JointCommand("position", [float("nan"), *start[1:]]),
                         JointCommand("position", start[:-1]),
                         JointCommand("velocity", [1e9] * n)):
                 try:

@@ -38,7 +38,10 @@ async def test_socketcan_cycle_uses_batched_receive_and_one_send_call(tmp_path: 
     try:
         await _wait_async(lambda: proc.has(EMULATOR_READY) or proc.popen.poll() is not None)
         assert proc.popen.poll() is None, proc.output()
-        async with agentsdk.connect("can", robot=leg, max_missed_replies=50) as robot:
+        # the backlog below blocks the event loop on purpose while it is sent (hundreds of send
+        # calls, each a trap into the guest kernel): the stall watchdog is not what this test is about
+        async with agentsdk.connect("can", robot=leg, max_missed_replies=50,
+                                    safety={"stall_timeout": 5.0}) as robot:
             ctl = robot.backend
             reader, writer = ctl._reader, ctl._writer  # type: ignore[attr-defined]
             assert reader is not None and writer is not None, "socketcan must use the batched path"

@@ -22,6 +22,13 @@ never slows the control loop; at most one snapshot request is pending at a time.
 frame only once it has applied the last one (:mod:`agentsdk.webpacing`): a page too slow for 30 frames a
 second gets fewer, newer ones rather than a backlog that would leave it unable to answer a click.
 
+Connection loss is never silent (:mod:`agentsdk.webconnection`): while the page is not connected it shows a
+full-width red **DISCONNECTED** banner and greys the last known state out (viser's client already blocks its
+buttons then); a page that has had no new frame for :data:`~agentsdk.webconnection.STALE_AFTER` seconds says so;
+the server tolerates a page too busy to answer its keepalive pings for up to
+:data:`~agentsdk.webconnection.PING_TIMEOUT` seconds; and a jog step a page started is cancelled (the robot holds)
+when that page disconnects.
+
 Bound to 127.0.0.1 only. There is deliberately no option to serve on another address: to
 watch from another machine forward the port over SSH (``ssh -L 8080:127.0.0.1:8080 robot-pc``).
 """
@@ -45,6 +52,7 @@ import numpy as np
 
 from .errors import BackendUnavailableError, ConfigurationError
 from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, SHIFTED_DIGITS, JogAction, Jogger
+from .webconnection import ConnectionWatch, connection_css, heartbeat_html
 from .webpacing import PagePacer
 
 if TYPE_CHECKING:
@@ -134,6 +142,11 @@ class WebView:
         self.server: Any = None
         #: paces the frames to what the connected pages can apply (:mod:`agentsdk.webpacing`)
         self.pacer: PagePacer | None = None
+        #: the pages' connections: keepalive tolerance, why each one ended (:mod:`agentsdk.webconnection`)
+        self.connections: ConnectionWatch | None = None
+        self._frame = 0
+        #: the page (viser client id) whose jog step runs, if a page started it
+        self._jog_client: int | None = None
         self._tmp = tempfile.TemporaryDirectory(prefix="agentsdk-web-")
         self._urdf: Any = None
         self._urdf_names: tuple[str, ...] = ()
@@ -142,6 +155,7 @@ class WebView:
         self._jogger = Jogger(robot)
         self._jog_link = self._jogger.link
         self._jogging: concurrent.futures.Future[None] | None = None
+        self._jog_lock = threading.Lock()
         self._start_poses = list(robot.kinematics.link_poses().values())
         from .statemachine import StateMachine
 
@@ -206,6 +220,7 @@ class WebView:
             rich._console = saved
         self.port = int(self.server.get_port())
         self.pacer = PagePacer(self.server)
+        self.connections = ConnectionWatch(self.server, on_disconnect=self._on_page_gone)
         self._build_gui()
         self._build_scene(ViserUrdf)
 
@@ -230,6 +245,9 @@ class WebView:
 
     def _build_gui(self) -> None:
         gui = self.server.gui
+        # first, so it sits at the top of the panel: the banner's style and the no-new-frame notice
+        gui.add_html(connection_css())
+        self._beat = gui.add_html(heartbeat_html(0))
         self._start = gui.add_button("Start", color="green", visible=False,
                                      hint="run the behavior (agentsdk run --web-wait)")
 
@@ -269,18 +287,32 @@ class WebView:
             for axis, name in enumerate("xyz"):
                 for sign in (1.0, -1.0):
                     button = gui.add_button(f"{'+' if sign > 0 else '-'}{name}")
-                    button.on_click(lambda _, a=axis, s=sign: self.jog_cartesian(a, s * JOG_STEP))
+                    button.on_click(lambda event, a=axis, s=sign: self._jog_cartesian(
+                        a, s * JOG_STEP, event.client_id))
         for (axis, sign), key in keys.items():
             cmd = gui.add_command(f"Jog {'+' if sign > 0 else '-'}{'xyz'[axis]}", hotkey=key)
-            cmd.on_trigger(lambda _, a=axis, s=sign: self.jog_cartesian(a, s * JOG_STEP))
+            cmd.on_trigger(lambda event, a=axis, s=sign: self._jog_cartesian(
+                a, s * JOG_STEP, event.client_id))
         for i, name in enumerate(self._names[:9]):
             # Shift+digit: the page's hotkeys match the typed character, which Shift turns into !@#... (US layout)
             for key, modifier, sign in ((str(i + 1), None, 1.0), (SHIFTED_DIGITS[i], "shift", -1.0)):
                 cmd = gui.add_command(f"Jog {name} {'+' if sign > 0 else '-'}", hotkey=key,
                                       modifier=modifier)
-                cmd.on_trigger(lambda _, n=name, s=sign: self.jog_joint(n, s * JOINT_STEP))
+                cmd.on_trigger(lambda event, n=name, s=sign: self._jog_joint(
+                    n, s * JOINT_STEP, event.client_id))
         stop = gui.add_command("Stop the jog", hotkey="space")
         stop.on_trigger(lambda _: self.stop_jog())
+
+    def _on_page_gone(self, client_id: int) -> None:
+        """A page disconnected: if its jog step runs, cancel it (the arm decelerates and holds)."""
+        with self._jog_lock:
+            if client_id != self._jog_client:
+                return
+            self._jog_client = None
+            jogging = self._jogging
+        if jogging is not None and not jogging.done():
+            log.warning("web view: the page that started a jog step disconnected: the step is cancelled")
+            self.stop_jog()
 
     def stop_jog(self) -> None:
         """Release = hold: cancel the running jog step; the arm decelerates within its limits and holds. Any thread."""
@@ -294,29 +326,38 @@ class WebView:
         From the desired (not measured) pose, so steps add up exactly; a press while a jog runs is
         ignored (no queue: nothing moves after the key is released). Any thread.
         """
-        delta = np.zeros(3)
-        delta[axis] = step
-        self._jog(lambda: self._jogger.cartesian(delta), JogAction("cartesian", axis, float(np.sign(step))))
+        self._jog_cartesian(axis, step, None)
 
     def jog_joint(self, name: str, step: float) -> None:
         """Move joint ``name`` by ``step`` (rad or m) from its desired position, within its limits. Any thread."""
+        self._jog_joint(name, step, None)
+
+    def _jog_cartesian(self, axis: int, step: float, client_id: int | None) -> None:
+        delta = np.zeros(3)
+        delta[axis] = step
+        self._jog(lambda: self._jogger.cartesian(delta), JogAction("cartesian", axis, float(np.sign(step))),
+                  client_id)
+
+    def _jog_joint(self, name: str, step: float, client_id: int | None) -> None:
         i = self._names.index(name)
-        self._jog(lambda: self._jogger.joint(i, step), JogAction("joint", i, float(np.sign(step))))
+        self._jog(lambda: self._jogger.joint(i, step), JogAction("joint", i, float(np.sign(step))), client_id)
 
-    def _jog(self, make: Callable[[], Any], action: JogAction) -> None:
-        if self._jogging is not None and not self._jogging.done():
-            return
-
-        async def _guarded() -> None:
-            try:
-                result = await make()
-            except Exception as exc:  # a refused jog (e-stop latched, out of reach) is logged, never raised
-                log.warning("web view: jog %s failed: %s", action.describe(self._names), exc)
+    def _jog(self, make: Callable[[], Any], action: JogAction, client_id: int | None) -> None:
+        """Start a step unless one runs; ``client_id``: the page that asked (its disconnect cancels the step)."""
+        with self._jog_lock:
+            if self._jogging is not None and not self._jogging.done():
                 return
-            if not result.ok:
-                log.warning("web view: jog %s refused: %s", action.describe(self._names), result.message)
+            self._jog_client = client_id
+            self._jogging = asyncio.run_coroutine_threadsafe(self._guarded_jog(make, action), self._aloop)
 
-        self._jogging = asyncio.run_coroutine_threadsafe(_guarded(), self._aloop)
+    async def _guarded_jog(self, make: Callable[[], Any], action: JogAction) -> None:
+        try:
+            result = await make()
+        except Exception as exc:  # a refused jog (e-stop latched, out of reach) is logged, never raised
+            log.warning("web view: jog %s failed: %s", action.describe(self._names), exc)
+            return
+        if not result.ok:
+            log.warning("web view: jog %s refused: %s", action.describe(self._names), result.message)
 
     def _confirm(self, client: Any, action: str, question: str) -> None:
         if client is None:
@@ -442,6 +483,8 @@ class WebView:
                  f"**state machine:** {snap.machine or '(none)'}",
                  f"**time:** {snap.stamp:.3f} s"]
         self._set_content(self._status, "  \n".join(lines))
+        self._frame += 1
+        self._beat.content = heartbeat_html(self._frame)  # (a new frame restarts the page's stale timer)
         rows = "\n".join(f"| {n} | {q:+.4f} | {v:+.4f} |" for n, q, v in zip(snap.names, snap.position,
                                                                               snap.velocity, strict=True))
         self._set_content(self._joints, "| joint | position | velocity |\n|---|---|---|\n" + rows)
@@ -469,6 +512,8 @@ class WebView:
         self._closed.set()
         self._listener.remove()
         self._thread.join(timeout=30.0)
+        if self.connections is not None:
+            self.connections.close()
         try:
             if self.server is not None:
                 import rich

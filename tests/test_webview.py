@@ -316,3 +316,182 @@ def test_keyboard_jog_through_the_page_moves_the_end_effector(browser: Any, tmp_
             if stream is not None:
                 stream.close()
     assert not any("Traceback" in line for line in err), "".join(err)
+
+
+class Relay:
+    """A TCP relay between the browser and the view's server: it can hold every byte (a stalled link: the socket
+    stays open, nothing arrives) or cut every connection and refuse new ones (the server side of the socket gone)."""
+
+    def __init__(self, target: int) -> None:
+        import socket
+
+        self.target = target
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.listener.settimeout(0.2)
+        self.port = int(self.listener.getsockname()[1])
+        self.flowing = threading.Event()
+        self.flowing.set()
+        self.refusing = False
+        self._done = threading.Event()
+        self._lock = threading.Lock()
+        self._sockets: list[Any] = []
+        self._threads = [threading.Thread(target=self._accept, name="relay-accept")]
+        self._threads[0].start()
+
+    def _accept(self) -> None:
+        import socket
+
+        while not self._done.is_set():
+            try:
+                down, _ = self.listener.accept()
+            except TimeoutError:
+                continue
+            if self.refusing:
+                down.close()
+                continue
+            up = socket.create_connection(("127.0.0.1", self.target))
+            for s in (down, up):
+                s.settimeout(0.2)
+            with self._lock:
+                self._sockets += [down, up]
+                pumps = [threading.Thread(target=self._pump, args=(a, b), name="relay-pump")
+                         for a, b in ((down, up), (up, down))]
+                self._threads += pumps
+            for p in pumps:
+                p.start()
+
+    def _pump(self, src: Any, dst: Any) -> None:
+        try:
+            while not self._done.is_set():
+                if not self.flowing.wait(0.1):
+                    continue  # held: nothing is read, so the sender's buffers fill as on a stalled link
+                try:
+                    data = src.recv(65536)
+                except TimeoutError:
+                    continue
+                if not data:
+                    break
+                dst.sendall(data)
+        except OSError:
+            pass  # cut
+        finally:
+            for s in (src, dst):
+                s.close()
+
+    def cut(self) -> None:
+        """Close every relayed connection and refuse new ones."""
+        import socket
+
+        self.refusing = True
+        with self._lock:
+            for s in self._sockets:
+                try:
+                    s.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+        self.flowing.set()
+
+    def restore(self) -> None:
+        self.refusing = False
+        self.flowing.set()
+
+    def close(self) -> None:
+        self._done.set()
+        self.cut()
+        for t in list(self._threads):
+            t.join(timeout=10)
+        self.listener.close()
+
+
+def _banner(driver: Any) -> str:
+    """The text of the page's full-width banner ("none" when it shows none)."""
+    return str(driver.execute_script("return getComputedStyle(document.body, '::after').content"))
+
+
+def _stale_notice(driver: Any) -> bool:
+    return bool(driver.execute_script(
+        "const b = document.querySelector('.agentsdk-beat');"
+        "return b !== null && getComputedStyle(b).visibility === 'visible';"))
+
+
+def _until(what: str, pred: Any, timeout: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        time.sleep(0.1)
+
+
+def test_a_lost_connection_is_shown_and_a_press_meanwhile_is_not_lost_silently(browser: Any, tmp_path: Path) -> None:
+    """The page's link stalls: it says no update came; the link is cut: a full-width DISCONNECTED banner, the
+    E-STOP click and a jog key pressed meanwhile do nothing then and nothing after the page reconnects; once
+    connected again the banner goes and the same click latches the e-stop."""
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+
+    port = _free_port()
+    behavior = tmp_path / "hold.py"
+    behavior.write_text("async def main(robot):\n    await robot.clock.sleep(3600)\n")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "agentsdk", "run", str(behavior), "--backend", "mock", "--realtime",
+         "--robot", _robot_yaml(tmp_path), "--web", "--port", str(port), "--quiet"],
+        cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True,
+    )
+    err: list[str] = []
+    reader = threading.Thread(target=lambda: err.extend(iter(proc.stderr.readline, "")), daemon=True)  # type: ignore[union-attr]
+    reader.start()
+    relay: Relay | None = None
+    try:
+        deadline = time.monotonic() + 240
+        while not any(f"web view: http://127.0.0.1:{port}" in line for line in err):
+            assert proc.poll() is None, "".join(err)
+            assert time.monotonic() < deadline, "".join(err)
+            time.sleep(0.1)
+        relay = Relay(port)
+        browser.get(f"http://127.0.0.1:{relay.port}")
+        _wait(browser, "the joint table", lambda t: len(ROW.findall(t)) == 3 and "safety: OK" in t)
+        assert "DISCONNECTED" not in _banner(browser)
+        _until("fresh frames", lambda: not _stale_notice(browser))
+        before = _joints(browser)
+
+        relay.flowing.clear()  # the link stalls: the socket stays open, nothing arrives
+        _until("the no-update notice", lambda: _stale_notice(browser), timeout=60)
+        assert "NO UPDATE FOR OVER" in _text(browser)
+
+        relay.cut()  # the server side of the socket is gone
+        _until("the DISCONNECTED banner", lambda: "DISCONNECTED" in _banner(browser), timeout=60)
+        assert "hardware e-stop" in _banner(browser)
+        button = browser.find_element(By.XPATH, "//button[contains(., 'E-STOP')]")
+        ActionChains(browser).move_to_element(button).click().perform()  # a real click: blocked by the page
+        browser.execute_script("arguments[0].click();", button)  # even one that gets through is not sent
+        ActionChains(browser).send_keys("1").perform()  # jog joint1: dropped, not queued
+        time.sleep(2.0)
+
+        relay.restore()
+        _until("the banner to go", lambda: "DISCONNECTED" not in _banner(browser))
+        _wait(browser, "the page again", lambda t: len(ROW.findall(t)) == 3 and "safety: OK" in t)
+        time.sleep(3.0)  # nothing pressed while disconnected fires now
+        text = _text(browser)
+        assert "safety: OK" in text, text
+        after = _joints(browser)
+        assert max(abs(after[j] - before[j]) for j in before) < 1e-3, (before, after)
+        assert not any("e-stop (category" in line for line in err), "".join(err)
+
+        button = browser.find_element(By.XPATH, "//button[contains(., 'E-STOP')]")
+        ActionChains(browser).move_to_element(button).click().perform()  # connected: the same click works
+        _wait(browser, "the e-stop", lambda t: "safety: ESTOP" in t, timeout=60)
+    finally:
+        if relay is not None:
+            relay.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        reader.join(timeout=10)
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()
+    assert not any("Traceback" in line for line in err), "".join(err)

@@ -70,7 +70,7 @@ body:has({gate} .{MARKER})::after {{
 }}
 {gate}:has(.{MARKER}) {{ filter: grayscale(1); }}
 .{BEAT} {{
-  visibility: hidden; max-height: 0; overflow: hidden;
+  visibility: hidden; max-height: 0; overflow: hidden; box-sizing: border-box;
   animation: agentsdk-stale 0.001s linear {STALE_AFTER:g}s forwards;
 }}
 @keyframes agentsdk-stale {{
@@ -172,8 +172,9 @@ class ConnectionWatch:
         if gone.code in (None, 1000, 1001, 1005):  # closed by the page or the server: the normal end
             log.info("web view: page %s disconnected", gone.client_id)
         else:
-            log.warning("web view: page %s lost its connection (%s %s, closed by the %s)", gone.client_id,
-                        gone.code, gone.reason, "server" if gone.by_server else "page")
+            log.warning("web view: page %s lost its connection (%s%s, closed by the %s)", gone.client_id, gone.code,
+                        f" {gone.reason}" if gone.reason else "",
+                        "server" if gone.by_server else "page or the network")
         if not closed and self._on_disconnect is not None:
             try:
                 self._on_disconnect(int(client.client_id))

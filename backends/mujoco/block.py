@@ -1,0 +1,105 @@
+"""Block lockstep's backend half on MuJoCo: K control periods in one call, each reading kept, any tick restorable.
+
+Issue 28 item 1. :class:`BlockStepper` runs ``write(k)`` (the caller writes tick ``k``'s setpoint
+through :meth:`agentsdk.Backend.write`), the step and the read of K ticks back to back, as the
+control loop would run them tick by tick but without the loop's per-tick phases in between: the
+same MuJoCo calls in the same order, so every reading and every state is bit for bit what
+tick-by-tick gives (``tests/test_block_stepper.py``). Before each tick it keeps MuJoCo's
+integration state (``mjSTATE_INTEGRATION``: the full physics, the controls, the applied forces
+and the solver's warm start), so the caller can :meth:`restore` the state before any tick of the
+block (its checks found that tick to be an event) and continue tick by tick from there.
+
+A step that diverges (a warning counter moved, a non-finite acceleration) ends the block: the
+exception the backend's own step raises at that tick is kept in :attr:`fault`, with the ticks
+before it done and read, and MuJoCo's state left as the diverged step left it (exactly as a
+tick-by-tick run leaves it when it raises).
+
+Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
+enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them
+constant (pre-planned motions write the loop's gains), which is the caller's precondition.
+This is the backend's building block; the control loop does not use it yet.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import mujoco
+import numpy as np
+
+from agentsdk.errors import InvalidValueError, SimulationDiverged
+
+if TYPE_CHECKING:
+    from . import MujocoBackend
+
+__all__ = ["BlockStepper"]
+
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+
+
+class BlockStepper:
+    """Steps ``backend`` up to ``capacity`` control periods per call (:meth:`run`); :meth:`restore` rolls back."""
+
+    def __init__(self, backend: MujocoBackend, capacity: int) -> None:
+        if capacity < 1:
+            raise InvalidValueError(f"capacity must be at least 1, got {capacity}")
+        self._b = backend
+        m = backend.model
+        self.capacity = capacity
+        #: ``states[k]``: MuJoCo's integration state before tick ``k`` of the last block
+        self.states = np.empty((capacity + 1, mujoco.mj_stateSize(m, _STATE)))
+        #: ticks the last :meth:`run` completed, and the divergence that ended it (None: it did not)
+        self.done = 0
+        self.fault: SimulationDiverged | None = None
+
+    def run(self, write: Callable[[int], None], count: int, readings: np.ndarray) -> int:
+        """Run ticks ``0 .. count - 1``: ``write(k)``, step one control period, read into ``readings[k]`` (3, n).
+
+        Returns the ticks done: ``count``, or fewer when a step diverged (:attr:`fault`).
+        """
+        if not 0 <= count <= self.capacity:
+            raise InvalidValueError(f"count must be within 0..{self.capacity}, got {count}")
+        b = self._b
+        m, d = b.model, b.data
+        nsub = b._nsub
+        states = self.states
+        get_state, step = mujoco.mj_getState, mujoco.mj_step
+        qacc, acc2 = b._qacc, b._acc2
+        read = b.read
+        self.fault = None
+        self.done = 0
+        for k in range(count):
+            write(k)
+            get_state(m, d, states[k], _STATE)  # after write: the state the step starts from, controls included
+            t0 = d.time
+            step(m, d, nstep=nsub)
+            # the backend's own per-step checks (MujocoBackend._step), in the same order
+            view = b._warn_view
+            try:
+                if view is None or view.tobytes() != b._warn_bytes:
+                    b._check_warnings(t0)
+                np.dot(qacc, qacc, out=acc2)
+                if not math.isfinite(acc2.item()) and not np.isfinite(qacc).all():
+                    raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
+            except SimulationDiverged as exc:
+                self.fault = exc
+                self.done = k
+                return k
+            q, v, e = read()
+            row = readings[k]
+            row[0] = q
+            row[1] = v
+            row[2] = e
+        if count:
+            get_state(m, d, states[count], _STATE)
+        self.done = count
+        return count
+
+    def restore(self, k: int) -> None:
+        """Put MuJoCo back to where it was before tick ``k`` of the last block (``k == done``: its end)."""
+        if not 0 <= k <= self.done:
+            raise InvalidValueError(f"tick {k} is not within the last block (0..{self.done})")
+        b = self._b
+        mujoco.mj_setState(b.model, b.data, self.states[k], _STATE)

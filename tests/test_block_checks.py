@@ -239,3 +239,57 @@ def test_the_sensor_gate_decides_a_block_as_tick_by_tick(seed: int) -> None:
         assert _gate_state(gate_a) == _gate_state(gate_b)
         stops += k < K
     assert stops > 10
+
+
+@pytest.mark.parametrize("step", ["auto", None])
+async def test_the_limit_filter_decides_a_block_as_tick_by_tick(step: Any) -> None:
+    """The LIMIT tick's common path over K setpoints at once (``CommandFilter.block_quiet``): random
+    references near and past the bounds, velocity and effort limits and the step window, NaN."""
+    import agentsdk
+    from agentsdk.loop import Setpoint
+
+    async with agentsdk.connect("mock", robot="arm3", safety={"max_position_step": step}) as robot:
+        f = robot.safety._filter
+        lim = f.limiter
+        loop = robot._loop
+        n = len(robot.joints)
+        rng = np.random.default_rng(7)
+        lo, hi = np.where(np.isfinite(lim.lo), lim.lo, -3.0), np.where(np.isfinite(lim.hi), lim.hi, 3.0)
+        stops = quiet = 0
+        for _ in range(CASES):
+            K = int(rng.integers(1, 200))
+            w = (lim.step if lim.step is not None else np.full(n, 0.01)) * rng.uniform(0.2, 1.3)
+            q = np.clip(rng.uniform(lo, hi) + np.cumsum(rng.uniform(-1, 1, size=(K, n)) * w, axis=0), lo - 0.01, hi)
+            rows = np.zeros((K, 3, n))
+            rows[:, 0] = q
+            rows[:, 1] = rng.uniform(-1, 1, size=(K, n)) * lim.vmax * rng.uniform(0.5, 1.05)
+            rows[:, 2] = rng.uniform(-1, 1, size=(K, n)) * lim.emax * rng.uniform(0.5, 1.05)
+            if rng.random() < 0.3:
+                rows[int(rng.integers(0, K)), int(rng.integers(0, 3)), int(rng.integers(0, n))] = np.nan
+            written0 = q[0] if rng.random() < 0.8 else q[0] + w * rng.uniform(-2, 2)
+            # tick by tick
+            f._written[...] = written0
+            sp = Setpoint(n)
+            sp.mode[:], sp.enabled[:] = loop.setpoint.mode, loop.setpoint.enabled
+            after, first_event = [], K
+            for k in range(K):
+                sp.block[0:3] = rows[k]
+                f.tick(float(k), loop.state, sp)
+                after.append(sp.block[0:3].copy())
+                if first_event == K and sp.block[0:3].tobytes() != rows[k].tobytes():
+                    first_event = k  # the tick changed the setpoint: not quiet
+            written_a = f._written.copy()
+            # as a block, then tick by tick from where it stopped
+            f._written[...] = written0
+            k = f.block_quiet(rows, sp.mode, sp.enabled)
+            assert k == first_event
+            f.commit_block(rows, k)
+            for j in range(k, K):
+                sp.block[0:3] = rows[j]
+                f.tick(float(j), loop.state, sp)
+                assert sp.block[0:3].tobytes() == after[j].tobytes()
+            assert f._written.tobytes() == written_a.tobytes()
+            stops += k < K
+            quiet += k
+        assert stops > 10 and quiet > 20 * CASES  # both outcomes, many quiet ticks
+        assert f.block_quiet(rows[:0], sp.mode, sp.enabled) == 0

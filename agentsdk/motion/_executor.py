@@ -14,7 +14,6 @@ from ..loop import ControlLoop, Phase, Setpoint, StateView
 from ..offload import OffloadedGoal, OffloadRequest, TrajectoryOffload
 from ..trajectory import Trajectory
 from ._admission import _Admission
-from ._envelope import _Envelope, envelope
 from ._ownership import _Ownership
 from ._records import _Exec, _MotionTable, _TickBuffers
 from ._stops import _StopPlanner
@@ -241,78 +240,6 @@ class _Executor:
             return False
         self._write(ex, t, st, sp, qc, v, a, err)
         return True
-
-    def block_reference(self, ex: _Exec, ts: np.ndarray, taus: np.ndarray, out: np.ndarray) -> int:
-        """The references of ``ex`` for the coming ticks at robot times ``ts`` (K,), all at once.
-
-        Block lockstep's seam (issue 28 item 1): writes each tick's trajectory time into ``taus``
-        (K,) and its sample ``[q, v, a]`` into ``out`` (K, 3, joints of ``ex``) and returns how many
-        leading ticks are *pre-planned*: for those, :meth:`update` would write exactly that sample
-        (bit for bit, as position, velocity and acceleration), whatever the measured state is,
-        unless its path tolerance fails (the block's checks decide that from the measured states).
-        The count stops before the first tick that is an event of the motion (its trajectory ends,
-        its stop ramp ends) and is 0 where anything is not proven: a scheduled, offloaded or first
-        tick, speed scaling other than 1, a sample the limiter might change (see :mod:`._envelope`;
-        a stop ramp's envelope is computed here, once per ramp, while its tick keeps the full path).
-        Nothing of ``ex`` changes.
-        """
-        K = len(ts)
-        if K == 0 or ex.remote is not None or ex.phase not in (MotionPhase.FOLLOW, MotionPhase.STOPPING):
-            return 0
-        stopping = ex.phase == MotionPhase.STOPPING
-        if not stopping and not (ex.s == 1.0 and self.table.speed == 1.0):
-            return 0
-        w, lim = ex.work, ex.limits
-        if w is None or lim is None:
-            return 0
-        env = self._ramp_envelope(ex, lim) if stopping else ex.env
-        if env is None or env.sampler is not ex.sampler:
-            return 0
-        if lim.step is not None and self._origin is not None:
-            # the step proof needs the limiter's origin to hold the previous tick's sample, unclipped
-            o = w.st_views[2]
-            if not env.step_free or o is None:
-                return 0
-            if stopping:  # (the tick keeps no bytes of its last sample for a stop ramp: sample it again)
-                region = ex.sampler.region
-                prev = ex.sampler.sample(ex.tau)[0]
-                ex.sampler.region = region
-                if o.tobytes() != prev.tobytes():
-                    return 0
-            elif env.prev is None or o.tobytes() != env.prev:
-                return 0
-        # trajectory time: tau += min(t - t_last, period) per tick (s = 1: s * dt is dt), accumulated in order
-        dts = np.empty(K + 1)
-        dts[0] = ex.tau
-        np.subtract(ts[1:], ts[:-1], out=dts[2:])
-        dts[1] = ts[0] - ex.t_last
-        if not dts[1] > 0.0:
-            return 0
-        np.minimum(dts[1:], self.loop.period, out=dts[1:])
-        np.add.accumulate(dts, out=dts)
-        taus[...] = dts[1:]
-        sampler = ex.sampler
-        region = sampler.region
-        regions = np.empty(K, dtype=np.intp)
-        try:
-            sampler.sample_block(taus, out, regions)
-        finally:
-            sampler.region = region
-        # the motion's own event: its trajectory (or ramp) ends, at the first elapsed >= duration
-        ended = np.flatnonzero(np.subtract(taus, ex.t0) >= sampler.duration)
-        k = int(ended[0]) if len(ended) else K
-        # a sample outside the proven envelope takes the limiter's full path: per tick from there
-        inside = np.asarray(env.inside)[regions[:k] + 1]
-        if not inside.all():
-            k = int(np.argmin(inside))
-        return k
-
-    def _ramp_envelope(self, ex: _Exec, lim: StepLimiter) -> _Envelope | None:
-        """The envelope of ``ex``'s stop ramp under ``lim`` (cached per sampler), for :meth:`block_reference`."""
-        cached = ex.ramp_env
-        if cached is None or cached[0] is not ex.sampler:
-            cached = ex.ramp_env = (ex.sampler, envelope(ex.sampler, lim, self.loop.period))
-        return cached[1]
 
     def _write_stop(self, ex: _Exec, t: float, st: StateView, sp: Setpoint) -> bool:
         """The reference was just replaced by a stop starting at ``t``: write its first sample."""

@@ -41,6 +41,9 @@ class BlockCheck(Protocol):
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """The per-tick check."""
 
+    def block_ready(self) -> bool:
+        """False when :meth:`block_quiet` would return 0 whatever the states (a cheap test before a block runs)."""
+
     def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
         """How many leading ticks of the block pass quietly."""
 
@@ -84,6 +87,10 @@ class MeasuredPositionCheck:
         self._ok = np.zeros((2, n), dtype=bool)
         #: ``ok.tobytes()`` when every comparison holds (a bytes compare is ~5x cheaper than np.count_nonzero)
         self._all_ok = np.ones((2, n), dtype=bool).tobytes()
+
+    def block_ready(self) -> bool:
+        """:class:`BlockCheck`: every joint is armed."""
+        return self._all_armed
 
     def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
         """:class:`BlockCheck`: leading ticks with every joint measured inside (0 until every joint is armed)."""

@@ -145,6 +145,10 @@ class FollowingErrorCheck:
             np.multiply(err, self._maskf, out=err)
         return err
 
+    def block_ready(self) -> bool:
+        """:class:`~agentsdk.checks.BlockCheck`: no joint is outside its window (no persistence timer runs)."""
+        return not self._tracking
+
     def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
         """:class:`~agentsdk.checks.BlockCheck`: leading ticks with every watched joint inside its window."""
         if self._tracking or len(ts) == 0:

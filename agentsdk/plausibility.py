@@ -235,6 +235,10 @@ class SensorGate:
             return
         self._full(q, v, e, t, age)
 
+    def block_ready(self) -> bool:
+        """False when :meth:`block_quiet` would return 0 whatever the readings (a cheap test before a block runs)."""
+        return not self._any_suspect and not self._changes[0] and math.isfinite(self._dt)
+
     def block_quiet(self, ts: np.ndarray, states: np.ndarray) -> int:
         """How many leading readings of a lockstep block (``states`` (K, 3, n), taken at ``ts``) take the fast path.
 

@@ -54,10 +54,11 @@ class BlockStepper:
         self.done = 0
         self.fault: SimulationDiverged | None = None
 
-    def run(self, write: Callable[[int], None], count: int, readings: np.ndarray) -> int:
+    def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
         """Run ticks ``0 .. count - 1``: ``write(k)``, step one control period, read into ``readings[k]`` (3, n).
 
-        Returns the ticks done: ``count``, or fewer when a step diverged (:attr:`fault`).
+        Returns the ticks done: ``count``, or fewer when a step diverged (:attr:`fault`) or
+        ``write(k)`` returned False (it wrote nothing: the block ends before tick ``k``).
         """
         if not 0 <= count <= self.capacity:
             raise InvalidValueError(f"count must be within 0..{self.capacity}, got {count}")
@@ -71,7 +72,10 @@ class BlockStepper:
         self.fault = None
         self.done = 0
         for k in range(count):
-            write(k)
+            if write(k) is False:
+                get_state(m, d, states[k], _STATE)  # (restore(k) is then the state as it stands)
+                self.done = k
+                return k
             get_state(m, d, states[k], _STATE)  # after write: the state the step starts from, controls included
             t0 = d.time
             step(m, d, nstep=nsub)

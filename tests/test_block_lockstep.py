@@ -1,0 +1,187 @@
+"""Block lockstep in the loop (issue 28 item 1, agentsdk.block): random runs hash tick for tick as without it.
+
+Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep): a sleep
+of random length (a hold: what a block runs), a direct position command (the filter's ramp: per
+tick, then blocks), an external push (``qfrc_applied``, strong enough at random to trip the
+following-error or the measured-position check in the middle of a block: a rollback), an
+e-stop of a random category with reset and enable, or a gravity change (a push on every joint).
+The same program runs with block lockstep off and on; every tick's time, setpoint and measured
+state (an OBSERVE hook that takes blocks, :class:`agentsdk.block.BlockObserver`), and after each
+segment the safety state and events, are hashed; the hashes must be equal segment by segment.
+The test also demands that blocks ran and that some were cut short (so it exercises the path
+it claims to test).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import numpy as np
+import pytest
+
+import agentsdk
+from agentsdk import JointCommand, Phase
+from agentsdk.block import BlockLockstep
+
+SAFETY = {"stall_timeout": 30.0}
+#: seeds per robot and segments per seed: 2 x 13 x 40 = 1,040 cases
+SEEDS, SEGMENTS = 13, 40
+TRACE = False
+
+
+class _Hasher:
+    """sha256 of every tick's time, setpoint and measured state, per segment; takes blocks too."""
+
+    def __init__(self) -> None:
+        self.h = hashlib.sha256()
+        self.ticks = 0
+
+    def __call__(self, t: float, st: Any, sp: Any) -> None:
+        self._one(t, sp, st.position, st.velocity, st.effort)
+
+    def observe_block(self, ts: np.ndarray, states: np.ndarray, sp: Any) -> None:
+        for k in range(len(ts)):
+            self._one(float(ts[k]), sp, states[k, 0], states[k, 1], states[k, 2])
+
+    def _one(self, t: float, sp: Any, q: np.ndarray, v: np.ndarray, e: np.ndarray) -> None:
+        h = self.h
+        h.update(np.float64(t).tobytes())
+        for a in (sp.position, sp.velocity, sp.effort, sp.kp, sp.kd, sp.target, sp.acceleration, sp.enabled,
+                  sp.mode, q, v, e):
+            h.update(np.ascontiguousarray(a).tobytes())
+        self.ticks += 1
+
+    def cut(self, *items: Any) -> str:
+        """The hash of the segment so far (and ``items``); starts the next segment."""
+        self.h.update(repr(items).encode())
+        out = self.h.hexdigest()
+        self.h = hashlib.sha256()
+        return out
+
+
+async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], dict[str, int]]:
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+        hasher = _Hasher()
+        robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        runner = BlockLockstep(robot, capacity=128) if block else None
+        b = robot.backend
+        rng = np.random.default_rng(seed)
+        names = list(robot.joint_names)
+        n = len(names)
+        dofs = np.array([b.model.jnt_dofadr[b.model.joint(name).id] for name in names])
+        lo = np.array([j.lower if np.isfinite(j.lower) else -1.0 for j in robot.joints])
+        hi = np.array([j.upper if np.isfinite(j.upper) else 1.0 for j in robot.joints])
+        effort = np.array([j.max_effort if 0 < j.max_effort < np.inf else 10.0 for j in robot.joints])
+        out = []
+        events = 0
+        for seg in range(SEGMENTS):
+            what = rng.choice(["sleep", "sleep", "sleep", "command", "command", "push", "push", "release", "estop"])
+            if what == "command" and robot.safety.state.name == "OK":
+                goal = np.clip((await robot.read()).position + rng.uniform(-0.15, 0.15, n), lo, hi)
+                await robot.command(JointCommand("position", goal.tolist()))
+            elif what == "push":
+                # a fraction of the joints' effort limits on a few of them, now and then more: a following
+                # error, a limit hit or a reading the plausibility gate refuses, often in the middle of a block
+                j = rng.choice(n, size=int(rng.integers(1, n + 1)), replace=False)
+                scale = float(rng.choice([0.3, 0.8, 1.1, 1.6]))
+                b.data.qfrc_applied[dofs[j]] = rng.uniform(-scale, scale, len(j)) * effort[j]
+            elif what == "release":
+                b.data.qfrc_applied[:] = 0.0
+            elif what == "estop":
+                await robot.estop(int(rng.integers(0, 3)))
+            await robot.clock.sleep(float(rng.choice([0.002, rng.uniform(0.0, 0.05), rng.uniform(0.05, 0.4)])))
+            if robot.safety.state.name not in ("OK", "HOLD") and rng.random() < 0.85:
+                b.data.qfrc_applied[:] = 0.0
+                await robot.safety.wait_stopped()
+                await robot.reset()
+                await robot.enable()
+            new = robot.safety.events[events:] if len(robot.safety.events) >= events else ()
+            events = len(robot.safety.events)
+            if runner is not None and TRACE:
+                print(seg, what, robot.safety.state.name, runner.blocks, runner.block_ticks, runner.rollbacks)
+            out.append(hasher.cut(seg, str(what), robot.safety.state.name, robot.clock.ticks,
+                                  [(e.kind, e.detail, e.joint, e.time) for e in new]))
+        stats = {"ticks": hasher.ticks}
+        if runner is not None:
+            stats.update(blocks=runner.blocks, block_ticks=runner.block_ticks, rollbacks=runner.rollbacks)
+            runner.close()
+        return out, stats
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
+async def test_block_lockstep_is_tick_by_tick_bit_for_bit(robot_name: str) -> None:
+    blocks = block_ticks = rollbacks = ticks = 0
+    for seed in range(SEEDS):
+        want, base = await _program(robot_name, seed, block=False)
+        got, stats = await _program(robot_name, seed, block=True)
+        for seg, (a, c) in enumerate(zip(want, got, strict=True)):
+            assert a == c, f"{robot_name} seed {seed}: segment {seg} differs with block lockstep"
+        assert stats["ticks"] == base["ticks"]
+        blocks += stats["blocks"]
+        block_ticks += stats["block_ticks"]
+        rollbacks += stats["rollbacks"]
+        ticks += stats["ticks"]
+    # the test exercises what it claims: most held ticks ran in blocks, and checks cut some blocks short
+    assert blocks > 50 and block_ticks > ticks // 4, (blocks, block_ticks, ticks)
+    assert rollbacks > 5, rollbacks
+
+
+async def _diverge(block: bool) -> tuple[str, int, str, str]:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        hasher = _Hasher()
+        robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        runner = BlockLockstep(robot, capacity=64) if block else None
+        b = robot.backend
+        await robot.clock.sleep(0.2)
+        b.data.qfrc_applied[:] = 1e300  # the next step's acceleration is not finite: SimulationDiverged
+        with pytest.raises(agentsdk.errors.BackendFault):
+            await robot.clock.sleep(0.3)
+        fault = robot._loop.fault
+        if runner is not None:
+            assert runner.block_ticks > 0
+            runner.close()
+        return hasher.cut(), robot.clock.ticks, repr(fault), robot.safety.state.name
+
+
+async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
+    assert await _diverge(True) == await _diverge(False)
+
+
+async def _thread_estop(block: bool, at: int) -> tuple[Any, ...]:
+    import threading
+
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        hasher = _Hasher()
+        robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        runner = BlockLockstep(robot, capacity=64) if block else None
+        b = robot.backend
+        write = b.write
+        fired = False
+
+        def write_and_stop(sp: Any) -> None:
+            nonlocal fired
+            write(sp)
+            if not fired and b.data.time >= (at - 0.5) * b.period:
+                # an e-stop from another thread lands during the write of tick ``at``
+                fired = True
+                th = threading.Thread(target=robot.safety.estop_threadsafe, args=(0,))
+                th.start()
+                th.join()
+
+        b.write = write_and_stop  # type: ignore[method-assign]
+        await robot.clock.sleep(0.5)
+        loop = robot._loop
+        assert loop.torque_off and robot.safety.state.name == "ESTOP"
+        assert not loop.setpoint.enabled.any() and not b.data.ctrl.any()
+        if runner is not None:
+            assert 0 < runner.block_ticks < robot.clock.ticks
+            runner.close()
+        events = [(e.kind, e.detail, e.time) for e in robot.safety.events]
+        return hasher.cut(), robot.clock.ticks, events
+
+
+@pytest.mark.parametrize("at", [10, 45, 77])
+async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(at: int) -> None:
+    assert await _thread_estop(True, at) == await _thread_estop(False, at)

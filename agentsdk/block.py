@@ -1,42 +1,43 @@
 """Block lockstep (issue 28 item 1, opt-in, experimental): uneventful lockstep ticks run as one block.
 
 In lockstep the control loop ticks while every other task waits. When nothing can happen for a
-while (no task wakes, nothing is commanded per tick, no check fires), the ticks' phases are pure
+while (no task wakes, no check fires, the setpoints are known in advance), the ticks' phases are
 bookkeeping around the physics: :class:`BlockLockstep` runs such a stretch as one *block*, the
-backend's steps back to back (``block_stepper``, MuJoCo's
-:class:`~agentsdk.backends.mujoco.block.BlockStepper`), then judges all of its states at once with
-the vectorized forms of the tick's rules (the safety filter's, the plausibility gate's and every
-check's ``block_quiet``), commits the ticks they pass quietly and, at the first tick that would do
-anything (a check that fires, a reading the gate doubts, a limit the filter would apply), puts the
-simulation back to where it stood before that tick and lets the loop run it tick by tick. Every
-result, event, state and setpoint is bit for bit what tick-by-tick computes
-(``tests/test_block_lockstep.py`` compares per-tick hashes of random runs).
+backend's steps back to back (``block_stepper``, MuJoCo's ``BlockStepper``) with each tick's
+setpoint computed before the block, then judges all of its states at once with the vectorized
+forms of the tick's rules (the safety filter's, the plausibility gate's, every check's and the
+motion's path tolerance: :class:`agentsdk.safety._block.SafetyBlock`,
+:class:`agentsdk.motion._block.BlockPlanner`), commits the ticks they pass quietly and, at the
+first tick that would do anything (a check that fires, a reading the gate doubts, a limit the
+filter would apply, the motion's end), puts the simulation back to where it stood before that
+tick and lets the loop run it tick by tick. Every result, event, feedback message, state and
+setpoint is bit for bit what tick-by-tick computes (``tests/test_block_lockstep.py`` compares
+per-tick hashes of random runs).
 
-This first slice blocks a **hold** only: no COMMAND hook (no motion, stop ramp or scheduled
-motion runs), the safety layer's filter as the only LIMIT hook, the safety watchdogs and
-:class:`BlockObserver` hooks as the only OBSERVE hooks, safety state OK, every check a
-:class:`~agentsdk.checks.BlockCheck`, the command watchdog not watching position mode. Anything
+Blocked so far: a **hold** (no COMMAND hook) and **one motion following its trajectory** (its
+executor record the only COMMAND hook, speed scaling 1, consecutive joints, samples the limiter
+provably leaves alone), with the safety layer's filter as the only LIMIT hook, the safety
+watchdogs and :class:`BlockObserver` hooks as the only OBSERVE hooks, safety state OK, every check
+a :class:`~agentsdk.checks.BlockCheck`, the command watchdog not watching position mode. Anything
 else runs tick by tick, as without it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
 from .backend import SetpointView
-from .checks import BlockCheck
 from .clock import LockstepClock
 from .errors import ConfigurationError, InvalidValueError, SimulationDiverged
-from .loop import StateView
-from .safety import SafetyState
+from .loop import ControlLoop, Phase, StateView
 from .types import FloatArray
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
-    from .robot import Robot
+    from .motion._block import BlockPlan, BlockPlanner
+    from .safety._block import SafetyBlock
 
 __all__ = ["BlockLockstep", "BlockObserver", "BlockStepperLike"]
 
@@ -48,16 +49,19 @@ _NONE = (0, False)
 class BlockObserver(Protocol):
     """An OBSERVE hook that also takes a block of ticks at once; any other OBSERVE hook forces tick by tick.
 
-    ``observe_block(ts, states, setpoint)`` gets the block's committed ticks: their robot times
-    ``ts`` (K,), their measured states ``states`` (K, 3, n: position, velocity and effort rows, as
-    :attr:`agentsdk.loop.StateView.block`, read-only) and the setpoint (constant over a block). It
-    must do what K calls ``fn(ts[k], state_k, setpoint)`` would.
+    ``observe_block(ts, states, setpoints, setpoint)`` gets the block's committed ticks: their robot
+    times ``ts`` (K,), their measured states ``states`` (K, 3, n: position, velocity and effort rows,
+    as :attr:`agentsdk.loop.StateView.block`), the float rows of each tick's setpoint ``setpoints``
+    (K, 7, n, in :attr:`agentsdk.loop.Setpoint.FIELDS` order; read-only, like ``states``) and the
+    live setpoint view for the rest (``mode``, ``enabled``: constant over a block). It must do
+    what K calls ``fn(ts[k], state_k, setpoint_k)`` would.
     """
 
     def __call__(self, t: float, state: StateView, setpoint: SetpointView) -> None:
         """The per-tick hook."""
 
-    def observe_block(self, ts: FloatArray, states: FloatArray, setpoint: SetpointView) -> None:
+    def observe_block(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray,
+                      setpoint: SetpointView) -> None:
         """The same for K ticks at once."""
 
 
@@ -76,13 +80,16 @@ class BlockStepperLike(Protocol):
 class BlockLockstep:
     """Runs a lockstep robot's uneventful ticks as blocks (see the module); :meth:`close` turns it off.
 
-    ``capacity``: the most ticks per block. Counters: :attr:`blocks` run, :attr:`block_ticks`
-    committed through them, :attr:`rollbacks` (blocks cut short by a tick that had to run alone).
+    Made by :meth:`agentsdk.Robot.block_lockstep`. ``capacity``: the most ticks per block.
+    Counters: :attr:`blocks` run, :attr:`block_ticks` committed through them (:attr:`motion_ticks`
+    of them while a motion followed its trajectory), :attr:`rollbacks` (blocks cut short by a
+    tick that had to run alone).
     """
 
-    def __init__(self, robot: Robot, capacity: int = 256) -> None:
-        loop = robot._loop
-        if not isinstance(loop.clock, LockstepClock):
+    def __init__(self, loop: ControlLoop, safety: SafetyBlock, planner: BlockPlanner | None,
+                 capacity: int = 256) -> None:
+        clock = loop.clock
+        if not isinstance(clock, LockstepClock):
             raise ConfigurationError("block lockstep needs a lockstep robot (realtime=False)")
         if capacity < 2:
             raise InvalidValueError(f"capacity must be at least 2 ticks, got {capacity}")
@@ -92,18 +99,13 @@ class BlockLockstep:
         if loop.block_runner is not None:
             raise ConfigurationError("block lockstep is already on for this robot")
         self._loop = loop
-        self._clock = loop.clock
+        self._clock = clock
         self._stepper: BlockStepperLike = make(capacity)
-        safety = robot.safety
-        self._filter = safety._filter
-        self._filter_tick = safety._filter.tick
-        self._watchdogs = safety._watchdogs
-        self._wd_tick = safety._watchdogs.tick
-        self._core = safety._core
-        self._latched = safety._core._latched.is_set
+        self._safety = safety
+        self._planner = planner
         self.capacity = capacity
         n = len(loop.joints)
-        self._rows = np.empty((capacity, 3, n))
+        self._rows = np.empty((capacity, 7, n))
         self._readings = np.empty((capacity, 3, n))
         self._ts = np.empty(capacity)
         self._itick = np.empty(capacity, dtype=np.int64)
@@ -113,6 +115,7 @@ class BlockLockstep:
         self._backoff = 1
         self.blocks = 0
         self.block_ticks = 0
+        self.motion_ticks = 0
         self.rollbacks = 0
         loop.block_runner = self.run
 
@@ -125,8 +128,8 @@ class BlockLockstep:
         """The OBSERVE hooks besides the watchdogs if each takes blocks (None: one does not, or no watchdogs)."""
         out: list[BlockObserver] = []
         seen = False
-        for fn in self._loop._observe.fns:
-            if fn == self._wd_tick:
+        for fn in self._loop.hook_functions(Phase.OBSERVE):
+            if self._safety.is_watchdog_hook(fn):
                 seen = True
             elif isinstance(fn, BlockObserver):
                 out.append(fn)
@@ -134,93 +137,104 @@ class BlockLockstep:
                 return None
         return out if seen else None
 
-    def _eligible(self) -> bool:
-        """The cheap preconditions of a hold block (see the module)."""
-        loop = self._loop
-        if loop._torque_off or loop._fault is not None or loop._command.fns:
-            return False
-        if loop._limit.fns != (self._filter_tick,):
-            return False
-        if self._core._state is not SafetyState.OK or self._latched():
-            return False
-        gate = loop.sensor_gate
-        if gate is not None and (gate.pending or not gate.block_ready()):
-            return False
-        wd = self._watchdogs
-        if wd._watch_position:
-            return False
-        return all(isinstance(c, BlockCheck) and c.block_ready() for c in wd._checks)
-
     def run(self) -> tuple[int, bool]:
         """One block if one can run now: ``(ticks committed, whether the last woke a sleeper)``, else ``(0, False)``."""
         if self._skip:
             self._skip -= 1
             return _NONE
-        if not self._eligible():
+        loop, clock, safety = self._loop, self._clock, self._safety
+        if loop.torque_off or loop.fault is not None or not safety.ready(loop.hook_functions(Phase.LIMIT)):
             return _NONE
         observers = self._observers()
         if observers is None:
             return _NONE
-        loop, clock = self._loop, self._clock
+        hooks = loop.hook_functions(Phase.COMMAND)
+        if hooks and self._planner is None:
+            return _NONE
         K = clock.ticks_until_wake(self.capacity)
         if K < 2:
             return _NONE
-        sp = loop._sp
-        sp.acceleration.fill(0.0)  # as each tick does first (nobody else writes it during a hold)
-        rows = self._rows[:K]
-        rows[...] = sp.block[0:3]  # a hold: the same rows every tick
-        k = self._filter.block_quiet(rows, sp.mode, sp.enabled)
+        tick0, period = clock.ticks, clock.period
+        stamp = loop.stamp
+        if stamp != tick0 * period:
+            return _NONE  # (the COMMAND phases' times below are the clock's products)
+        sp = loop.setpoint_buffer
+        before = sp.block.copy()
+        sp.acceleration.fill(0.0)  # as each tick does first (only a motion writes it again)
+        plan: BlockPlan | None = None
+        if hooks:
+            assert self._planner is not None
+            plan = self._planner.follow(hooks, K, tick0, self.capacity)
+            if plan is None:
+                sp.block[...] = before
+                return self._cut_short()
+            K = plan.k
+        rows = self._rows[:K]  # every tick's setpoint rows after its COMMAND and LIMIT phases
+        rows[...] = sp.block
+        if plan is not None:
+            sel, samples = plan.sel, plan.samples[:K]
+            rows[:, 0:2, sel] = samples[:, 0:2]  # position, velocity
+            rows[:, 5, sel] = samples[:, 0]  # target
+            rows[:, 6, sel] = samples[:, 2]  # acceleration
+        k = safety.limit_quiet(np.ascontiguousarray(rows[:, 0:3]), sp.mode, sp.enabled)
         if k < 2:
+            sp.block[...] = before
             return self._cut_short()
-        backend, spv, latched = loop.backend, sp.view, self._latched
-        stamp, tick0, period = loop.stamp, clock.ticks, clock.period
+        backend, spv, latched, spb = loop.backend, sp.view, safety.latched, sp.block
 
         def write(j: int) -> bool:
             # an emergency stop or latch from another thread ends the block before the next write:
             # tick by tick it would land at that tick
-            if loop._torque_off or latched():
+            if loop.torque_off or latched():
                 return False
             if j:  # the robot time of the latest state as tick j's write sees it (another thread's events)
                 loop.stamp = (tick0 + j) * period
+            spb[...] = rows[j]
             backend.write(spv)
-            if loop._torque_off:
+            if loop.torque_off:
                 backend.emergency_stop(0)  # it landed during write: enforce it again (as the tick does)
             return True
 
         stepper = self._stepper
-        readings = self._readings
-        done = stepper.run(write, k, readings)
+        done = stepper.run(write, k, self._readings)
         fault = stepper.fault
         loop.stamp = stamp
         if done == 0:
+            sp.block[...] = before
             if fault is not None:
-                raise fault
+                stepper.restore(0)  # tick 0 runs alone and diverges there, tick by tick
             return self._cut_short()
         # tick j's OBSERVE phase runs at (T + j + 1) * period, the clock's own product
-        itick = np.add(self._one_to_k[:done], clock.ticks, out=self._itick[:done])
-        ts = np.multiply(itick, clock.period, out=self._ts[:done])
-        states = readings[:done]
+        itick = np.add(self._one_to_k[:done], tick0, out=self._itick[:done])
+        ts = np.multiply(itick, period, out=self._ts[:done])
+        states = self._readings[:done]
         setpoints = rows[:done, 0]
-        q = done
-        gate = loop.sensor_gate
-        if gate is not None:
-            q = min(q, gate.block_quiet(ts, states))
-        # the ticks whose OBSERVE phase runs the checks: a latch set from another thread during the block
-        # ended it (write); tick by tick, the last tick's watchdogs would have seen it and skipped them
-        checked = min(q, done - 1 if self._latched() else done)
-        for c in self._watchdogs._checks:
-            if checked == 0:
-                break
-            assert isinstance(c, BlockCheck)
-            quiet = c.block_quiet(ts[:checked], states[:checked], setpoints[:checked])
-            if quiet < checked:
-                checked = q = quiet  # this tick's check acts: it runs alone
-        if q < done:
-            stepper.restore(q)  # tick q runs alone, from where it started
+        q, checked = safety.observe_quiet(ts, states, setpoints)
+        if plan is not None and q:
+            assert self._planner is not None
+            q = self._planner.path_quiet(plan, states, q)  # the motion's path tolerance, at each tick's COMMAND
+            checked = min(checked, q)
+        if q < done or fault is not None:
+            # tick q runs alone, from where it started (a step that diverged: again, tick by tick)
+            stepper.restore(q)
             self.rollbacks += 1
         if q == 0:
+            sp.block[...] = before
             return self._cut_short()
-        self._commit(ts, states, rows, setpoints, q, checked, observers)
+        if plan is not None:
+            assert self._planner is not None
+            self._planner.commit(plan, states, q)
+            self.motion_ticks += q
+        if not safety.commit(ts, states, rows[:, 0:3], setpoints, q, checked):
+            loop.state_buffer.block[...] = states[q - 1]  # no plausibility gate: the reading is the state
+        spb[...] = rows[q - 1]
+        if observers:
+            view = states[:q]
+            view.flags.writeable = False
+            sps = rows[:q]
+            sps.flags.writeable = False
+            for obs in observers:
+                obs.observe_block(ts[:q], view, sps, spv)
         woke = 0
         advance = clock.advance
         for _ in range(q):
@@ -230,32 +244,7 @@ class BlockLockstep:
         self.blocks += 1
         self.block_ticks += q
         self._backoff = 1
-        if fault is not None and q == done:
-            raise fault  # the next tick's step diverged: as tick by tick, after the ticks before it
         return q, woke > 0
-
-    def _commit(self, ts: FloatArray, states: FloatArray, rows: FloatArray, setpoints: FloatArray, q: int,
-                checked: int, observers: list[BlockObserver]) -> None:
-        """Bring every per-tick rule's state to where ``q`` quiet ticks leave it, and tell the observers.
-
-        The checks ran in the first ``checked`` of them.
-        """
-        loop = self._loop
-        self._filter.commit_block(rows, q)
-        gate = loop.sensor_gate
-        if gate is not None:
-            gate.commit_block(ts, states, q)
-        else:
-            loop._state.block[...] = states[q - 1]
-        for c in self._watchdogs._checks:
-            assert isinstance(c, BlockCheck)
-            c.commit_block(ts, states, setpoints, checked)
-        if observers:
-            view = states[:q]
-            view.flags.writeable = False
-            spv = loop._sp.view
-            for obs in observers:
-                obs.observe_block(ts[:q], view, spv)
 
     def _cut_short(self) -> tuple[int, bool]:
         """No block now: run the next ticks as usual, for longer each time this repeats."""

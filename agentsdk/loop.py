@@ -308,6 +308,20 @@ class ControlLoop:
         return self._sp.view
 
     @property
+    def setpoint_buffer(self) -> Setpoint:
+        """The writable setpoint the COMMAND and LIMIT hooks get (block lockstep writes each tick's rows into it)."""
+        return self._sp
+
+    @property
+    def state_buffer(self) -> StateBuffer:
+        """The measured-state arrays the loop writes (block lockstep commits a block's last reading into them)."""
+        return self._state
+
+    def hook_functions(self, phase: Phase) -> tuple[Callable[..., Any], ...]:
+        """The functions registered in ``phase``, in the order the tick calls them."""
+        return self._hooks[phase].fns
+
+    @property
     def targets(self) -> FloatArray:
         """Read-only view of the last commanded value per joint (position, velocity or effort per its mode)."""
         view = self._sp.target.view()

@@ -70,7 +70,7 @@ PACKAGE_ORDER: dict[str, tuple[str, ...]] = {
         "_types", "_handle", "_envelope", "_records", "_ownership", "_stops", "_admission", "_executor", "_block",
         "_manager",
     ),
-    "agentsdk.safety": ("_config", "_state", "_filter", "_stops", "_watchdogs", "_layer"),
+    "agentsdk.safety": ("_config", "_state", "_filter", "_stops", "_watchdogs", "_block", "_layer"),
     "agentsdk.cli": ("_behavior", "_run", "_robots", "_teleop", "_tools", "_main", "__main__"),
 }
 

@@ -1,13 +1,16 @@
 """Block lockstep in the loop (issue 28 item 1, agentsdk.block): random runs hash tick for tick as without it.
 
-Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep): a sleep
-of random length (a hold: what a block runs), a direct position command (the filter's ramp: per
-tick, then blocks), an external push (``qfrc_applied``, strong enough at random to trip the
-following-error or the measured-position check in the middle of a block: a rollback), an
-e-stop of a random category with reset and enable, or a gravity change (a push on every joint).
+Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
+sleep of random length (what blocks run): a move of random length and goal (``follow``, with a
+path tolerance or none), a cancel of the running move (its stop ramp runs tick by tick), a direct
+position command (the filter's ramp: per tick, then blocks; refused while a move drives the
+joints), an external push (``qfrc_applied``, strong enough at random to trip the path tolerance,
+the following-error or the measured-position check, or the plausibility gate, in the middle of a
+block: a rollback), its release, or an e-stop of a random category (then mostly reset and enable).
 The same program runs with block lockstep off and on; every tick's time, setpoint and measured
 state (an OBSERVE hook that takes blocks, :class:`agentsdk.block.BlockObserver`), and after each
-segment the safety state and events, are hashed; the hashes must be equal segment by segment.
+segment the safety state and events, the move's latest feedback message and its result, are hashed;
+the hashes must be equal segment by segment.
 The test also demands that blocks ran and that some were cut short (so it exercises the path
 it claims to test).
 """
@@ -21,8 +24,7 @@ import numpy as np
 import pytest
 
 import agentsdk
-from agentsdk import JointCommand, Phase
-from agentsdk.block import BlockLockstep
+from agentsdk import JointCommand, Phase, Tolerances, Trajectory, TrajectoryPoint
 
 SAFETY = {"stall_timeout": 30.0}
 #: seeds per robot and segments per seed: 2 x 13 x 40 = 1,040 cases
@@ -38,17 +40,17 @@ class _Hasher:
         self.ticks = 0
 
     def __call__(self, t: float, st: Any, sp: Any) -> None:
-        self._one(t, sp, st.position, st.velocity, st.effort)
+        self._one(t, (sp.position, sp.velocity, sp.effort, sp.kp, sp.kd, sp.target, sp.acceleration), sp,
+                  st.position, st.velocity, st.effort)
 
-    def observe_block(self, ts: np.ndarray, states: np.ndarray, sp: Any) -> None:
+    def observe_block(self, ts: np.ndarray, states: np.ndarray, rows: np.ndarray, sp: Any) -> None:
         for k in range(len(ts)):
-            self._one(float(ts[k]), sp, states[k, 0], states[k, 1], states[k, 2])
+            self._one(float(ts[k]), rows[k], sp, states[k, 0], states[k, 1], states[k, 2])
 
-    def _one(self, t: float, sp: Any, q: np.ndarray, v: np.ndarray, e: np.ndarray) -> None:
+    def _one(self, t: float, rows: Any, sp: Any, q: np.ndarray, v: np.ndarray, e: np.ndarray) -> None:
         h = self.h
         h.update(np.float64(t).tobytes())
-        for a in (sp.position, sp.velocity, sp.effort, sp.kp, sp.kd, sp.target, sp.acceleration, sp.enabled,
-                  sp.mode, q, v, e):
+        for a in (*rows, sp.enabled, sp.mode, q, v, e):
             h.update(np.ascontiguousarray(a).tobytes())
         self.ticks += 1
 
@@ -60,11 +62,19 @@ class _Hasher:
         return out
 
 
+def _result(m: Any) -> tuple[Any, ...]:
+    try:
+        r = m.result()
+    except Exception as exc:  # the motion failed (e.g. the loop faulted)
+        return (repr(exc),)
+    return (r.code.name, r.message, r.time, sorted(r.error.items()))
+
+
 async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], dict[str, int]]:
     async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
-        runner = BlockLockstep(robot, capacity=128) if block else None
+        runner = robot.block_lockstep(capacity=128) if block else None
         b = robot.backend
         rng = np.random.default_rng(seed)
         names = list(robot.joint_names)
@@ -75,11 +85,32 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
         effort = np.array([j.max_effort if 0 < j.max_effort < np.inf else 10.0 for j in robot.joints])
         out = []
         events = 0
+        motion: Any = None
         for seg in range(SEGMENTS):
-            what = rng.choice(["sleep", "sleep", "sleep", "command", "command", "push", "push", "release", "estop"])
+            what = str(rng.choice(["sleep", "sleep", "command", "follow", "follow", "follow", "cancel", "push", "push",
+                                   "release", "estop"]))
+            note = ""
             if what == "command" and robot.safety.state.name == "OK":
                 goal = np.clip((await robot.read()).position + rng.uniform(-0.15, 0.15, n), lo, hi)
-                await robot.command(JointCommand("position", goal.tolist()))
+                try:
+                    await robot.command(JointCommand("position", goal.tolist()))
+                except agentsdk.errors.AgentSDKError as exc:  # a motion drives the joints
+                    note = repr(exc)
+            elif what == "follow" and robot.safety.state.name == "OK":
+                # a move of random length from where the setpoint is, with a path tolerance or none
+                # (mostly inside the limits by a margin: a segment that touches a bound runs tick by tick)
+                margin = (hi - lo) * (0.1 if rng.random() < 0.8 else 0.0)
+                goal = np.clip(np.asarray(robot.setpoint.position) + rng.uniform(-0.6, 0.6, n),
+                               lo + margin, hi - margin)
+                tol = (Tolerances(path=float(rng.choice([0.01, 0.05, 0.2])), goal=0.05, goal_time=0.5)
+                       if rng.random() < 0.5 else None)
+                plan = Trajectory(names, [TrajectoryPoint(float(rng.uniform(0.1, 1.2)), goal.tolist())])
+                try:
+                    motion = robot.follow(plan, tol, stretch_to_limits=True)
+                except agentsdk.errors.AgentSDKError as exc:
+                    note = repr(exc)
+            elif what == "cancel" and motion is not None and not motion.done():
+                motion.cancel()
             elif what == "push":
                 # a fraction of the joints' effort limits on a few of them, now and then more: a following
                 # error, a limit hit or a reading the plausibility gate refuses, often in the middle of a block
@@ -91,6 +122,8 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
             elif what == "estop":
                 await robot.estop(int(rng.integers(0, 3)))
             await robot.clock.sleep(float(rng.choice([0.002, rng.uniform(0.0, 0.05), rng.uniform(0.05, 0.4)])))
+            if rng.random() < 0.5:
+                b.data.qfrc_applied[:] = 0.0  # most pushes last one segment
             if robot.safety.state.name not in ("OK", "HOLD") and rng.random() < 0.85:
                 b.data.qfrc_applied[:] = 0.0
                 await robot.safety.wait_stopped()
@@ -99,12 +132,19 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
             new = robot.safety.events[events:] if len(robot.safety.events) >= events else ()
             events = len(robot.safety.events)
             if runner is not None and TRACE:
-                print(seg, what, robot.safety.state.name, runner.blocks, runner.block_ticks, runner.rollbacks)
-            out.append(hasher.cut(seg, str(what), robot.safety.state.name, robot.clock.ticks,
-                                  [(e.kind, e.detail, e.joint, e.time) for e in new]))
+                print(seg, what, robot.safety.state.name, runner.blocks, runner.block_ticks, runner.rollbacks,
+                      runner.motion_ticks, note[:60])
+            fb: Any = None if motion is None else motion._feedback
+            feedback = None if fb is None else (
+                fb.time, fb.progress, fb.desired_positions.tobytes(), fb.desired_velocities.tobytes(),
+                fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes())
+            result = None if motion is None or not motion.done() else _result(motion)
+            out.append(hasher.cut(seg, what, note, robot.safety.state.name, robot.clock.ticks,
+                                  [(e.kind, e.detail, e.joint, e.time) for e in new], feedback, result))
         stats = {"ticks": hasher.ticks}
         if runner is not None:
-            stats.update(blocks=runner.blocks, block_ticks=runner.block_ticks, rollbacks=runner.rollbacks)
+            stats.update(blocks=runner.blocks, block_ticks=runner.block_ticks, rollbacks=runner.rollbacks,
+                         motion_ticks=runner.motion_ticks)
             runner.close()
         return out, stats
 
@@ -112,7 +152,7 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
 async def test_block_lockstep_is_tick_by_tick_bit_for_bit(robot_name: str) -> None:
-    blocks = block_ticks = rollbacks = ticks = 0
+    blocks = block_ticks = rollbacks = ticks = motion_ticks = 0
     for seed in range(SEEDS):
         want, base = await _program(robot_name, seed, block=False)
         got, stats = await _program(robot_name, seed, block=True)
@@ -122,9 +162,11 @@ async def test_block_lockstep_is_tick_by_tick_bit_for_bit(robot_name: str) -> No
         blocks += stats["blocks"]
         block_ticks += stats["block_ticks"]
         rollbacks += stats["rollbacks"]
+        motion_ticks += stats["motion_ticks"]
         ticks += stats["ticks"]
     # the test exercises what it claims: most held ticks ran in blocks, and checks cut some blocks short
-    assert blocks > 50 and block_ticks > ticks // 4, (blocks, block_ticks, ticks)
+    assert blocks > 50 and block_ticks > ticks // 10 and motion_ticks > ticks // 100, (
+        blocks, block_ticks, motion_ticks, ticks)
     assert rollbacks > 5, rollbacks
 
 
@@ -132,7 +174,7 @@ async def _diverge(block: bool) -> tuple[str, int, str, str]:
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
-        runner = BlockLockstep(robot, capacity=64) if block else None
+        runner = robot.block_lockstep(capacity=64) if block else None
         b = robot.backend
         await robot.clock.sleep(0.2)
         b.data.qfrc_applied[:] = 1e300  # the next step's acceleration is not finite: SimulationDiverged
@@ -155,7 +197,7 @@ async def _thread_estop(block: bool, at: int) -> tuple[Any, ...]:
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
-        runner = BlockLockstep(robot, capacity=64) if block else None
+        runner = robot.block_lockstep(capacity=64) if block else None
         b = robot.backend
         write = b.write
         fired = False

@@ -2,7 +2,7 @@
 
 At many ticks of real motions (a planned move, a hand-written trajectory, a stop ramp after a
 cancel; arm3 and humanoid on MuJoCo) the executor predicts the
-references of the coming ticks at once (:meth:`_BlockPlanner.reference`) where nothing else is
+references of the coming ticks at once (:meth:`BlockPlanner.reference`) where nothing else is
 runnable (a block starts after the event loop settled), bounded by the clock's next wake-up
 (:meth:`LockstepClock.ticks_until_wake`); the ticks that then run write exactly those setpoints,
 bit for bit.
@@ -37,7 +37,7 @@ class _Probe:
     def __init__(self, robot: agentsdk.Robot, every: int, rng: np.random.Generator) -> None:
         self.robot = robot
         self.loop = robot._loop
-        self.planner = robot._motions._block
+        self.planner = robot._motions.block_planner
         self.table = robot._motions._table
         self.every = every
         self.rng = rng

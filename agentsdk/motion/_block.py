@@ -1,32 +1,169 @@
-"""Block lockstep's planning seam (issue 28 item 1): a running motion's references for K ticks at once.
+"""Block lockstep's motion side (issue 28 item 1): a running motion's references for K ticks at once.
 
-:class:`_BlockPlanner` answers, for one executor record, what :meth:`._executor._Executor.update`
+:class:`BlockPlanner` answers, for one executor record, what :meth:`._executor._Executor.update`
 would write in each of the coming K ticks and how many of them are *pre-planned* (fixed before the
-block runs, whatever the measured state), without changing the record. The control loop does not
-use it yet; ``tests/test_block_seam.py`` checks its answers against what real ticks write.
+block runs, whatever the measured state), without changing the record
+(``tests/test_block_seam.py`` checks its answers against what real ticks write). For
+:mod:`agentsdk.block` it takes over one following motion for a block (:meth:`~BlockPlanner.follow`,
+its path tolerance over the block's states, :meth:`~BlockPlanner.path_quiet`) and leaves the
+record where the block's committed ticks leave it (:meth:`~BlockPlanner.commit`).
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Callable
 
 import numpy as np
 
 from ..limits import StepLimiter
 from ..loop import ControlLoop
 from ._envelope import _Envelope, envelope
+from ._executor import _Executor
 from ._records import _Exec, _MotionTable
-from ._types import MotionPhase
+from ._types import _POS, MotionPhase
 
 
-class _BlockPlanner:
+class BlockPlan:
+    """A following motion's samples for one block, and the scratch arrays of its path check.
+
+    ``k``: the ticks planned; ``sel``: its joints (a slice: consecutive); ``samples`` (capacity,
+    3, joints): each tick's position, velocity and acceleration. One per joint count, reused.
+    """
+
+    def __init__(self, capacity: int, m: int) -> None:
+        self.ex: _Exec | None = None
+        self.sel: slice = slice(0, m)
+        self.k = 0
+        self.ts = np.empty(capacity)
+        self.taus = np.empty(capacity)
+        self.samples = np.empty((capacity, 3, m))
+        self.regions = np.empty(capacity, dtype=np.intp)
+        self.pre = np.empty((2, m))
+        self.actual = np.empty((capacity, m))
+        self.err = np.empty((capacity, m))
+        self.tmp = np.empty((capacity, m))
+        self.ticks = np.empty(capacity, dtype=np.int64)
+        self.zero_to_k = np.arange(capacity, dtype=np.int64)
+
+
+class BlockPlanner:
     """The references of a motion's coming ticks, computed at once (bit for bit the tick's), and how many are fixed."""
 
-    def __init__(self, loop: ControlLoop, table: _MotionTable, origin: np.ndarray | None) -> None:
+    def __init__(self, loop: ControlLoop, table: _MotionTable, origin: np.ndarray | None,
+                 executor: _Executor | None = None) -> None:
         self.loop = loop
         self.table = table
         #: the live origin of each joint's step window (the safety limiter's), or None
         self._origin = origin
+        self._executor = executor
+        self._plans: dict[tuple[int, int], BlockPlan] = {}
 
-    def reference(self, ex: _Exec, ts: np.ndarray, taus: np.ndarray, out: np.ndarray) -> int:
+    # ------------------------------------------------------------ a following motion in a block
+    def _record(self, hooks: tuple[Callable[..., object], ...]) -> _Exec | None:
+        """The one motion the COMMAND hooks run, if it follows its trajectory and a block can take it over."""
+        executor = self._executor
+        if executor is None or len(hooks) != 1 or self.table.pending:
+            return None
+        ex = executor.record_of(hooks[0])
+        if ex is None or ex.phase is not MotionPhase.FOLLOW or ex.remote is not None:
+            return None
+        w = ex.work
+        if w is None or w.sp_rows is None or not isinstance(w.sel, slice) or w.bound is None:
+            return None  # its first tick has not run, or its joints are not consecutive
+        if w.bound[0] is not self.loop.setpoint_buffer or w.bound[1] is not self.loop.state:
+            return None
+        m = ex.motion
+        if m is not None and m._publish().keep_measured:
+            return None  # a stream of link poses keeps every tick's measured positions
+        return ex
+
+    def follow(self, hooks: tuple[Callable[..., object], ...], K: int, tick0: int, capacity: int) -> BlockPlan | None:
+        """Plan the coming ticks (at most ``K``, from clock tick ``tick0``) of the one motion ``hooks`` run.
+
+        None when the hooks are not one following motion's, or fewer than 2 of its coming ticks
+        are pre-planned (:meth:`reference`). Otherwise writes the rows its ticks write besides the
+        sample (mode, torque on, effort, gains: the same every tick) into the setpoint, as its
+        next tick would, and returns the samples.
+        """
+        ex = self._record(hooks)
+        if ex is None:
+            return None
+        w = ex.work
+        assert w is not None and w.sp_rows is not None
+        m = len(ex.idx)
+        plan = self._plans.get((capacity, m))
+        if plan is None:
+            plan = self._plans[(capacity, m)] = BlockPlan(capacity, m)
+        plan.ex, plan.sel = ex, w.sel
+        mode, enabled = w.sp_views[0], w.sp_views[1]
+        mode.fill(_POS)
+        enabled.fill(True)
+        w.sp_rows[1][...] = w.const
+        # tick j's COMMAND phase runs at (tick0 + j) * period, the clock's own product
+        ticks = np.add(plan.zero_to_k[:K], tick0, out=plan.ticks[:K])
+        ts = np.multiply(ticks, self.loop.period, out=plan.ts[:K])
+        k = self.reference(ex, ts, plan.taus[:K], plan.samples[:K], plan.regions[:K])
+        if k < 2:
+            return None
+        plan.k = k
+        # the measured position and velocity of its joints as the first tick's COMMAND phase sees them
+        plan.pre[...] = self.loop.state.block[0:2, plan.sel]  # type: ignore[index]
+        return plan
+
+    def path_quiet(self, plan: BlockPlan, states: np.ndarray, q: int) -> int:
+        """How many of the first ``q`` ticks pass the motion's path tolerance (the tick's own test, at once).
+
+        Tick j compares its sample with the state after tick j - 1 (``states`` (K, 3, n): the block's).
+        """
+        ex = plan.ex
+        assert ex is not None
+        sel = plan.sel
+        actual = plan.actual[:q]
+        actual[0] = plan.pre[0]
+        actual[1:] = states[: q - 1, 0, sel]
+        err = np.subtract(plan.samples[:q, 0], actual, out=plan.err[:q])
+        if ex.wrap is not None:  # _wrap_into's operations
+            tmp = plan.tmp[:q]
+            np.add(err, math.pi, out=tmp)
+            np.remainder(tmp, 2.0 * math.pi, out=tmp)
+            np.subtract(tmp, math.pi, out=tmp)
+            np.copyto(err, tmp, where=ex.wrap)
+        ok = np.less_equal(err if ex.path_unbounded else np.abs(err), ex.path_tol)
+        good = ok.all(axis=1)
+        return q if good.all() else int(np.argmin(good))
+
+    def commit(self, plan: BlockPlan, states: np.ndarray, q: int) -> None:
+        """Leave the motion as ``q`` ticks of :meth:`_Executor.update` leave it: trajectory time, sample, feedback."""
+        ex = plan.ex
+        assert ex is not None and ex.work is not None
+        w = ex.work
+        j = q - 1
+        w.sample[...] = plan.samples[j]
+        ex.sampler.region = int(plan.regions[j])
+        ex.tau = float(plan.taus[j])
+        ex.t_last = t = float(plan.ts[j])
+        ex.sdot = 0.0
+        ex.vt, ex.at = w.vt, w.at
+        ex.des_q, ex.des_v, ex.des_a = w.q, w.vt, w.at
+        w.err[...] = plan.err[j]
+        lim, env = ex.limits, ex.env
+        if env is not None and lim is not None and lim.step is not None and self._origin is not None:
+            env.prev = w.q.tobytes()
+        motion = ex.motion
+        if motion is None:
+            return
+        snap = motion._publish()
+        dur = ex.sampler.duration
+        snap.progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
+        snap.time = t
+        snap.q, snap.v, snap.err = w.q, w.vt, w.err
+        w.measured[...] = plan.pre if j == 0 else states[j - 1, 0:2, plan.sel]
+        snap.actual_q, snap.actual_v = w.act, w.actual_v
+        snap.seq += q
+
+    def reference(self, ex: _Exec, ts: np.ndarray, taus: np.ndarray, out: np.ndarray,
+                  regions: np.ndarray | None = None) -> int:
         """The references of ``ex`` for the coming ticks at robot times ``ts`` (K,), all at once.
 
         Block lockstep's seam (issue 28 item 1): writes each tick's trajectory time into ``taus``
@@ -39,7 +176,8 @@ class _BlockPlanner:
         its stop ramp ends) and is 0 where anything is not proven: a scheduled, offloaded or first
         tick, speed scaling other than 1, a sample the limiter might change (see :mod:`._envelope`;
         a stop ramp's envelope is computed here, once per ramp, while its tick keeps the full path).
-        Nothing of ``ex`` changes.
+        Nothing of ``ex`` changes. ``regions`` (K,), if given, receives each sample's sampler region
+        (as ``ex.sampler.region`` is after that tick).
         """
         K = len(ts)
         if K == 0 or ex.remote is not None or ex.phase not in (MotionPhase.FOLLOW, MotionPhase.STOPPING):
@@ -78,7 +216,8 @@ class _BlockPlanner:
         taus[...] = dts[1:]
         sampler = ex.sampler
         region = sampler.region
-        regions = np.empty(K, dtype=np.intp)
+        if regions is None:
+            regions = np.empty(K, dtype=np.intp)
         try:
             sampler.sample_block(taus, out, regions)
         finally:

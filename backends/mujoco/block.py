@@ -53,6 +53,7 @@ class BlockStepper:
         #: ticks the last :meth:`run` completed, and the divergence that ended it (None: it did not)
         self.done = 0
         self.fault: SimulationDiverged | None = None
+        self._warned: tuple[np.ndarray, bytes] = (np.zeros(0), b"")
 
     def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
         """Run ticks ``0 .. count - 1``: ``write(k)``, step one control period, read into ``readings[k]`` (3, n).
@@ -71,6 +72,8 @@ class BlockStepper:
         read = b.read
         self.fault = None
         self.done = 0
+        # the backend's record of MuJoCo's warning counters before the block (see restore)
+        self._warned = (b._warn.copy(), b._warn_bytes)
         for k in range(count):
             if write(k) is False:
                 get_state(m, d, states[k], _STATE)  # (restore(k) is then the state as it stands)
@@ -102,8 +105,18 @@ class BlockStepper:
         return count
 
     def restore(self, k: int) -> None:
-        """Put MuJoCo back to where it was before tick ``k`` of the last block (``k == done``: its end)."""
+        """Put MuJoCo back to where it was before tick ``k`` of the last block (``k == done``: its end).
+
+        After a divergence the backend forgets it too: stepping tick ``done`` again diverges again,
+        with the backend's own error (as tick by tick).
+        """
         if not 0 <= k <= self.done:
             raise InvalidValueError(f"tick {k} is not within the last block (0..{self.done})")
         b = self._b
         mujoco.mj_setState(b.model, b.data, self.states[k], _STATE)
+        if self.fault is not None:
+            # forget the divergence: the backend's own step from here sees it again (MuJoCo's automatic
+            # reset leaves its warning counter where a second divergence leaves it too, so the counter
+            # alone would not tell the backend it diverged again)
+            b._warn[...] = self._warned[0]
+            b._warn_bytes = self._warned[1]

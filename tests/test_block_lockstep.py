@@ -2,7 +2,8 @@
 
 Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
 sleep of random length (what blocks run): a move of random length and goal (``follow``, with a
-path tolerance or none), a cancel of the running move (its stop ramp runs tick by tick), a direct
+path tolerance or none), a cancel of the running move (its stop ramp runs tick by tick), a
+feedback stream of the running move at a random rate (hashed: what it read), a direct
 position command (the filter's ramp: per tick, then blocks; refused while a move drives the
 joints), an external push (``qfrc_applied``, strong enough at random to trip the path tolerance,
 the following-error or the measured-position check, or the plausibility gate, in the middle of a
@@ -17,6 +18,7 @@ it claims to test).
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 from typing import Any
 
@@ -25,6 +27,7 @@ import pytest
 
 import agentsdk
 from agentsdk import JointCommand, Phase, Tolerances, Trajectory, TrajectoryPoint
+from agentsdk.registry import load_backend
 
 SAFETY = {"stall_timeout": 30.0}
 #: seeds per robot and segments per seed: 2 x 13 x 40 = 1,040 cases
@@ -62,6 +65,12 @@ class _Hasher:
         return out
 
 
+async def _stream(motion: Any, rate: float, seen: list[Any]) -> None:
+    async for fb in motion.feedback(rate=rate):
+        seen.append((fb.time, fb.progress, fb.desired_positions.tobytes(), fb.desired_velocities.tobytes(),
+                     fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes()))
+
+
 def _result(m: Any) -> tuple[Any, ...]:
     try:
         r = m.result()
@@ -86,9 +95,11 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
         out = []
         events = 0
         motion: Any = None
+        streams: list[asyncio.Task[None]] = []
+        seen: list[Any] = []
         for seg in range(SEGMENTS):
-            what = str(rng.choice(["sleep", "sleep", "command", "follow", "follow", "follow", "cancel", "push", "push",
-                                   "release", "estop"]))
+            what = str(rng.choice(["sleep", "sleep", "command", "follow", "follow", "follow", "cancel", "stream",
+                                   "push", "push", "release", "estop"]))
             note = ""
             if what == "command" and robot.safety.state.name == "OK":
                 goal = np.clip((await robot.read()).position + rng.uniform(-0.15, 0.15, n), lo, hi)
@@ -111,6 +122,9 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                     note = repr(exc)
             elif what == "cancel" and motion is not None and not motion.done():
                 motion.cancel()
+            elif what == "stream" and motion is not None and not motion.done():
+                # a feedback stream at a random rate: it wakes between blocks and reads what they committed
+                streams.append(asyncio.create_task(_stream(motion, float(rng.uniform(20.0, 300.0)), seen)))
             elif what == "push":
                 # a fraction of the joints' effort limits on a few of them, now and then more: a following
                 # error, a limit hit or a reading the plausibility gate refuses, often in the middle of a block
@@ -140,7 +154,11 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                 fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes())
             result = None if motion is None or not motion.done() else _result(motion)
             out.append(hasher.cut(seg, what, note, robot.safety.state.name, robot.clock.ticks,
-                                  [(e.kind, e.detail, e.joint, e.time) for e in new], feedback, result))
+                                  [(e.kind, e.detail, e.joint, e.time) for e in new], feedback, result, seen))
+            seen.clear()
+        for task in streams:
+            task.cancel()
+        await asyncio.gather(*streams, return_exceptions=True)
         stats = {"ticks": hasher.ticks}
         if runner is not None:
             stats.update(blocks=runner.blocks, block_ticks=runner.block_ticks, rollbacks=runner.rollbacks,
@@ -227,3 +245,29 @@ async def _thread_estop(block: bool, at: int) -> tuple[Any, ...]:
 @pytest.mark.parametrize("at", [10, 45, 77])
 async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(at: int) -> None:
     assert await _thread_estop(True, at) == await _thread_estop(False, at)
+
+
+async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> None:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, realtime=True) as robot:
+        with pytest.raises(agentsdk.errors.ConfigurationError, match="lockstep"):
+            robot.block_lockstep()
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        with pytest.raises(agentsdk.errors.InvalidValueError, match="capacity"):
+            robot.block_lockstep(capacity=1)
+        runner = robot.block_lockstep()
+        with pytest.raises(agentsdk.errors.ConfigurationError, match="already on"):
+            robot.block_lockstep()
+        await robot.clock.sleep(0.2)
+        assert runner.block_ticks > 0
+        runner.close()
+        ran = runner.block_ticks
+        await robot.clock.sleep(0.2)
+        assert runner.block_ticks == ran  # off: every tick runs on its own
+        robot.block_lockstep().close()  # and it can be turned on again
+    try:
+        load_backend("pybullet")
+    except agentsdk.errors.BackendUnavailableError:
+        return
+    async with agentsdk.connect("pybullet", robot="arm3", safety=SAFETY) as robot:
+        with pytest.raises(agentsdk.errors.ConfigurationError, match="block_stepper"):
+            robot.block_lockstep()

@@ -14,9 +14,9 @@ tick and lets the loop run it tick by tick. Every result, event, feedback messag
 setpoint is bit for bit what tick-by-tick computes (``tests/test_block_lockstep.py`` compares
 per-tick hashes of random runs).
 
-Blocked so far: a **hold** (no COMMAND hook) and **one motion following its trajectory** (its
-executor record the only COMMAND hook, speed scaling 1, consecutive joints, samples the limiter
-provably leaves alone), with the safety layer's filter as the only LIMIT hook, the safety
+Blocked so far: a **hold** (no COMMAND hook) and **one motion following its trajectory or one
+stop ramp** (its executor record the only COMMAND hook, speed scaling 1, consecutive joints,
+samples the limiter provably leaves alone), with the safety layer's filter as the only LIMIT hook, the safety
 watchdogs and :class:`BlockObserver` hooks as the only OBSERVE hooks, safety state OK, every check
 a :class:`~agentsdk.checks.BlockCheck`, the command watchdog not watching position mode. Anything
 else runs tick by tick, as without it.

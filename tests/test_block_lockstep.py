@@ -2,7 +2,7 @@
 
 Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
 sleep of random length (what blocks run): a move of random length and goal (``follow``, with a
-path tolerance or none), a cancel of the running move (its stop ramp runs tick by tick), a
+path tolerance or none), a cancel of the running move (its stop ramp runs in blocks too), a
 feedback stream of the running move at a random rate (hashed: what it read), a direct
 position command (the filter's ramp: per tick, then blocks; refused while a move drives the
 joints), an external push (``qfrc_applied``, strong enough at random to trip the path tolerance,

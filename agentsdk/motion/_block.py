@@ -4,7 +4,7 @@
 would write in each of the coming K ticks and how many of them are *pre-planned* (fixed before the
 block runs, whatever the measured state), without changing the record
 (``tests/test_block_seam.py`` checks its answers against what real ticks write). For
-:mod:`agentsdk.block` it takes over one following motion for a block (:meth:`~BlockPlanner.follow`,
+:mod:`agentsdk.block` it takes over one following motion or stop ramp for a block (:meth:`~BlockPlanner.follow`,
 its path tolerance over the block's states, :meth:`~BlockPlanner.path_quiet`) and leaves the
 record where the block's committed ticks leave it (:meth:`~BlockPlanner.commit`).
 """
@@ -66,7 +66,7 @@ class BlockPlanner:
         if executor is None or len(hooks) != 1 or self.table.pending:
             return None
         ex = executor.record_of(hooks[0])
-        if ex is None or ex.phase is not MotionPhase.FOLLOW or ex.remote is not None:
+        if ex is None or ex.phase not in (MotionPhase.FOLLOW, MotionPhase.STOPPING) or ex.remote is not None:
             return None
         w = ex.work
         if w is None or w.sp_rows is None or not isinstance(w.sel, slice) or w.bound is None:
@@ -81,7 +81,7 @@ class BlockPlanner:
     def follow(self, hooks: tuple[Callable[..., object], ...], K: int, tick0: int, capacity: int) -> BlockPlan | None:
         """Plan the coming ticks (at most ``K``, from clock tick ``tick0``) of the one motion ``hooks`` run.
 
-        None when the hooks are not one following motion's, or fewer than 2 of its coming ticks
+        None when the hooks are not one following motion's or stop ramp's, or fewer than 2 of its coming ticks
         are pre-planned (:meth:`reference`). Otherwise writes the rows its ticks write besides the
         sample (mode, torque on, effort, gains: the same every tick) into the setpoint, as its
         next tick would, and returns the samples.
@@ -129,6 +129,8 @@ class BlockPlanner:
             np.remainder(tmp, 2.0 * math.pi, out=tmp)
             np.subtract(tmp, math.pi, out=tmp)
             np.copyto(err, tmp, where=ex.wrap)
+        if ex.phase is MotionPhase.STOPPING:
+            return q  # a stop ramp has no path tolerance (its error is still published)
         ok = np.less_equal(err if ex.path_unbounded else np.abs(err), ex.path_tol)
         good = ok.all(axis=1)
         return q if good.all() else int(np.argmin(good))
@@ -145,19 +147,29 @@ class BlockPlanner:
         ex.t_last = t = float(plan.ts[j])
         ex.sdot = 0.0
         ex.vt, ex.at = w.vt, w.at
-        ex.des_q, ex.des_v, ex.des_a = w.q, w.vt, w.at
+        stopping = ex.phase is MotionPhase.STOPPING
+        if stopping:
+            # a stop ramp's tick takes the limiter's full path (``_limited``), whose output buffer
+            # then holds the sample (the envelope proves it unchanged); its speed scaling is 1
+            w.out[...] = plan.samples[j, 0]
+            qc = w.out
+            ex.s = 1.0
+        else:
+            qc = w.q
+            lim, env = ex.limits, ex.env
+            if env is not None and lim is not None and lim.step is not None and self._origin is not None:
+                env.prev = w.q.tobytes()
+        ex.des_q, ex.des_v, ex.des_a = qc, w.vt, w.at
         w.err[...] = plan.err[j]
-        lim, env = ex.limits, ex.env
-        if env is not None and lim is not None and lim.step is not None and self._origin is not None:
-            env.prev = w.q.tobytes()
         motion = ex.motion
         if motion is None:
             return
         snap = motion._publish()
-        dur = ex.sampler.duration
-        snap.progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
+        if not stopping:  # a stop ramp is no progress along the trajectory
+            dur = ex.sampler.duration
+            snap.progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
         snap.time = t
-        snap.q, snap.v, snap.err = w.q, w.vt, w.err
+        snap.q, snap.v, snap.err = qc, w.vt, w.err
         w.measured[...] = plan.pre if j == 0 else states[j - 1, 0:2, plan.sel]
         snap.actual_q, snap.actual_v = w.act, w.actual_v
         snap.seq += q

@@ -23,6 +23,9 @@ from ._executor import _Executor
 from ._records import _Exec, _MotionTable
 from ._types import _POS, MotionPhase
 
+#: the phases whose ticks a block can plan: following, settling at the goal, a stop ramp
+_PLANNED = (MotionPhase.FOLLOW, MotionPhase.SETTLE, MotionPhase.STOPPING)
+
 
 class BlockPlan:
     """A following motion's samples for one block, and the scratch arrays of its path check.
@@ -42,6 +45,7 @@ class BlockPlan:
         self.pre = np.empty((2, m))
         self.actual = np.empty((capacity, m))
         self.err = np.empty((capacity, m))
+        self.gerr = np.empty((capacity, m))
         self.tmp = np.empty((capacity, m))
         self.ticks = np.empty(capacity, dtype=np.int64)
         self.zero_to_k = np.arange(capacity, dtype=np.int64)
@@ -66,7 +70,7 @@ class BlockPlanner:
         if executor is None or len(hooks) != 1 or self.table.pending:
             return None
         ex = executor.record_of(hooks[0])
-        if ex is None or ex.phase not in (MotionPhase.FOLLOW, MotionPhase.STOPPING) or ex.remote is not None:
+        if ex is None or ex.phase not in _PLANNED or ex.remote is not None:
             return None
         w = ex.work
         if w is None or w.sp_rows is None or not isinstance(w.sel, slice) or w.bound is None:
@@ -112,7 +116,7 @@ class BlockPlanner:
         return plan
 
     def path_quiet(self, plan: BlockPlan, states: np.ndarray, q: int) -> int:
-        """How many of the first ``q`` ticks pass the motion's path tolerance (the tick's own test, at once).
+        """How many of the first ``q`` ticks pass the motion's path (or, settling, goal) test quietly, at once.
 
         Tick j compares its sample with the state after tick j - 1 (``states`` (K, 3, n): the block's).
         """
@@ -131,6 +135,18 @@ class BlockPlanner:
             np.copyto(err, tmp, where=ex.wrap)
         if ex.phase is MotionPhase.STOPPING:
             return q  # a stop ramp has no path tolerance (its error is still published)
+        if ex.phase is MotionPhase.SETTLE:
+            # the goal test: the first tick with every joint within its goal tolerance ends the motion
+            gerr = np.subtract(ex.goal, actual, out=plan.gerr[:q])
+            if ex.wrap is not None:
+                tmp = plan.tmp[:q]
+                np.add(gerr, math.pi, out=tmp)
+                np.remainder(tmp, 2.0 * math.pi, out=tmp)
+                np.subtract(tmp, math.pi, out=tmp)
+                np.copyto(gerr, tmp, where=ex.wrap)
+            np.abs(gerr, out=gerr)
+            reached = np.less_equal(gerr, ex.goal_tol).all(axis=1)
+            return int(np.argmax(reached)) if reached.any() else q
         ok = np.less_equal(err if ex.path_unbounded else np.abs(err), ex.path_tol)
         good = ok.all(axis=1)
         return q if good.all() else int(np.argmin(good))
@@ -185,14 +201,16 @@ class BlockPlanner:
         unless its path tolerance fails (the block's checks decide that from the measured states;
         :meth:`_Executor.update` is the per-tick rule this reproduces).
         The count stops before the first tick that is an event of the motion (its trajectory ends,
-        its stop ramp ends) and is 0 where anything is not proven: a scheduled, offloaded or first
-        tick, speed scaling other than 1, a sample the limiter might change (see :mod:`._envelope`;
-        a stop ramp's envelope is computed here, once per ramp, while its tick keeps the full path).
+        its goal time runs out while it settles, its stop ramp ends; reaching the goal tolerance is
+        a test of the measured state, :meth:`path_quiet`) and is 0 where anything is not proven: a
+        scheduled, offloaded or first tick, speed scaling other than 1, a sample the limiter might
+        change (see :mod:`._envelope`; a stop ramp's envelope is computed here, once per ramp, while
+        its tick keeps the full path).
         Nothing of ``ex`` changes. ``regions`` (K,), if given, receives each sample's sampler region
         (as ``ex.sampler.region`` is after that tick).
         """
         K = len(ts)
-        if K == 0 or ex.remote is not None or ex.phase not in (MotionPhase.FOLLOW, MotionPhase.STOPPING):
+        if K == 0 or ex.remote is not None or ex.phase not in _PLANNED:
             return 0
         stopping = ex.phase == MotionPhase.STOPPING
         if not stopping and not (ex.s == 1.0 and self.table.speed == 1.0):
@@ -234,8 +252,10 @@ class BlockPlanner:
             sampler.sample_block(taus, out, regions)
         finally:
             sampler.region = region
-        # the motion's own event: its trajectory (or ramp) ends, at the first elapsed >= duration
-        ended = np.flatnonzero(np.subtract(taus, ex.t0) >= sampler.duration)
+        # the motion's own event: its trajectory (or ramp) ends, at the first elapsed >= duration; while it
+        # settles at the goal, its goal time runs out (the goal tolerance itself is a measured test: path_quiet)
+        end = sampler.duration + ex.goal_time if ex.phase is MotionPhase.SETTLE else sampler.duration
+        ended = np.flatnonzero(np.subtract(taus, ex.t0) >= end)
         k = int(ended[0]) if len(ended) else K
         # a sample outside the proven envelope takes the limiter's full path: per tick from there
         inside = np.asarray(env.inside)[regions[:k] + 1]

@@ -14,9 +14,9 @@ tick and lets the loop run it tick by tick. Every result, event, feedback messag
 setpoint is bit for bit what tick-by-tick computes (``tests/test_block_lockstep.py`` compares
 per-tick hashes of random runs).
 
-Blocked so far: a **hold** (no COMMAND hook) and **one motion following its trajectory or one
-stop ramp** (its executor record the only COMMAND hook, speed scaling 1, consecutive joints,
-samples the limiter provably leaves alone), with the safety layer's filter as the only LIMIT hook, the safety
+Blocked so far: a **hold** (no COMMAND hook) and **motions following their trajectories,
+settling at their goals or running stop ramps** (every COMMAND hook an executor record; speed
+scaling 1, consecutive joints, samples the limiter provably leaves alone), with the safety layer's filter as the only LIMIT hook, the safety
 watchdogs and :class:`BlockObserver` hooks as the only OBSERVE hooks, safety state OK, every check
 a :class:`~agentsdk.checks.BlockCheck`, the command watchdog not watching position mode. Anything
 else runs tick by tick, as without it.
@@ -161,17 +161,18 @@ class BlockLockstep:
         sp = loop.setpoint_buffer
         before = sp.block.copy()
         sp.acceleration.fill(0.0)  # as each tick does first (only a motion writes it again)
-        plan: BlockPlan | None = None
+        plans: list[BlockPlan] = []
         if hooks:
             assert self._planner is not None
-            plan = self._planner.follow(hooks, K, tick0, self.capacity)
-            if plan is None:
+            planned = self._planner.follow(hooks, K, tick0, self.capacity)
+            if planned is None:
                 sp.block[...] = before
                 return self._cut_short()
-            K = plan.k
+            plans = planned
+            K = plans[0].k
         rows = self._rows[:K]  # every tick's setpoint rows after its COMMAND and LIMIT phases
         rows[...] = sp.block
-        if plan is not None:
+        for plan in plans:
             sel, samples = plan.sel, plan.samples[:K]
             rows[:, 0:2, sel] = samples[:, 0:2]  # position, velocity
             rows[:, 5, sel] = samples[:, 0]  # target
@@ -210,9 +211,11 @@ class BlockLockstep:
         states = self._readings[:done]
         setpoints = rows[:done, 0]
         q, checked = safety.observe_quiet(ts, states, setpoints)
-        if plan is not None and q:
+        for plan in plans:
+            if q == 0:
+                break
             assert self._planner is not None
-            q = self._planner.path_quiet(plan, states, q)  # the motion's path tolerance, at each tick's COMMAND
+            q = self._planner.path_quiet(plan, states, q)  # a motion's path (goal) test, at each tick's COMMAND
             checked = min(checked, q)
         if q < done or fault is not None:
             # tick q runs alone, from where it started (a step that diverged: again, tick by tick)
@@ -221,9 +224,10 @@ class BlockLockstep:
         if q == 0:
             sp.block[...] = before
             return self._cut_short()
-        if plan is not None:
+        for plan in plans:
             assert self._planner is not None
             self._planner.commit(plan, states, q)
+        if plans:
             self.motion_ticks += q
         if not safety.commit(ts, states, rows[:, 0:3], setpoints, q, checked):
             loop.state_buffer.block[...] = states[q - 1]  # no plausibility gate: the reading is the state

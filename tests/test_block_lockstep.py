@@ -2,7 +2,7 @@
 
 Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
 sleep of random length (what blocks run): a move of random length and goal (``follow``, with a
-path tolerance or none), a cancel of the running move (its stop ramp runs in blocks too), a
+path tolerance or none, on every joint or some, consecutive or not: several moves run at once), a cancel of the running move (its stop ramp runs in blocks too), a
 feedback stream of the running move at a random rate (hashed: what it read), a direct
 position command (the filter's ramp: per tick, then blocks; refused while a move drives the
 joints), an external push (``qfrc_applied``, strong enough at random to trip the path tolerance,
@@ -115,7 +115,12 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                                lo + margin, hi - margin)
                 tol = (Tolerances(path=float(rng.choice([0.01, 0.05, 0.2])), goal=0.05, goal_time=0.5)
                        if rng.random() < 0.5 else None)
-                plan = Trajectory(names, [TrajectoryPoint(float(rng.uniform(0.1, 1.2)), goal.tolist())])
+                # all joints, or some of them (consecutive or not; another motion may go on on the rest)
+                part = np.arange(n) if rng.random() < 0.6 else np.sort(rng.choice(n, int(rng.integers(1, n)), False))
+                if rng.random() < 0.5 and len(part) < n:
+                    part = np.arange(int(part[0]), min(n, int(part[0]) + len(part)))
+                plan = Trajectory([names[i] for i in part],
+                                  [TrajectoryPoint(float(rng.uniform(0.1, 1.2)), goal[part].tolist())])
                 try:
                     motion = robot.follow(plan, tol, stretch_to_limits=True)
                 except agentsdk.errors.AgentSDKError as exc:

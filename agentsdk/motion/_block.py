@@ -61,59 +61,74 @@ class BlockPlanner:
         #: the live origin of each joint's step window (the safety limiter's), or None
         self._origin = origin
         self._executor = executor
-        self._plans: dict[tuple[int, int], BlockPlan] = {}
+        self._plans: dict[tuple[int, int, int], BlockPlan] = {}
 
     # ------------------------------------------------------------ a following motion in a block
-    def _record(self, hooks: tuple[Callable[..., object], ...]) -> _Exec | None:
-        """The one motion the COMMAND hooks run, if it follows its trajectory and a block can take it over."""
-        executor = self._executor
-        if executor is None or len(hooks) != 1 or self.table.pending:
-            return None
-        ex = executor.record_of(hooks[0])
-        if ex is None or ex.phase not in _PLANNED or ex.remote is not None:
-            return None
-        w = ex.work
-        if w is None or w.sp_rows is None or not isinstance(w.sel, slice) or w.bound is None:
-            return None  # its first tick has not run, or its joints are not consecutive
-        if w.bound[0] is not self.loop.setpoint_buffer or w.bound[1] is not self.loop.state:
-            return None
-        m = ex.motion
-        if m is not None and m._publish().keep_measured:
-            return None  # a stream of link poses keeps every tick's measured positions
-        return ex
+    def _records(self, hooks: tuple[Callable[..., object], ...]) -> list[_Exec] | None:
+        """The motions the COMMAND hooks run, if every hook is one a block can take over (else None).
 
-    def follow(self, hooks: tuple[Callable[..., object], ...], K: int, tick0: int, capacity: int) -> BlockPlan | None:
-        """Plan the coming ticks (at most ``K``, from clock tick ``tick0``) of the one motion ``hooks`` run.
-
-        None when the hooks are not one following motion's or stop ramp's, or fewer than 2 of its coming ticks
-        are pre-planned (:meth:`reference`). Otherwise writes the rows its ticks write besides the
-        sample (mode, torque on, effort, gains: the same every tick) into the setpoint, as its
-        next tick would, and returns the samples.
+        Each follows its trajectory, settles at its goal or runs a stop ramp (:data:`_PLANNED`), on
+        consecutive joints, with its first tick done and no stream of link poses.
         """
-        ex = self._record(hooks)
-        if ex is None:
+        executor = self._executor
+        if executor is None or not hooks or self.table.pending:
             return None
-        w = ex.work
-        assert w is not None and w.sp_rows is not None
-        m = len(ex.idx)
-        plan = self._plans.get((capacity, m))
-        if plan is None:
-            plan = self._plans[(capacity, m)] = BlockPlan(capacity, m)
-        plan.ex, plan.sel = ex, w.sel
-        mode, enabled = w.sp_views[0], w.sp_views[1]
-        mode.fill(_POS)
-        enabled.fill(True)
-        w.sp_rows[1][...] = w.const
-        # tick j's COMMAND phase runs at (tick0 + j) * period, the clock's own product
-        ticks = np.add(plan.zero_to_k[:K], tick0, out=plan.ticks[:K])
-        ts = np.multiply(ticks, self.loop.period, out=plan.ts[:K])
-        k = self.reference(ex, ts, plan.taus[:K], plan.samples[:K], plan.regions[:K])
-        if k < 2:
+        out = []
+        for hook in hooks:
+            ex = executor.record_of(hook)
+            if ex is None or ex.phase not in _PLANNED or ex.remote is not None:
+                return None
+            w = ex.work
+            if w is None or w.sp_rows is None or not isinstance(w.sel, slice) or w.bound is None:
+                return None  # its first tick has not run, or its joints are not consecutive
+            if w.bound[0] is not self.loop.setpoint_buffer or w.bound[1] is not self.loop.state:
+                return None
+            m = ex.motion
+            if m is not None and m._publish().keep_measured:
+                return None  # a stream of link poses keeps every tick's measured positions
+            out.append(ex)
+        return out
+
+    def follow(self, hooks: tuple[Callable[..., object], ...], K: int, tick0: int,
+               capacity: int) -> list[BlockPlan] | None:
+        """Plan the coming ticks (at most ``K``, from clock tick ``tick0``) of the motions ``hooks`` run.
+
+        None when a hook is not a motion a block can take over (:meth:`_records`), or fewer than 2
+        of the coming ticks are pre-planned for every one of them (:meth:`reference`). Otherwise
+        writes the rows their ticks write besides the samples (mode, torque on, effort, gains: the
+        same every tick) into the setpoint, as their next tick would, and returns one plan per
+        motion, each with ``k`` (the same for all) ticks planned.
+        """
+        records = self._records(hooks)
+        if records is None:
             return None
-        plan.k = k
-        # the measured position and velocity of its joints as the first tick's COMMAND phase sees them
-        plan.pre[...] = self.loop.state.block[0:2, plan.sel]  # type: ignore[index]
-        return plan
+        plans = []
+        st = self.loop.state.block
+        assert st is not None
+        for slot, ex in enumerate(records):
+            w = ex.work
+            assert w is not None and w.sp_rows is not None
+            m = len(ex.idx)
+            plan = self._plans.get((capacity, m, slot))
+            if plan is None:
+                plan = self._plans[(capacity, m, slot)] = BlockPlan(capacity, m)
+            plan.ex, plan.sel = ex, w.sel
+            mode, enabled = w.sp_views[0], w.sp_views[1]
+            mode.fill(_POS)
+            enabled.fill(True)
+            w.sp_rows[1][...] = w.const
+            # tick j's COMMAND phase runs at (tick0 + j) * period, the clock's own product
+            ticks = np.add(plan.zero_to_k[:K], tick0, out=plan.ticks[:K])
+            ts = np.multiply(ticks, self.loop.period, out=plan.ts[:K])
+            K = self.reference(ex, ts, plan.taus[:K], plan.samples[:K], plan.regions[:K])
+            if K < 2:
+                return None
+            # the measured position and velocity of its joints as the first tick's COMMAND phase sees them
+            plan.pre[...] = st[0:2, plan.sel]
+            plans.append(plan)
+        for plan in plans:
+            plan.k = K
+        return plans
 
     def path_quiet(self, plan: BlockPlan, states: np.ndarray, q: int) -> int:
         """How many of the first ``q`` ticks pass the motion's path (or, settling, goal) test quietly, at once.

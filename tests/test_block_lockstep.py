@@ -1,13 +1,14 @@
 """Block lockstep in the loop (issue 28 item 1, agentsdk.block): random runs hash tick for tick as without it.
 
 Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
-sleep of random length (what blocks run): a move of random length and goal (``follow``, with a
-path tolerance or none, on every joint or some, consecutive or not: several moves run at once),
-a cancel of the running move (its stop ramp runs in blocks too), a feedback stream of the running
-move at a random rate (hashed: what it read), a direct position command (the filter's ramp: per
-tick, then blocks; refused while a move drives the joints), an external push (``qfrc_applied``, strong enough at random to trip the path tolerance,
-the following-error or the measured-position check, or the plausibility gate, in the middle of a
-block: a rollback), its release, or an e-stop of a random category (then mostly reset and enable).
+sleep of random length (what blocks run): a move of random length and goal (``follow``, with a path
+tolerance or none, on every joint or some, consecutive or not: several moves run at once), a cancel
+of the running move (its stop ramp runs in blocks too), a feedback stream of the running move at a
+random rate (hashed: what it read), a direct position command (the filter's ramp: per tick, then
+blocks; refused while a move drives the joints), an external push (``qfrc_applied``, strong enough
+at random to trip the path tolerance, the following-error or the measured-position check, or the
+plausibility gate, in the middle of a block: a rollback), its release, or an e-stop of a random
+category (then mostly reset and enable).
 The same program runs with block lockstep off and on; every tick's time, setpoint and measured
 state (an OBSERVE hook that takes blocks, :class:`agentsdk.block.BlockObserver`), and after each
 segment the safety state and events, the move's latest feedback message and its result, are hashed;

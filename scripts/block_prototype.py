@@ -1,7 +1,7 @@
 """Block lockstep, a prototype measurement (issue 28 item 1): what a hold costs per tick as a block.
 
 Not a row of ``agentsdk bench`` (and a developer script, not shipped code: it reaches into the
-SDK's private objects): the control loop does not run blocks yet. This puts the pieces
+SDK's private objects), from before the loop ran blocks (``bench/block.py`` measures those). This puts the pieces
 that exist together by hand, on a robot holding still in lockstep on MuJoCo, and times them
 against the SDK's tick-by-tick hold and the raw loop in the same run (CPU time per control tick,
 best of ``--rounds``; the ratio to the raw loop is the figure, absolute times move with the load):

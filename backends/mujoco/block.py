@@ -17,7 +17,7 @@ tick-by-tick run leaves it when it raises).
 Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
 enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them
 constant (pre-planned motions write the loop's gains), which is the caller's precondition.
-This is the backend's building block; the control loop does not use it yet.
+The control loop runs it through :mod:`agentsdk.block` (``MujocoBackend.block_stepper``).
 """
 
 from __future__ import annotations

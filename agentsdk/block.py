@@ -15,8 +15,8 @@ setpoint is bit for bit what tick-by-tick computes (``tests/test_block_lockstep.
 per-tick hashes of random runs).
 
 Blocked so far: a **hold** (no COMMAND hook) and **motions following their trajectories,
-settling at their goals or running stop ramps** (every COMMAND hook an executor record; speed
-scaling 1, consecutive joints, samples the limiter provably leaves alone), with the safety
+settling at their goals or running stop ramps** (every COMMAND hook an executor record; a steady
+speed scaling, consecutive joints, samples the limiter provably leaves alone), with the safety
 layer's filter as the only LIMIT hook, the safety watchdogs and :class:`BlockObserver` hooks as
 the only OBSERVE hooks, safety state OK, every check a :class:`~agentsdk.checks.BlockCheck`, the
 command watchdog not watching position mode. Anything else runs tick by tick, as without it.
@@ -174,9 +174,11 @@ class BlockLockstep:
         rows[...] = sp.block
         for plan in plans:
             sel, samples = plan.sel, plan.samples[:K]
-            rows[:, 0:2, sel] = samples[:, 0:2]  # position, velocity
+            va = plan.va[:K] if plan.scaled else samples[:, 1:3]  # (speed scaling: v = vt s, ...)
+            rows[:, 0, sel] = samples[:, 0]  # position
+            rows[:, 1, sel] = va[:, 0]  # velocity
             rows[:, 5, sel] = samples[:, 0]  # target
-            rows[:, 6, sel] = samples[:, 2]  # acceleration
+            rows[:, 6, sel] = va[:, 1]  # acceleration
         k = safety.limit_quiet(np.ascontiguousarray(rows[:, 0:3]), sp.mode, sp.enabled)
         if k < 2:
             sp.block[...] = before

@@ -100,7 +100,7 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
         seen: list[Any] = []
         for seg in range(SEGMENTS):
             what = str(rng.choice(["sleep", "sleep", "command", "follow", "follow", "follow", "cancel", "stream",
-                                   "push", "push", "release", "estop"]))
+                                   "speed", "push", "push", "release", "estop"]))
             note = ""
             if what == "command" and robot.safety.state.name == "OK":
                 goal = np.clip((await robot.read()).position + rng.uniform(-0.15, 0.15, n), lo, hi)
@@ -126,6 +126,9 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                     motion = robot.follow(plan, tol, stretch_to_limits=True)
                 except agentsdk.errors.AgentSDKError as exc:
                     note = repr(exc)
+            elif what == "speed":
+                # speed scaling: it ramps per tick, then a constant factor runs in blocks (0: paused)
+                robot.set_speed_scaling(float(rng.choice([1.0, 1.0, 0.5, 0.3, 0.0, float(rng.uniform(0.1, 1.0))])))
             elif what == "cancel" and motion is not None and not motion.done():
                 motion.cancel()
             elif what == "stream" and motion is not None and not motion.done():

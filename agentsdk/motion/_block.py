@@ -46,6 +46,9 @@ class BlockPlan:
         self.actual = np.empty((capacity, m))
         self.err = np.empty((capacity, m))
         self.gerr = np.empty((capacity, m))
+        #: the setpoint's velocity and acceleration rows when the speed scaling is not 1 (else the samples')
+        self.va = np.empty((capacity, 2, m))
+        self.scaled = False
         self.tmp = np.empty((capacity, m))
         self.ticks = np.empty(capacity, dtype=np.int64)
         self.zero_to_k = np.arange(capacity, dtype=np.int64)
@@ -123,6 +126,14 @@ class BlockPlanner:
             K = self.reference(ex, ts, plan.taus[:K], plan.samples[:K], plan.regions[:K])
             if K < 2:
                 return None
+            s = ex.s
+            plan.scaled = ex.phase is not MotionPhase.STOPPING and s != 1.0
+            if plan.scaled:  # the tick's v = vt * s, a = at * s^2 + vt * sdot (sdot = 0: s holds)
+                va, smp = plan.va[:K], plan.samples[:K]
+                np.multiply(smp[:, 1], s, out=va[:, 0])
+                np.multiply(smp[:, 2], s * s, out=va[:, 1])
+                tmp = np.multiply(smp[:, 1], 0.0, out=plan.tmp[:K])
+                np.add(va[:, 1], tmp, out=va[:, 1])
             # the measured position and velocity of its joints as the first tick's COMMAND phase sees them
             plan.pre[...] = st[0:2, plan.sel]
             plans.append(plan)
@@ -190,7 +201,12 @@ class BlockPlanner:
             lim, env = ex.limits, ex.env
             if env is not None and lim is not None and lim.step is not None and self._origin is not None:
                 env.prev = w.q.tobytes()
-        ex.des_q, ex.des_v, ex.des_a = qc, w.vt, w.at
+        v, a = w.vt, w.at
+        if plan.scaled:
+            v, a = w.v, w.a
+            v[...] = plan.va[j, 0]
+            a[...] = plan.va[j, 1]
+        ex.des_q, ex.des_v, ex.des_a = qc, v, a
         w.err[...] = plan.err[j]
         motion = ex.motion
         if motion is None:
@@ -200,7 +216,7 @@ class BlockPlanner:
             dur = ex.sampler.duration
             snap.progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
         snap.time = t
-        snap.q, snap.v, snap.err = qc, w.vt, w.err
+        snap.q, snap.v, snap.err = qc, v, w.err
         w.measured[...] = plan.pre if j == 0 else states[j - 1, 0:2, plan.sel]
         snap.actual_q, snap.actual_v = w.act, w.actual_v
         snap.seq += q
@@ -228,8 +244,8 @@ class BlockPlanner:
         if K == 0 or ex.remote is not None or ex.phase not in _PLANNED:
             return 0
         stopping = ex.phase == MotionPhase.STOPPING
-        if not stopping and not (ex.s == 1.0 and self.table.speed == 1.0):
-            return 0
+        if not stopping and ex.s != self.table.speed:
+            return 0  # the speed scaling ramps (``_Ownership.advance``): per tick
         w, lim = ex.work, ex.limits
         if w is None or lim is None:
             return 0
@@ -257,6 +273,8 @@ class BlockPlanner:
         if not dts[1] > 0.0:
             return 0
         np.minimum(dts[1:], self.loop.period, out=dts[1:])
+        if not stopping:
+            np.multiply(dts[1:], ex.s, out=dts[1:])  # tau += s * dt (s = 1: the same bits)
         np.add.accumulate(dts, out=dts)
         taus[...] = dts[1:]
         sampler = ex.sampler

@@ -16,7 +16,7 @@ per-tick hashes of random runs).
 
 Blocked so far: a **hold** (no COMMAND hook) and **motions following their trajectories,
 settling at their goals or running stop ramps** (every COMMAND hook an executor record; a steady
-speed scaling, consecutive joints, samples the limiter provably leaves alone), with the safety
+speed scaling, samples the limiter provably leaves alone), with the safety
 layer's filter as the only LIMIT hook, the safety watchdogs and :class:`BlockObserver` hooks as
 the only OBSERVE hooks, safety state OK, every check a :class:`~agentsdk.checks.BlockCheck`, the
 command watchdog not watching position mode. Anything else runs tick by tick, as without it.

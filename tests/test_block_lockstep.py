@@ -11,7 +11,7 @@ plausibility gate, in the middle of a block: a rollback), its release, or an e-s
 category (then mostly reset and enable).
 The same program runs with block lockstep off and on; every tick's time, setpoint and measured
 state (an OBSERVE hook that takes blocks, :class:`agentsdk.block.BlockObserver`), and after each
-segment the safety state and events, the move's latest feedback message and its result, are hashed;
+segment the safety state and events, every move's latest feedback message and its result, are hashed;
 the hashes must be equal segment by segment.
 The test also demands that blocks ran and that some were cut short (so it exercises the path
 it claims to test).
@@ -66,10 +66,16 @@ class _Hasher:
         return out
 
 
+def _message(fb: Any) -> tuple[Any, ...] | None:
+    if fb is None:
+        return None
+    return (fb.time, fb.progress, fb.desired_positions.tobytes(), fb.desired_velocities.tobytes(),
+            fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes())
+
+
 async def _stream(motion: Any, rate: float, seen: list[Any]) -> None:
     async for fb in motion.feedback(rate=rate):
-        seen.append((fb.time, fb.progress, fb.desired_positions.tobytes(), fb.desired_velocities.tobytes(),
-                     fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes()))
+        seen.append(_message(fb))
 
 
 def _result(m: Any) -> tuple[Any, ...]:
@@ -97,6 +103,7 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
         events = 0
         motion: Any = None
         streams: list[asyncio.Task[None]] = []
+        motions: list[Any] = []
         seen: list[Any] = []
         for seg in range(SEGMENTS):
             what = str(rng.choice(["sleep", "sleep", "command", "follow", "follow", "follow", "cancel", "stream",
@@ -124,6 +131,7 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                                   [TrajectoryPoint(float(rng.uniform(0.1, 1.2)), goal[part].tolist())])
                 try:
                     motion = robot.follow(plan, tol, stretch_to_limits=True)
+                    motions.append(motion)
                 except agentsdk.errors.AgentSDKError as exc:
                     note = repr(exc)
             elif what == "speed":
@@ -157,13 +165,11 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
             if runner is not None and TRACE:
                 print(seg, what, robot.safety.state.name, runner.blocks, runner.block_ticks, runner.rollbacks,
                       runner.motion_ticks, note[:60])
-            fb: Any = None if motion is None else motion._feedback
-            feedback = None if fb is None else (
-                fb.time, fb.progress, fb.desired_positions.tobytes(), fb.desired_velocities.tobytes(),
-                fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes())
-            result = None if motion is None or not motion.done() else _result(motion)
+            # every move's latest feedback message and result (several may run, on different joints)
+            feedback = [(_message(m._feedback), None if not m.done() else _result(m)) for m in motions]
+            motions = [m for m in motions if not m.done()]
             out.append(hasher.cut(seg, what, note, robot.safety.state.name, robot.clock.ticks,
-                                  [(e.kind, e.detail, e.joint, e.time) for e in new], feedback, result, seen))
+                                  [(e.kind, e.detail, e.joint, e.time) for e in new], feedback, seen))
             seen.clear()
         for task in streams:
             task.cancel()

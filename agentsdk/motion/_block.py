@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -30,13 +31,13 @@ _PLANNED = (MotionPhase.FOLLOW, MotionPhase.SETTLE, MotionPhase.STOPPING)
 class BlockPlan:
     """A following motion's samples for one block, and the scratch arrays of its path check.
 
-    ``k``: the ticks planned; ``sel``: its joints (a slice: consecutive); ``samples`` (capacity,
+    ``k``: the ticks planned; ``sel``: its joints (a slice when consecutive); ``samples`` (capacity,
     3, joints): each tick's position, velocity and acceleration. One per joint count, reused.
     """
 
     def __init__(self, capacity: int, m: int) -> None:
         self.ex: _Exec | None = None
-        self.sel: slice = slice(0, m)
+        self.sel: Any = slice(0, m)
         self.k = 0
         self.ts = np.empty(capacity)
         self.taus = np.empty(capacity)
@@ -70,8 +71,8 @@ class BlockPlanner:
     def _records(self, hooks: tuple[Callable[..., object], ...]) -> list[_Exec] | None:
         """The motions the COMMAND hooks run, if every hook is one a block can take over (else None).
 
-        Each follows its trajectory, settles at its goal or runs a stop ramp (:data:`_PLANNED`), on
-        consecutive joints, with its first tick done and no stream of link poses.
+        Each follows its trajectory, settles at its goal or runs a stop ramp (:data:`_PLANNED`), with
+        its first tick done and no stream of link poses.
         """
         executor = self._executor
         if executor is None or not hooks or self.table.pending:
@@ -82,8 +83,8 @@ class BlockPlanner:
             if ex is None or ex.phase not in _PLANNED or ex.remote is not None:
                 return None
             w = ex.work
-            if w is None or w.sp_rows is None or not isinstance(w.sel, slice) or w.bound is None:
-                return None  # its first tick has not run, or its joints are not consecutive
+            if w is None or w.bound is None or w.sel is None:
+                return None  # its first tick has not run
             if w.bound[0] is not self.loop.setpoint_buffer or w.bound[1] is not self.loop.state:
                 return None
             m = ex.motion
@@ -110,16 +111,24 @@ class BlockPlanner:
         assert st is not None
         for slot, ex in enumerate(records):
             w = ex.work
-            assert w is not None and w.sp_rows is not None
+            assert w is not None
             m = len(ex.idx)
             plan = self._plans.get((capacity, m, slot))
             if plan is None:
                 plan = self._plans[(capacity, m, slot)] = BlockPlan(capacity, m)
             plan.ex, plan.sel = ex, w.sel
-            mode, enabled = w.sp_views[0], w.sp_views[1]
-            mode.fill(_POS)
-            enabled.fill(True)
-            w.sp_rows[1][...] = w.const
+            if w.sp_rows is not None:  # (consecutive joints: the tick's views)
+                mode, enabled = w.sp_views[0], w.sp_views[1]
+                mode.fill(_POS)
+                enabled.fill(True)
+                w.sp_rows[1][...] = w.const
+            else:  # the tick's writes through the index array
+                sp, sel, loop = self.loop.setpoint_buffer, w.sel, self.loop
+                sp.mode[sel] = _POS
+                sp.enabled[sel] = True
+                sp.effort[sel] = 0.0
+                sp.kp[sel] = np.take(loop.gain_p, sel, out=w.gain, mode="clip")
+                sp.kd[sel] = np.take(loop.gain_d, sel, out=w.gain, mode="clip")
             # tick j's COMMAND phase runs at (tick0 + j) * period, the clock's own product
             ticks = np.add(plan.zero_to_k[:K], tick0, out=plan.ticks[:K])
             ts = np.multiply(ticks, self.loop.period, out=plan.ts[:K])
@@ -190,17 +199,22 @@ class BlockPlanner:
         ex.sdot = 0.0
         ex.vt, ex.at = w.vt, w.at
         stopping = ex.phase is MotionPhase.STOPPING
-        if stopping:
-            # a stop ramp's tick takes the limiter's full path (``_limited``), whose output buffer
-            # then holds the sample (the envelope proves it unchanged); its speed scaling is 1
+        lim, env = ex.limits, ex.env
+        steps = lim is not None and lim.step is not None and self._origin is not None
+        if stopping or (steps and w.st_views[2] is None):
+            # a stop ramp's tick, or one of joints that are not consecutive under a step window, takes the
+            # limiter's full path (``_limited``), whose output buffer then holds the sample (the envelope
+            # proves it unchanged)
             w.out[...] = plan.samples[j, 0]
             qc = w.out
-            ex.s = 1.0
         else:
             qc = w.q
-            lim, env = ex.limits, ex.env
-            if env is not None and lim is not None and lim.step is not None and self._origin is not None:
-                env.prev = w.q.tobytes()
+        if stopping:
+            ex.s = 1.0  # (a stop ramp's speed scaling)
+        elif env is not None and steps:
+            env.prev = w.q.tobytes()  # both paths keep the unclipped sample's bytes
+        if w.sp_rows is None:
+            w.actual[...] = plan.actual[j]  # (the tick's gathered measured position)
         v, a = w.vt, w.at
         if plan.scaled:
             v, a = w.v, w.a
@@ -217,7 +231,7 @@ class BlockPlanner:
             snap.progress = min(1.0, (ex.tau - ex.t0) / dur) if dur > 0 else 1.0
         snap.time = t
         snap.q, snap.v, snap.err = qc, v, w.err
-        w.measured[...] = plan.pre if j == 0 else states[j - 1, 0:2, plan.sel]
+        w.measured[...] = plan.pre if j == 0 else states[j - 1][0:2, plan.sel]
         snap.actual_q, snap.actual_v = w.act, w.actual_v
         snap.seq += q
 
@@ -234,7 +248,7 @@ class BlockPlanner:
         The count stops before the first tick that is an event of the motion (its trajectory ends,
         its goal time runs out while it settles, its stop ramp ends; reaching the goal tolerance is
         a test of the measured state, :meth:`path_quiet`) and is 0 where anything is not proven: a
-        scheduled, offloaded or first tick, speed scaling other than 1, a sample the limiter might
+        scheduled, offloaded or first tick, a speed scaling ramp, a sample the limiter might
         change (see :mod:`._envelope`; a stop ramp's envelope is computed here, once per ramp, while
         its tick keeps the full path).
         Nothing of ``ex`` changes. ``regions`` (K,), if given, receives each sample's sampler region
@@ -255,7 +269,9 @@ class BlockPlanner:
         if lim.step is not None and self._origin is not None:
             # the step proof needs the limiter's origin to hold the previous tick's sample, unclipped
             o = w.st_views[2]
-            if not env.step_free or o is None:
+            if o is None:  # joints that are not consecutive: the origin's values (the tick takes them too)
+                o = self._origin[ex.idx]
+            if not env.step_free:
                 return 0
             if stopping:  # (the tick keeps no bytes of its last sample for a stop ramp: sample it again)
                 region = ex.sampler.region

@@ -14,11 +14,11 @@ tick and lets the loop run it tick by tick. Every result, event, feedback messag
 setpoint is bit for bit what tick-by-tick computes (``tests/test_block_lockstep.py`` compares
 per-tick hashes of random runs).
 
-Blocked so far: a **hold** (no COMMAND hook) and **motions following their trajectories,
-settling at their goals or running stop ramps** (every COMMAND hook an executor record; a steady
-speed scaling, samples the limiter provably leaves alone), with the safety
-layer's filter as the only LIMIT hook, the safety watchdogs and :class:`BlockObserver` hooks as
-the only OBSERVE hooks, safety state OK, every check a :class:`~agentsdk.checks.BlockCheck`, the
+Blocked so far: a **hold** (no COMMAND hook) and **motions following their trajectories, settling
+at their goals, running stop ramps or waiting for their scheduled start** (every COMMAND hook an
+executor record; a steady speed scaling, samples the limiter provably leaves alone), with the
+safety layer's filter as the only LIMIT hook, the safety watchdogs and :class:`BlockObserver` hooks
+as the only OBSERVE hooks, safety state OK, every check a :class:`~agentsdk.checks.BlockCheck`, the
 command watchdog not watching position mode. Anything else runs tick by tick, as without it.
 """
 
@@ -168,8 +168,7 @@ class BlockLockstep:
             if planned is None:
                 sp.block[...] = before
                 return self._cut_short()
-            plans = planned
-            K = plans[0].k
+            K, plans = planned
         rows = self._rows[:K]  # every tick's setpoint rows after its COMMAND and LIMIT phases
         rows[...] = sp.block
         for plan in plans:

@@ -2,7 +2,8 @@
 
 Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
 sleep of random length (what blocks run): a move of random length and goal (``follow``, with a path
-tolerance or none, on every joint or some, consecutive or not: several moves run at once), a cancel
+tolerance or none, on every joint or some, consecutive or not: several moves run at once; now or
+scheduled later), a cancel
 of the running move (its stop ramp runs in blocks too), a feedback stream of the running move at a
 random rate (hashed: what it read), a direct position command (the filter's ramp: per tick, then
 blocks; refused while a move drives the joints), an external push (``qfrc_applied``, strong enough
@@ -129,8 +130,10 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                     part = np.arange(int(part[0]), min(n, int(part[0]) + len(part)))
                 plan = Trajectory([names[i] for i in part],
                                   [TrajectoryPoint(float(rng.uniform(0.1, 1.2)), goal[part].tolist())])
+                # now, or scheduled to start later (it waits, then preempts what drives its joints)
+                start = None if rng.random() < 0.7 else robot.clock.now() + float(rng.uniform(0.005, 0.3))
                 try:
-                    motion = robot.follow(plan, tol, stretch_to_limits=True)
+                    motion = robot.follow(plan, tol, stretch_to_limits=True, start_time=start)
                     motions.append(motion)
                 except agentsdk.errors.AgentSDKError as exc:
                     note = repr(exc)

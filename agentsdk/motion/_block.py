@@ -75,11 +75,14 @@ class BlockPlanner:
         its first tick done and no stream of link poses.
         """
         executor = self._executor
-        if executor is None or not hooks or self.table.pending:
+        if executor is None or not hooks:
             return None
         out = []
         for hook in hooks:
             ex = executor.record_of(hook)
+            if ex is not None and ex.phase is MotionPhase.PENDING:
+                out.append(ex)  # a scheduled motion: its ticks do nothing until its start time
+                continue
             if ex is None or ex.phase not in _PLANNED or ex.remote is not None:
                 return None
             w = ex.work
@@ -94,22 +97,34 @@ class BlockPlanner:
         return out
 
     def follow(self, hooks: tuple[Callable[..., object], ...], K: int, tick0: int,
-               capacity: int) -> list[BlockPlan] | None:
+               capacity: int) -> tuple[int, list[BlockPlan]] | None:
         """Plan the coming ticks (at most ``K``, from clock tick ``tick0``) of the motions ``hooks`` run.
 
         None when a hook is not a motion a block can take over (:meth:`_records`), or fewer than 2
-        of the coming ticks are pre-planned for every one of them (:meth:`reference`). Otherwise
-        writes the rows their ticks write besides the samples (mode, torque on, effort, gains: the
-        same every tick) into the setpoint, as their next tick would, and returns one plan per
-        motion, each with ``k`` (the same for all) ticks planned.
+        of the coming ticks are pre-planned for every one of them (:meth:`reference`; a scheduled
+        motion's are until the tick it starts at). Otherwise writes the rows their ticks write
+        besides the samples (mode, torque on, effort, gains: the same every tick) into the
+        setpoint, as their next tick would, and returns the ticks planned and one plan per running
+        motion.
         """
         records = self._records(hooks)
         if records is None:
             return None
+        period = self.loop.period
+        for ex in records:
+            if ex.phase is MotionPhase.PENDING:
+                # its hook returns at once while t < t0 - 1e-9 (the tick's own test), then it starts
+                first = (ex.t0 - 1e-9 - tick0 * period) / period  # a guess, checked with the tick's test:
+                j = max(0, min(K, math.floor(first) - 1))
+                while j < K and (tick0 + j) * period < ex.t0 - 1e-9:
+                    j += 1
+                K = j
+        if K < 2:
+            return None
         plans = []
         st = self.loop.state.block
         assert st is not None
-        for slot, ex in enumerate(records):
+        for slot, ex in enumerate(r for r in records if r.phase is not MotionPhase.PENDING):
             w = ex.work
             assert w is not None
             m = len(ex.idx)
@@ -148,7 +163,7 @@ class BlockPlanner:
             plans.append(plan)
         for plan in plans:
             plan.k = K
-        return plans
+        return K, plans
 
     def path_quiet(self, plan: BlockPlan, states: np.ndarray, q: int) -> int:
         """How many of the first ``q`` ticks pass the motion's path (or, settling, goal) test quietly, at once.

@@ -3,13 +3,13 @@
 Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
 sleep of random length (what blocks run): a move of random length and goal (``follow``, with a path
 tolerance or none, on every joint or some, consecutive or not: several moves run at once; now or
-scheduled later), a cancel
-of the running move (its stop ramp runs in blocks too), a feedback stream of the running move at a
-random rate (hashed: what it read), a direct position command (the filter's ramp: per tick, then
-blocks; refused while a move drives the joints), an external push (``qfrc_applied``, strong enough
-at random to trip the path tolerance, the following-error or the measured-position check, or the
-plausibility gate, in the middle of a block: a rollback), its release, or an e-stop of a random
-category (then mostly reset and enable).
+scheduled later), a cancel of the running move (its stop ramp runs in blocks too), a speed scaling
+factor, a feedback stream of the running move at a random rate, with a link's pose or not (hashed:
+what it read), a direct position command (the filter's ramp: per tick, then blocks; refused while a
+move drives the joints), an external push (``qfrc_applied``, strong enough at random to trip the
+path tolerance, the following-error or the measured-position check, or the plausibility gate, in the
+middle of a block: a rollback), its release, or an e-stop of a random category (then mostly reset
+and enable).
 The same program runs with block lockstep off and on; every tick's time, setpoint and measured
 state (an OBSERVE hook that takes blocks, :class:`agentsdk.block.BlockObserver`), and after each
 segment the safety state and events, every move's latest feedback message and its result, are hashed;
@@ -74,9 +74,10 @@ def _message(fb: Any) -> tuple[Any, ...] | None:
             fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes())
 
 
-async def _stream(motion: Any, rate: float, seen: list[Any]) -> None:
-    async for fb in motion.feedback(rate=rate):
-        seen.append(_message(fb))
+async def _stream(motion: Any, rate: float, seen: list[Any], links: tuple[str, ...]) -> None:
+    async for fb in motion.feedback(rate=rate, links=links):
+        poses = sorted((k, repr(p)) for k, p in (fb.poses or {}).items())
+        seen.append((_message(fb), poses))
 
 
 def _result(m: Any) -> tuple[Any, ...]:
@@ -144,7 +145,8 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                 motion.cancel()
             elif what == "stream" and motion is not None and not motion.done():
                 # a feedback stream at a random rate: it wakes between blocks and reads what they committed
-                streams.append(asyncio.create_task(_stream(motion, float(rng.uniform(20.0, 300.0)), seen)))
+                links = () if rng.random() < 0.5 else (robot.description.links[-1],)  # (+ link poses)
+                streams.append(asyncio.create_task(_stream(motion, float(rng.uniform(20.0, 300.0)), seen, links)))
             elif what == "push":
                 # a fraction of the joints' effort limits on a few of them, now and then more: a following
                 # error, a limit hit or a reading the plausibility gate refuses, often in the middle of a block

@@ -35,7 +35,7 @@ class BlockPlan:
     3, joints): each tick's position, velocity and acceleration. One per joint count, reused.
     """
 
-    def __init__(self, capacity: int, m: int) -> None:
+    def __init__(self, capacity: int, m: int, n: int) -> None:
         self.ex: _Exec | None = None
         self.sel: Any = slice(0, m)
         self.k = 0
@@ -44,6 +44,7 @@ class BlockPlan:
         self.samples = np.empty((capacity, 3, m))
         self.regions = np.empty(capacity, dtype=np.intp)
         self.pre = np.empty((2, m))
+        self.pre_all = np.empty(n)
         self.actual = np.empty((capacity, m))
         self.err = np.empty((capacity, m))
         self.gerr = np.empty((capacity, m))
@@ -72,7 +73,7 @@ class BlockPlanner:
         """The motions the COMMAND hooks run, if every hook is one a block can take over (else None).
 
         Each follows its trajectory, settles at its goal or runs a stop ramp (:data:`_PLANNED`), with
-        its first tick done and no stream of link poses.
+        its first tick done.
         """
         executor = self._executor
         if executor is None or not hooks:
@@ -90,9 +91,6 @@ class BlockPlanner:
                 return None  # its first tick has not run
             if w.bound[0] is not self.loop.setpoint_buffer or w.bound[1] is not self.loop.state:
                 return None
-            m = ex.motion
-            if m is not None and m._publish().keep_measured:
-                return None  # a stream of link poses keeps every tick's measured positions
             out.append(ex)
         return out
 
@@ -130,7 +128,7 @@ class BlockPlanner:
             m = len(ex.idx)
             plan = self._plans.get((capacity, m, slot))
             if plan is None:
-                plan = self._plans[(capacity, m, slot)] = BlockPlan(capacity, m)
+                plan = self._plans[(capacity, m, slot)] = BlockPlan(capacity, m, len(self.loop.joints))
             plan.ex, plan.sel = ex, w.sel
             if w.sp_rows is not None:  # (consecutive joints: the tick's views)
                 mode, enabled = w.sp_views[0], w.sp_views[1]
@@ -159,7 +157,9 @@ class BlockPlanner:
                 tmp = np.multiply(smp[:, 1], 0.0, out=plan.tmp[:K])
                 np.add(va[:, 1], tmp, out=va[:, 1])
             # the measured position and velocity of its joints as the first tick's COMMAND phase sees them
+            # (and of every joint, for a stream of link poses)
             plan.pre[...] = st[0:2, plan.sel]
+            plan.pre_all[...] = st[0]
             plans.append(plan)
         for plan in plans:
             plan.k = K
@@ -249,6 +249,8 @@ class BlockPlanner:
         w.measured[...] = plan.pre if j == 0 else states[j - 1][0:2, plan.sel]
         snap.actual_q, snap.actual_v = w.act, w.actual_v
         snap.seq += q
+        if snap.keep_measured:  # a stream of link poses: every joint's measured position at that tick
+            motion._keep_measured(plan.pre_all if j == 0 else states[j - 1, 0])
 
     def reference(self, ex: _Exec, ts: np.ndarray, taus: np.ndarray, out: np.ndarray,
                   regions: np.ndarray | None = None) -> int:

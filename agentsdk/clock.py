@@ -264,6 +264,26 @@ class LockstepClock(Clock):
         """Control ticks elapsed since the start."""
         return self._tick
 
+    async def sleep(self, dt: float) -> None:
+        """Wait ``dt`` seconds of simulated time: :meth:`sleep_until` of ``now() + dt``.
+
+        A behavior that sleeps one period per tick calls this every tick, so it checks once
+        what :meth:`Clock.sleep` and :meth:`sleep_until` would both check (a float ``dt >= 0``
+        needs no conversion) and queues the wake-up itself.
+        """
+        if type(dt) is not float or not dt >= 0.0:  # anything else (NaN, negative, an int) as Clock.sleep
+            dt = _check_duration(dt)
+        if self._error is not None:
+            raise _fresh(self._error)
+        now = self._tick * self.period
+        deadline = now + dt
+        if deadline <= now:
+            await asyncio.sleep(0)
+        elif math.isinf(deadline):
+            await self._park(None)  # no tick ever reaches it: wait until cancelled or closed
+        else:
+            await self._enqueue(deadline)
+
     async def sleep_until(self, deadline: float) -> None:
         """Resume once the control loop has advanced simulated time to ``deadline``."""
         deadline = _check_deadline(deadline)
@@ -275,10 +295,14 @@ class LockstepClock(Clock):
             # no tick ever reaches it: wait (without driving simulated time) until cancelled or closed
             await self._park(None)
             return
+        await self._enqueue(deadline)
+
+    def _enqueue(self, deadline: float) -> asyncio.Future[None]:
+        """A future the first tick at or after ``deadline`` resolves (and wake an idle control loop)."""
         fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         heapq.heappush(self._heap, (deadline, next(self._seq), fut))
         self.wakeup.set()
-        await fut  # cancellation cancels fut; advance() skips it
+        return fut  # cancellation cancels fut; advance() skips it
 
     def next_deadline(self) -> float | None:
         """The earliest pending sleeper's deadline, or None when nobody waits."""

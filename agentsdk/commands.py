@@ -15,7 +15,7 @@ import numpy as np
 from .errors import InvalidValueError, UnknownJointError, UnsupportedModeError
 from .types import FloatArray, JointCommand
 
-__all__ = ["ResolvedCommand", "map_values", "resolve_command"]
+__all__ = ["CommandShapes", "ResolvedCommand", "map_values", "resolve_command"]
 
 #: ``(indices, values, velocity_ff, effort_ff)`` of a validated command
 ResolvedCommand = tuple[np.ndarray, FloatArray, FloatArray | None, FloatArray | None]
@@ -70,10 +70,98 @@ def map_values(
             )
         idx = np.arange(len(names))
         arr = np.asarray(values, dtype=np.float64)
+    _check_finite(arr, idx, what, names)
+    return idx, arr
+
+
+def _check_finite(arr: FloatArray, idx: np.ndarray, what: str, names: Sequence[str]) -> None:
+    """Raise :class:`InvalidValueError` naming the first joint of ``idx`` whose value is NaN or infinite."""
     # NaN propagates through the largest and the smallest value, an infinity shows in one of them
     # (two ufunc reductions: ndarray.any's Python wrapper costs more on a few joints)
     if arr.size and not (math.isfinite(np.maximum.reduce(arr)) and math.isfinite(np.minimum.reduce(arr))):
         bad = ~np.isfinite(arr)
         j = int(idx[int(np.argmax(bad))])
         raise InvalidValueError(f"{what}: non-finite value {float(arr[bad][0])} for joint {names[j]!r}")
-    return idx, arr
+
+
+class CommandShapes:
+    """:func:`resolve_command` for one robot, with the joint indices of each command shape made once.
+
+    A behavior that commands every tick sends the same shape again and again (a full-length
+    sequence, or a mapping naming the same joints in the same order); its joint-name lookup,
+    index array and joint names are validated the first time and reused after that (a bounded
+    cache: past :attr:`LIMIT` distinct joint sets, new ones are mapped every time). The checks
+    and their errors are :func:`resolve_command`'s, in the same order; values are converted and
+    checked for finiteness on every command.
+    """
+
+    #: distinct joint-name tuples of mapping commands kept
+    LIMIT = 256
+
+    def __init__(self, names: Sequence[str], index: Mapping[str, int]) -> None:
+        self._names = tuple(names)
+        self._index = index
+        full = np.arange(len(self._names), dtype=np.intp)
+        full.flags.writeable = False
+        #: the (read-only) indices of a full-length command: every joint in order
+        self.full = full
+        self._by_keys: dict[tuple[str, ...], tuple[np.ndarray, tuple[str, ...]]] = {}
+
+    def resolve(
+        self, cmd: object, modes: Collection[str], backend: str
+    ) -> tuple[np.ndarray, tuple[str, ...], FloatArray, FloatArray | None, FloatArray | None]:
+        """``(indices, joint names, values, velocity_ff, effort_ff)`` of a validated command.
+
+        The index array is shared between commands of the same shape (read-only). Raises what
+        :func:`resolve_command` raises for the same command.
+        """
+        if not isinstance(cmd, JointCommand):
+            raise InvalidValueError(f"expected a JointCommand, got {type(cmd).__name__}")
+        if cmd.mode not in modes:
+            raise UnsupportedModeError(
+                f"backend {backend!r} does not support {cmd.mode!r} commands (supported: {', '.join(sorted(modes))})"
+            )
+        idx, names, values = self._map(cmd.values, "values")
+        vel = eff = None
+        if cmd.velocity is not None:
+            vidx, _, vel = self._map(cmd.velocity, "velocity")
+            if vidx is not idx and not np.array_equal(vidx, idx):
+                raise InvalidValueError("velocity feed-forward must name the same joints as values")
+        if cmd.effort is not None:
+            eidx, _, eff = self._map(cmd.effort, "effort")
+            if eidx is not idx and not np.array_equal(eidx, idx):
+                raise InvalidValueError("effort feed-forward must name the same joints as values")
+        return idx, names, values, vel, eff
+
+    def _map(
+        self, values: Mapping[str, float] | tuple[float, ...], what: str
+    ) -> tuple[np.ndarray, tuple[str, ...], FloatArray]:
+        """:func:`map_values` with the indices (and names) of a known shape taken from the cache."""
+        names = self._names
+        if isinstance(values, Mapping):
+            keys = tuple(values)
+            hit = self._by_keys.get(keys)
+            if hit is None:
+                idx, arr = map_values(values, what, names, self._index)
+                idx.flags.writeable = False
+                hit = (idx, tuple(names[i] for i in idx.tolist()))
+                if len(self._by_keys) < self.LIMIT:
+                    self._by_keys[keys] = hit
+                return hit[0], hit[1], arr
+            idx, keys = hit
+            total = sum(values.values())
+            arr = np.fromiter(values.values(), dtype=np.float64, count=len(keys))
+        else:
+            if len(values) != len(names):
+                raise InvalidValueError(
+                    f"{what}: expected {len(names)} values (one per joint: {', '.join(names)}), got {len(values)}"
+                )
+            idx, keys = self.full, names
+            total = sum(values)
+            arr = np.asarray(values, dtype=np.float64)
+        # a JointCommand holds Python floats: their sum is finite when every value is (NaN and the
+        # infinities propagate); a non-finite sum (or an overflow) takes the array check, which names
+        # the joint
+        if not math.isfinite(total):
+            _check_finite(arr, idx, what, names)
+        return idx, keys, arr

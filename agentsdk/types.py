@@ -85,11 +85,15 @@ class JointState:
         shape and gives up writing to them; nothing is re-validated.
         """
         self = object.__new__(cls)
-        for attr, arr in (("position", position), ("velocity", velocity), ("effort", effort)):
-            arr.flags.writeable = False
-            object.__setattr__(self, attr, arr)
-        object.__setattr__(self, "names", names)
-        object.__setattr__(self, "stamp", stamp)
+        setattr_ = object.__setattr__
+        position.setflags(write=False)
+        velocity.setflags(write=False)
+        effort.setflags(write=False)
+        setattr_(self, "position", position)
+        setattr_(self, "velocity", velocity)
+        setattr_(self, "effort", effort)
+        setattr_(self, "names", names)
+        setattr_(self, "stamp", stamp)
         return self
 
     def index(self, name: str) -> int:
@@ -115,6 +119,12 @@ def _freeze_values(
 ) -> Mapping[str, float] | tuple[float, ...] | None:
     if values is None:
         return None
+    cls: type = type(values)
+    if cls is list or cls is tuple:  # the common case (a .tolist()), before the ABC checks below
+        try:
+            return tuple(map(float, values))  # type: ignore[arg-type]
+        except (TypeError, ValueError):
+            pass  # the general path names the offending entry
     if isinstance(values, Mapping):
         try:  # fast path; the loop below only runs to name the offending entry
             out = {k: float(v) for k, v in values.items()}

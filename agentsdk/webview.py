@@ -18,7 +18,9 @@ Threads and rates: viser serves the page from its own thread. A publisher thread
 :data:`RATE` times a second (wall time), asks the robot's event loop for a snapshot (a tiny
 callback that copies positions, velocities and states: nothing runs inside the control tick),
 and pushes it to the page; plots are redrawn at :data:`PLOT_RATE`. A slow or absent browser
-never slows the control loop; at most one snapshot request is pending at a time.
+never slows the control loop; at most one snapshot request is pending at a time. A page gets the next
+frame only once it has applied the last one (:mod:`agentsdk.webpacing`): a page too slow for 30 frames a
+second gets fewer, newer ones rather than a backlog that would leave it unable to answer a click.
 
 Bound to 127.0.0.1 only. There is deliberately no option to serve on another address: to
 watch from another machine forward the port over SSH (``ssh -L 8080:127.0.0.1:8080 robot-pc``).
@@ -43,6 +45,7 @@ import numpy as np
 
 from .errors import BackendUnavailableError, ConfigurationError
 from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, SHIFTED_DIGITS, JogAction, Jogger
+from .webpacing import PagePacer
 
 if TYPE_CHECKING:
     from .robot import Robot
@@ -129,6 +132,8 @@ class WebView:
         self.error: BaseException | None = None
         self.port = _free_port(port)
         self.server: Any = None
+        #: paces the frames to what the connected pages can apply (:mod:`agentsdk.webpacing`)
+        self.pacer: PagePacer | None = None
         self._tmp = tempfile.TemporaryDirectory(prefix="agentsdk-web-")
         self._urdf: Any = None
         self._urdf_names: tuple[str, ...] = ()
@@ -200,6 +205,7 @@ class WebView:
         finally:
             rich._console = saved
         self.port = int(self.server.get_port())
+        self.pacer = PagePacer(self.server)
         self._build_gui()
         self._build_scene(ViserUrdf)
 
@@ -400,8 +406,12 @@ class WebView:
                 self._aloop.call_soon_threadsafe(self._served.set)
         if self._on_ready is not None:
             self._on_ready(self)
-        period, next_plot = 1.0 / RATE, 0.0
-        while not self._closed.wait(period):
+        pacer = self.pacer
+        assert pacer is not None  # (made by _serve)
+        period, next_plot, delay = 1.0 / RATE, 0.0, 1.0 / RATE
+        while not self._closed.wait(delay):
+            began = time.monotonic()
+            delay = period
             snap = self._take()
             if snap is None:
                 continue
@@ -411,6 +421,9 @@ class WebView:
                 if now >= next_plot:
                     next_plot = now + 1.0 / PLOT_RATE
                     self._publish_plot()
+                # no frame for a page that has not applied the last one (a flooded page stops answering clicks)
+                round_trip = pacer.sync(self._closed)
+                delay = pacer.next_delay(period, time.monotonic() - began, round_trip)
             except Exception:  # a disconnecting browser must not end the view
                 log.debug("web view: publishing failed", exc_info=True)
 
@@ -428,13 +441,18 @@ class WebView:
                  f"**motion:** {motion} (max speed {speed:.3f})",
                  f"**state machine:** {snap.machine or '(none)'}",
                  f"**time:** {snap.stamp:.3f} s"]
-        self._status.content = "  \n".join(lines)
+        self._set_content(self._status, "  \n".join(lines))
         rows = "\n".join(f"| {n} | {q:+.4f} | {v:+.4f} |" for n, q, v in zip(snap.names, snap.position,
                                                                               snap.velocity, strict=True))
-        self._joints.content = "| joint | position | velocity |\n|---|---|---|\n" + rows
+        self._set_content(self._joints, "| joint | position | velocity |\n|---|---|---|\n" + rows)
         self._history.append((snap.stamp, snap.position))
         while self._history and self._history[0][0] < snap.stamp - PLOT_WINDOW:
             self._history.popleft()
+
+    @staticmethod
+    def _set_content(markdown: Any, text: str) -> None:
+        if markdown.content != text:  # (an unchanged text is not sent again)
+            markdown.content = text
 
     def _publish_plot(self) -> None:
         if len(self._history) < 2:

@@ -381,6 +381,10 @@ def _probe(bus: can.BusABC, profile: Any, ranges: dict[int, Any], limit: float =
     return replies
 
 
+#: replies per motor the kill -9 test looks back over to see the motors moving with torque on
+LIVE_REPLIES = max(3, round(0.15 * VCAN_RATE))
+
+
 def test_kill_9_of_the_host_leaves_the_motors_limp_by_their_own_timeout(tmp_path: Path, leg: str) -> None:
     _, cfg = load_can_config(leg)
     profile = profile_for(cfg.profile)
@@ -394,17 +398,19 @@ def test_kill_9_of_the_host_leaves_the_motors_limp_by_their_own_timeout(tmp_path
         try:
             host.wait_for("STREAMING")
             time.sleep(0.3)
-            # alive: the host's own traffic shows the motors moving and working (over the last
-            # 150 ms: a reversal may be under way at any single instant)
-            t_end = time.time()
+            # alive: the host's own traffic shows the motors moving and working (over each motor's last
+            # LIVE_REPLIES replies, ~150 ms at 50 Hz: a reversal may be under way at any single instant;
+            # counted in replies, not wall time: a starved VM's host or recorder thread lags for 100s of ms)
             live: dict[int, list[Any]] = {mid: [] for mid in MOTORS}
             for msg in reversed(rec.frames()):
-                if msg.timestamp < t_end - 0.15:
+                if msg.arbitration_id == cfg.master_id and msg.data[0] in live:
+                    reps = live[msg.data[0]]
+                    if len(reps) < LIVE_REPLIES:
+                        reps.append(decode_reply(msg.data, ranges[msg.data[0]], profile))
+                if all(len(r) == LIVE_REPLIES for r in live.values()):
                     break
-                if msg.arbitration_id == cfg.master_id and msg.data[0] in MOTORS:
-                    live[msg.data[0]].append(decode_reply(msg.data, ranges[msg.data[0]], profile))
             for mid, reps in live.items():
-                assert reps, f"no reply from motor {mid} in the last 150 ms"
+                assert len(reps) == LIVE_REPLIES, f"only {len(reps)} replies from motor {mid}"
                 assert max(abs(r.velocity) for r in reps) > 0.75, (mid, reps[:3])
                 assert max(abs(r.torque) for r in reps) > 2 * lsb[mid], (mid, reps[:3])  # torque on (limp: < 1 LSB)
             os.kill(host.popen.pid, signal.SIGKILL)
@@ -590,7 +596,8 @@ async def test_set_zero_on_vcan0_refused_with_torque_on_then_zeroes_without_movi
     try:
         await _wait_async(lambda: proc.has(EMULATOR_READY) or proc.popen.poll() is not None)
         assert proc.popen.poll() is None, proc.output()
-        async with agentsdk.connect("can", robot=leg) as robot:
+        # the conformance kit's VM tolerances (missed replies, stall watchdog): a slow VM's stalls are not this test
+        async with agentsdk.connect("can", robot=leg, **TestCanConformanceVcan.connect_options) as robot:
             await robot.command(agentsdk.JointCommand("position", {"knee": 0.6}))
             await _settle(robot, "knee", 0.6)
             with pytest.raises(agentsdk.CommandRejected, match=r"set_zero\('knee'\) refused"):

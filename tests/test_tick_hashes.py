@@ -35,7 +35,7 @@ from agentsdk.registry import load_backend
 
 REFERENCE = Path(__file__).parent / "data" / "tick_hashes.json"
 UPDATE = os.environ.get("AGENTSDK_UPDATE_TICK_HASHES") == "1"
-SCENARIOS = ("hold", "follow", "cancel", "estop", "speed", "push", "goal", "preempt", "feedback")
+SCENARIOS = ("hold", "follow", "cancel", "estop", "speed", "push", "goal", "preempt", "feedback", "awaited")
 BACKENDS = ("mujoco", "pybullet")
 ROBOTS = ("arm3", "humanoid")
 
@@ -180,9 +180,73 @@ async def _scenario(backend: str, robot_name: str, what: str) -> tuple[str, int]
                 async for fb in m.feedback(rate=137.0)
             ]
             hasher.add(_result(m), seen)
+        elif what == "awaited":
+            await _awaited_commands(robot, hasher, start)
         else:  # pragma: no cover
             raise AssertionError(what)
         return hasher.h.hexdigest(), hasher.ticks
+
+
+async def _awaited_commands(robot: agentsdk.Robot, hasher: _Hasher, start: list[float]) -> None:
+    """A behavior that reads and commands every tick (``read``, ``command``, ``sleep(period)``).
+
+    Full-length position streams (small steps, with velocity and effort feed-forward), a subset of
+    joints by name, jumps the step limiter ramps over several ticks, values outside the bounds
+    (clamped), a velocity stream and back, rejected commands (unknown joint, NaN, wrong length) and
+    an absurd velocity (clamped): the applied commands, the rejections and the safety events are
+    hashed with the ticks.
+    """
+    clock, period = robot.clock, robot.control_period
+    names = list(robot.joint_names)
+    n = len(names)
+    q0 = np.array(start)
+    lo = np.array([j.lower if np.isfinite(j.lower) else -3.0 for j in robot.joints])
+    hi = np.array([j.upper if np.isfinite(j.upper) else 3.0 for j in robot.joints])
+    vmax = np.array([j.max_velocity for j in robot.joints])
+    emax = np.array([j.max_effort for j in robot.joints])
+    for k in range(240):
+        state = await robot.read()
+        hasher.add(k, state.position.tobytes(), state.velocity.tobytes())
+        wave = 0.04 * np.sin(2.0 * np.pi * 0.5 * k * period + np.arange(n))
+        phase = k // 20
+        cmd: JointCommand
+        if phase in (0, 5):
+            cmd = JointCommand("position", (q0 + wave).tolist())
+        elif phase == 1:
+            cmd = JointCommand("position", (q0 + wave).tolist(), velocity=(0.1 * vmax).tolist(),
+                               effort=(0.05 * emax * np.cos(k * 0.1)).tolist())
+        elif phase == 2:
+            sub = names[::2]
+            cmd = JointCommand("position", {nm: float(q0[names.index(nm)] + wave[0]) for nm in reversed(sub)})
+        elif phase == 3:
+            # a jump of a quarter of each range every 10 ticks: the limiter ramps it over several ticks
+            cmd = JointCommand("position", (lo + (hi - lo) * (0.35 + 0.25 * ((k // 10) % 2))).tolist())
+        elif phase == 4:
+            cmd = JointCommand("position", (hi + 0.2).tolist() if k % 2 else (lo - 0.2).tolist(),
+                               velocity=(2.0 * vmax).tolist())
+        elif phase == 6:
+            cmd = JointCommand("velocity", (0.2 * np.cos(0.05 * k + np.arange(n))).tolist())
+        elif phase == 7:
+            cmd = JointCommand("velocity", {names[-1]: -0.1, names[0]: 0.15})
+        elif phase == 8:
+            cmd = JointCommand("position", (await robot.read()).position.tolist())
+        else:
+            cmd = JointCommand("position", (q0 - wave).tolist(), effort=(0.2 * emax).tolist())
+        try:
+            hasher.add(repr(await robot.command(cmd)))
+        except agentsdk.AgentSDKError as exc:
+            hasher.add(type(exc).__name__, str(exc))
+        if k % 37 == 5:
+            for bad in (JointCommand("position", {"no_such_joint": 0.0}),
+                        JointCommand("position", [float("nan"), *start[1:]]),
+                        JointCommand("position", start[:-1]),
+                        JointCommand("velocity", [1e9] * n)):
+                try:
+                    hasher.add("accepted", repr(await robot.command(bad)))
+                except agentsdk.AgentSDKError as exc:
+                    hasher.add(type(exc).__name__, str(exc))
+        await clock.sleep(period)
+    hasher.add([(e.kind, e.detail, e.joint, e.time) for e in robot.safety.events])
 
 
 def _result_of(r: Any) -> tuple[Any, ...]:

@@ -79,6 +79,43 @@ def test_peaks_are_the_extremes_of_dense_sampling(n: int, kind: str, seed: int) 
     assert np.all(np.abs(out[:, 1]).max(axis=0) >= pk.v_peak.max(axis=0) - step * pk.a_peak.max(axis=0) - 1e-9)
 
 
+def test_peaks_find_extremes_closer_than_any_grid() -> None:
+    """Velocity roots 1e-9..1e-2 apart, and a double root: each extreme is found, none overstated.
+
+    The root search has no grid to fall between: the derivative's own turning points split each
+    segment into monotone pieces (``poly_roots``), down from the linear derivative.
+    """
+    from agentsdk.trajectory._peaks import derivative, poly_range, poly_roots
+
+    rng = np.random.default_rng(7)
+    n = 400
+    r = rng.uniform(0.05, 0.9, n)
+    gap = np.concatenate([10.0 ** rng.uniform(-9, -2, n - 1), [0.0]])  # the last: a double root
+    coeffs, truth = [], []
+    for i in range(n):
+        dq = np.poly1d([1.0])
+        for root in (r[i], r[i] + gap[i], -1.0 - i / n, 2.0 + i / n):
+            dq = dq * np.poly1d([1.0, -root])
+        q = np.polyint(dq) * rng.choice([-1.0, 1.0])
+        coeffs.append(q.coeffs[::-1])
+        truth.append(np.polyval(q, [0.0, r[i], r[i] + gap[i], 1.0]))
+    c = np.array(coeffs)[:, :, None]  # (segments, 6, 1): one joint
+    T = np.ones(n)
+    derivs = [c]
+    for _ in range(4):
+        derivs.append(derivative(derivs[-1]))
+    roots = poly_roots(derivs[4], np.full((n, 0, 1), np.nan), T)
+    for k in (3, 2, 1):
+        roots = poly_roots(derivs[k], roots[0], T)
+    lo, hi, _ = poly_range(c, *roots)
+    truth_arr = np.array(truth)
+    tol = 1e-15 * np.abs(truth_arr).max(axis=1)
+    assert np.all(hi[:, 0] >= truth_arr.max(axis=1) - tol)
+    assert np.all(lo[:, 0] <= truth_arr.min(axis=1) + tol)
+    # every value reported is the polynomial's at some point of [0, 1]: never beyond its true range
+    assert np.all(hi[:, 0] <= truth_arr.max(axis=1) + tol) and np.all(lo[:, 0] >= truth_arr.min(axis=1) - tol)
+
+
 def test_non_finite_motion_is_refused() -> None:
     """A segment too short to represent is refused when the trajectory is built; a polynomial that is not
     finite (e.g. a start segment overflowing) is refused by the limits check, never read as in range."""

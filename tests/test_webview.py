@@ -69,8 +69,13 @@ def browser() -> Iterator[Any]:
 
     options = Options()
     options.binary_location = str(CHROMIUM)
+    # WebGL by SwiftShader (no GPU here); the window composited in software, as Chrome does on a machine whose
+    # GPU it does not use: composited through SwiftShader too, each of the browser's own frames (every screenshot
+    # waits for one) took 0.4-5 s of the GPU process beside two CPU hogs, and a screenshot timed out in
+    # chromedriver after 10 s
     for arg in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=640,480",
-                "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"):
+                "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
+                "--disable-gpu-compositing"):
         options.add_argument(arg)
     driver = webdriver.Chrome(service=Service(str(CHROMEDRIVER)), options=options)
     driver.set_page_load_timeout(300)
@@ -176,7 +181,10 @@ def test_wave_live_in_a_browser_and_the_estop_button(browser: Any, tmp_path: Pat
 
         button = browser.find_element(By.XPATH, "//button[contains(., 'E-STOP')]")
         browser.execute_script("arguments[0].click();", button)  # (a toast may cover it in a small window)
-        text = _wait(browser, "the e-stop", lambda t: "safety: ESTOP" in t, timeout=60)
+        try:
+            text = _wait(browser, "the e-stop", lambda t: "safety: ESTOP" in t, timeout=60)
+        except AssertionError as exc:  # did the press reach the server? (its log says)
+            raise AssertionError(f"{exc}\nthe server's log:\n{''.join(err)}") from None
         assert "category 2" in text
         _wait(browser, "rest", lambda t: "motion: at rest" in t, timeout=60)
         a = _joints(browser)

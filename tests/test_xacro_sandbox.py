@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from agentsdk.description import load_description
+from agentsdk.description import load_description, xacro_expand
 from agentsdk.description.packages import Resolver
 from agentsdk.description.xacro_expand import run_xacro
 from agentsdk.description.xacro_sandbox import ExpressionRefused, check_expression
@@ -175,6 +175,51 @@ def test_expansion_has_time_and_memory_limits(tmp_path: Path) -> None:
     big = _xacro(pkg / "big.urdf.xacro", '  <link name="l${python.len(python.list(python.range(10**9)))}"/>\n')
     with pytest.raises(DescriptionError, match="memory limit"):
         run_xacro(big, {}, Resolver(pkg, None), memory=256 << 20)
+
+
+def test_the_time_limit_counts_from_the_workers_start_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Starting the worker (interpreter, imports) is the machine's cost: seconds in a loaded VM.
+
+    A start-up slowed by 1.5 s (a sitecustomize that sleeps) does not use up a 1 s expansion
+    limit; the expansion itself still gets 1 s and no more.
+    """
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "sitecustomize.py").write_text("import time\ntime.sleep(1.5)\n")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(site), *sys.path]))
+    pkg = _package(tmp_path / "pkg")
+    path = _xacro(pkg / "ok.urdf.xacro", LINK)
+    assert 'name="base"' in run_xacro(path, {}, Resolver(pkg, None), seconds=1.0)
+    slow = _xacro(pkg / "slow.urdf.xacro", '  <link name="l${python.sum(python.range(10**12))}"/>\n')
+    start = time.monotonic()
+    with pytest.raises(DescriptionError, match=r"took longer than 1 s|more than 1 s of CPU"):
+        run_xacro(slow, {}, Resolver(pkg, None), seconds=1.0)
+    assert time.monotonic() - start < 30.0  # (stopped by the worker's own limit, not the parent's backstop)
+
+
+def test_the_expansion_cache_follows_the_variables_the_file_reads(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Another variable (pytest's PYTEST_CURRENT_TEST changes every test) keeps the cached expansion;
+    a variable the file reads through $(optenv) expands it again."""
+    pkg = _package(tmp_path / "pkg")
+    path = _xacro(pkg / "env.urdf.xacro", '  <link name="l_$(optenv AGENTSDK_TEST_LINK none)"/>\n')
+    monkeypatch.delenv("AGENTSDK_TEST_LINK", raising=False)
+    assert 'name="l_none"' in run_xacro(path, {}, Resolver(pkg, None))
+    workers: list[Path] = []
+    real = xacro_expand._worker_result
+
+    def counted(p: Path, job: object, seconds: float) -> dict[str, object]:
+        workers.append(p)
+        return real(p, job, seconds)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(xacro_expand, "_worker_result", counted)
+    monkeypatch.setenv("AGENTSDK_TEST_UNRELATED", "1")
+    assert 'name="l_none"' in run_xacro(path, {}, Resolver(pkg, None))
+    assert workers == []
+    monkeypatch.setenv("AGENTSDK_TEST_LINK", "x")
+    assert 'name="l_x"' in run_xacro(path, {}, Resolver(pkg, None))
+    assert workers == [path]
 
 
 def test_what_xacro_documents_still_works(tmp_path: Path) -> None:

@@ -1,8 +1,11 @@
 """xacro expansion in a sandboxed worker process (see :mod:`.xacro_sandbox`).
 
 The caller's process never runs xacro: each expansion starts ``python -P
-xacro_sandbox.py`` with the job as JSON on its stdin, under a wall-clock deadline
-(:data:`XACRO_TIME_LIMIT`) and an address-space limit (:data:`XACRO_MEMORY_LIMIT`).
+xacro_sandbox.py`` with the job as JSON on its stdin, under a time limit
+(:data:`XACRO_TIME_LIMIT`, wall clock and CPU time, counted once the worker has started:
+starting a Python process is the machine's cost, seconds in a loaded VM) and an
+address-space limit (:data:`XACRO_MEMORY_LIMIT`). The parent kills a worker that has not
+answered :data:`XACRO_START_ALLOWANCE` seconds after that limit.
 The worker answers ``$(find pkg)`` with the SDK's package search, checks every
 expression and every file it opens unless the file is ``trusted``, and returns the
 expanded XML or a one-line error, which becomes a :class:`DescriptionError`.
@@ -26,12 +29,16 @@ from typing import Any
 from ..errors import DescriptionError
 from .packages import Resolver
 
-__all__ = ["TRUST_HINT", "XACRO_MEMORY_LIMIT", "XACRO_TIME_LIMIT", "run_xacro"]
+__all__ = ["TRUST_HINT", "XACRO_MEMORY_LIMIT", "XACRO_START_ALLOWANCE", "XACRO_TIME_LIMIT", "run_xacro"]
 
 log = logging.getLogger("agentsdk.description")
 
-#: seconds one xacro expansion may take (wall clock; the worker also gets this much CPU time)
+#: seconds one xacro expansion may take (wall clock, and about as much CPU time), from the moment its
+#: worker process has started and imported xacro
 XACRO_TIME_LIMIT = 20.0
+#: seconds a worker process may take to start (interpreter and imports) before its expansion's own limit
+#: runs; the parent's backstop for a worker that never gets as far as arming that limit
+XACRO_START_ALLOWANCE = 60.0
 #: bytes of address space the expansion worker may use
 XACRO_MEMORY_LIMIT = 1 << 30
 #: how to lift the checks, appended to a refusal
@@ -42,13 +49,18 @@ TRUST_HINT = (
 
 _WORKER = Path(__file__).with_name("xacro_sandbox.py")
 
-# Expansions are cached in this process (a worker process costs a few hundred ms, and a test suite
-# connects to the same xacro robot hundreds of times): an entry is used only while the job (file,
-# args, search path, trust, limits), the environment and the working directory are the same and
-# every file the expansion read has the same content (SHA-256).
+# Expansions are cached in this process (a worker process costs a few hundred ms, seconds in a slow
+# VM, and a test suite connects to the same xacro robot hundreds of times): an entry is used only
+# while the job (file, args, search path, trust, limits), the working directory and the variables
+# that shape the worker's interpreter (_PROCESS_ENV) are the same, every environment variable the
+# worker read (its $(env)/$(optenv), the package search path) has the same value, and every file the
+# expansion read has the same content (SHA-256). Other variables, such as the PYTEST_CURRENT_TEST
+# that changes with every test, do not make a connect expand the same file again.
 _CACHE_SIZE = 32
 _MAX_CACHED_FILE = 1 << 24
-_cache: OrderedDict[str, tuple[dict[str, Any], tuple[tuple[str, str], ...]]] = OrderedDict()
+#: prefixes of the environment variables read before the worker's code runs (interpreter, loader, libxml2)
+_PROCESS_ENV = ("PYTHON", "LD_", "XML_")
+_cache: OrderedDict[str, tuple[dict[str, Any], tuple[tuple[str, str], ...], dict[str, str | None]]] = OrderedDict()
 _cache_lock = threading.Lock()
 
 
@@ -65,7 +77,8 @@ def _stamps(files: Sequence[str]) -> tuple[tuple[str, str], ...] | None:
 
 
 def _cache_key(job: Mapping[str, Any]) -> str:
-    return json.dumps([job, sorted(os.environ.items()), os.getcwd()], sort_keys=True)
+    process_env = sorted((k, v) for k, v in os.environ.items() if k.startswith(_PROCESS_ENV))
+    return json.dumps([job, process_env, os.getcwd()], sort_keys=True)
 
 
 def _cached(key: str) -> dict[str, Any] | None:
@@ -75,7 +88,9 @@ def _cached(key: str) -> dict[str, Any] | None:
             _cache.move_to_end(key)
     if entry is None:
         return None
-    result, stamps = entry
+    result, stamps, environ = entry
+    if any(os.environ.get(name) != value for name, value in environ.items()):
+        return None
     if _stamps([name for name, _ in stamps]) != stamps:
         return None
     return result
@@ -85,14 +100,19 @@ def _remember(key: str, result: dict[str, Any]) -> None:
     stamps = _stamps([str(f) for f in result.get("files", ())])
     if stamps is None:
         return
+    read = result.get("environ")
+    if read is None:  # the worker listed the whole environment: any change may change its answer
+        return
+    environ: dict[str, str | None] = {str(k): v for k, v in read.items()}
     with _cache_lock:
-        _cache[key] = (result, stamps)
+        _cache[key] = (result, stamps, environ)
         _cache.move_to_end(key)
         while len(_cache) > _CACHE_SIZE:
             _cache.popitem(last=False)
 
 
 def _worker_result(path: Path, job: Mapping[str, Any], seconds: float) -> dict[str, Any]:
+    """Run one worker; its own limits count from its start-up, the parent's backstop adds the start-up."""
     try:
         proc = subprocess.Popen(
             [sys.executable, "-P", str(_WORKER)],
@@ -103,14 +123,19 @@ def _worker_result(path: Path, job: Mapping[str, Any], seconds: float) -> dict[s
     except OSError as exc:
         raise DescriptionError(f"{path}: cannot start the xacro worker: {exc}") from exc
     try:
-        out, err = proc.communicate(json.dumps(job).encode("utf-8"), timeout=seconds)
+        out, err = proc.communicate(json.dumps(job).encode("utf-8"), timeout=seconds + XACRO_START_ALLOWANCE)
     except subprocess.TimeoutExpired:
         proc.kill()
         proc.communicate()
         raise DescriptionError(
+            f"{path}: the xacro worker did not answer within {seconds + XACRO_START_ALLOWANCE:g} s "
+            f"({XACRO_START_ALLOWANCE:g} s to start and {seconds:g} s to expand) and was stopped"
+        ) from None
+    if proc.returncode == -getattr(signal, "SIGALRM", 0) != 0:
+        raise DescriptionError(
             f"{path}: xacro expansion took longer than {seconds:g} s and was stopped (an expression too costly "
             "to evaluate, or an include that never ends)"
-        ) from None
+        )
     if proc.returncode == -getattr(signal, "SIGXCPU", 0) != 0:
         raise DescriptionError(f"{path}: xacro expansion used more than {seconds:g} s of CPU time and was stopped")
     try:

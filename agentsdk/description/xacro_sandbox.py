@@ -26,9 +26,11 @@ evaluate an expression it has not checked:
   the parent process passes (the description's package, the packages found by
   ``$(find)``, the directories of the package search path).
 * **Limits.** The expansion runs in this module as a separate process (``python
-  -P xacro_sandbox.py``) with an address-space limit, a CPU-time limit, no file
-  writes (``RLIMIT_FSIZE`` 0) and no child processes; the parent kills it at its
-  wall-clock deadline. xacro's module state (its file and macro stacks, the
+  -P xacro_sandbox.py``) with an address-space limit, no file writes
+  (``RLIMIT_FSIZE`` 0) and no child processes; once it has started (imports
+  done) it arms a wall-clock alarm and a CPU-time limit of the job's seconds, and
+  the parent kills it if it has not answered a start-up allowance later.
+  xacro's module state (its file and macro stacks, the
   ``ament_index_python`` module answering ``$(find)``) lives and dies with the
   worker, so nothing in the caller's process changes.
 
@@ -48,6 +50,7 @@ import json
 import math
 import os
 import re
+import signal
 import sys
 import types
 from collections.abc import Callable, Iterable, Iterator, Mapping
@@ -429,13 +432,47 @@ class _TrackedArgs(dict[str, str]):
         return super().__getitem__(key)
 
 
+#: environment variables the worker read through ``os.environ`` (name -> value, None if unset)
+_ENV_READ: dict[str, str | None] = {}
+#: set when the worker iterated the whole environment (then every variable counts as read)
+_ENV_READ_ALL: list[bool] = []
+
+
+class _TrackedEnviron(type(os.environ)):  # type: ignore[misc]  # os._Environ is private
+    """``os.environ`` recording what the worker reads, so that the parent caches on exactly that."""
+
+    def __getitem__(self, key: str) -> str:
+        try:
+            value: str = super().__getitem__(key)
+        except KeyError:
+            _ENV_READ.setdefault(key, None)
+            raise
+        _ENV_READ.setdefault(key, value)
+        return value
+
+    def __iter__(self) -> Iterator[str]:
+        _ENV_READ_ALL.append(True)
+        return super().__iter__()  # type: ignore[no-any-return]
+
+
 def _set_limits(seconds: float, memory: int) -> None:
+    """Limit what the expansion may use from now on: CPU time, memory, files, processes, and wall time.
+
+    Called once the worker has started (interpreter, xacro, lxml imported): the start-up of a
+    process is the machine's cost, not the document's, and takes seconds in a slow VM. The wall
+    clock runs out by ``SIGALRM``, whose default action ends the process even inside a long C call.
+    """
+    if hasattr(signal, "setitimer"):
+        signal.signal(signal.SIGALRM, signal.SIG_DFL)
+        signal.setitimer(signal.ITIMER_REAL, max(seconds, 1e-3))
     try:
         import resource
     except ImportError:  # pragma: no cover - not a POSIX system: the parent's deadline still applies
         return
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    used = usage.ru_utime + usage.ru_stime
     limits = [
-        (resource.RLIMIT_CPU, max(1, math.ceil(seconds)) + 1),
+        (resource.RLIMIT_CPU, math.ceil(used) + max(1, math.ceil(seconds)) + 1),
         (resource.RLIMIT_FSIZE, 0),
     ]
     if memory > 0:
@@ -693,6 +730,7 @@ def _expand(job: Mapping[str, Any]) -> dict[str, Any]:
 
 def main() -> int:
     """Worker entry point: a JSON job on stdin, a JSON result on stdout."""
+    os.environ.__class__ = _TrackedEnviron  # what the imports and the expansion read decides the cache
     job = json.loads(sys.stdin.buffer.read().decode("utf-8"))
     import xacro  # noqa: F401 - imported before the memory limit, like the rest of the worker's code
     import yaml  # noqa: F401
@@ -705,6 +743,9 @@ def main() -> int:
         result = {"ok": False, "limit": "memory", "error": "", "warnings": ""}
     except RecursionError:
         result = {"ok": False, "error": "nesting too deep (RecursionError)", "where": "", "warnings": ""}
+    if hasattr(signal, "setitimer"):
+        signal.setitimer(signal.ITIMER_REAL, 0.0)  # done: writing the answer is not the document's time
+    result["environ"] = None if _ENV_READ_ALL else dict(_ENV_READ)
     out = json.dumps(result).encode("utf-8")
     sys.stdout.buffer.write(out)
     sys.stdout.buffer.flush()

@@ -17,6 +17,11 @@ from ._config import SafetyConfig
 from ._state import _EFF, _POS, _VEL, SafetyCore, StopPort, log
 
 
+def _readonly(arr: np.ndarray) -> np.ndarray:
+    arr.flags.writeable = False
+    return arr
+
+
 class CommandFilter:
     """Limits direct commands when admitted and every setpoint in the LIMIT phase of each tick.
 
@@ -49,6 +54,7 @@ class CommandFilter:
         #: scratch of the per-tick filter's slow path (a joint ramping or outside position mode)
         self._target = np.zeros(n)
         self._limited = np.zeros(n)
+        self._unreached = np.zeros(n, dtype=bool)
         #: ``tobytes()`` of a mode row with every joint in position mode, of an all-true / all-false mask:
         #: the per-tick checks compare bytes (no array, ~5x cheaper than ufunc + np.count_nonzero)
         self._all_position = np.full(n, _POS, dtype=np.int8).tobytes()
@@ -60,6 +66,14 @@ class CommandFilter:
         #: deceleration available to stop a velocity stream before a position limit
         self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
+        #: the indices a full-length command resolves to (set by the safety layer to its command
+        #: shapes' array): such a command is limited against the limiter's whole rows, not copies
+        self.full_index: np.ndarray | None = None
+        self._full_range = {
+            "position": (limiter.lo, limiter.hi, "position", "rad"),
+            "velocity": (_readonly(np.negative(limiter.vmax)), limiter.vmax, "velocity", "rad/s"),
+            "effort": (_readonly(np.negative(limiter.emax)), limiter.emax, "effort", "N·m"),
+        }
 
     # -------------------------------------------------------------- origin and ramps
     def origin(self) -> np.ndarray:
@@ -122,15 +136,23 @@ class CommandFilter:
     def limit_command(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
         """Check a validated command against limits: returns the (possibly clamped) values or raises."""
         limiter = self.limiter
-        lo, hi, what, unit = limiter.command_range(mode, idx)
-        out = limiter.clamp_command(mode, idx, values)
-        bad = out != values
-        # one ufunc reduction, kept (ndarray.any goes through a Python wrapper, and it was asked twice)
-        any_bad = bool(np.logical_or.reduce(bad))
+        if idx is self.full_index:
+            lo, hi, what, unit = self._full_range[mode]
+        else:
+            lo, hi, what, unit = limiter.command_range(mode, idx)
+        # limiter.clamp_command's clip, on the range looked up once
+        out: np.ndarray = np.minimum(np.maximum(values, lo), hi)
+        if out.tobytes() == values.tobytes():
+            # nothing clipped (the common case; one bytes compare instead of a ufunc and a reduction)
+            any_bad = False
+        else:  # something clipped, or only the sign of a zero differs (then nothing counts as clipped)
+            bad = out != values
+            # one ufunc reduction, kept (ndarray.any goes through a Python wrapper, and it was asked twice)
+            any_bad = bool(np.logical_or.reduce(bad))
         reject = self._config.limit_policy == "reject"
         names = self._loop.names
         if reject and any_bad:
-            k = int(np.argmax(bad))
+            k = int(np.argmax(out != values))
             raise LimitViolation(
                 f"{what} command {values[k]:.4g} {unit} for joint {names[int(idx[k])]!r} is outside "
                 f"[{lo[k]:.4g}, {hi[k]:.4g}]"
@@ -235,8 +257,14 @@ class CommandFilter:
         ramping = self._ramping
         no_ramp = ramping.tobytes() == self._all_false
         if not no_ramp:
-            np.greater(ramping, self.motions.owned_mask, out=ramping)  # ramping &= ~owned
-        if no_ramp and self.all_position_on(sp.mode, sp.enabled):
+            owned = self.motions.owned_mask
+            np.greater(ramping, owned, out=ramping)  # ramping &= ~owned
+            # a direct command ramping with no motion running (a behavior commanding every tick) takes
+            # the short path below as well; a motion's joints take the long one (its clip report)
+            ramp_only = owned.tobytes() == self._all_false
+        else:
+            ramp_only = True
+        if ramp_only and self.all_position_on(sp.mode, sp.enabled):
             # position, velocity and effort (rows 0:3) into [lo, hi], +-max velocity, +-max effort at once
             # (ufunc input and out are the same array object: a second view would cost an overlap check)
             rows = self._rows
@@ -244,10 +272,27 @@ class CommandFilter:
                 self._rows_of, self._rows = sp, sp.block[0:3]
                 rows = self._rows
             limiter = self.limiter
-            limiter.clamp_rows(rows)
             pos, written = sp.position, self._written
-            if limiter.step is not None:
-                limiter.clamp_step(pos, written, pos)
+            if no_ramp:
+                limiter.clamp_rows(rows)
+                if limiter.step is not None:
+                    limiter.clamp_step(pos, written, pos)
+                written[...] = pos
+                return
+            # the ramping joints' target is their goal (the long path's target row, bit for bit:
+            # the same clamps in the same order on the same values)
+            if ramping.tobytes() == self._all_true:
+                pos[...] = self._goal
+            else:
+                np.putmask(pos, ramping, self._goal)
+            limiter.clamp_rows(rows)
+            target = self._target
+            target[...] = pos
+            limiter.clamp_step(target, written, pos)
+            # a ramp ends where the step no longer clips it: ramping &= pos != target
+            unreached = self._unreached
+            np.not_equal(pos, target, out=unreached)
+            np.logical_and(ramping, unreached, out=ramping)
             written[...] = pos
             return
         pos_mode = (sp.mode == _POS) & sp.enabled

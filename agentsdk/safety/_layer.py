@@ -14,7 +14,7 @@ from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 from ..checks import MeasuredPositionCheck, SafetyCheck
-from ..commands import resolve_command
+from ..commands import CommandShapes
 from ..errors import CommandRejected
 from ..limits import PositionBounds, StepGuard, StepLimiter
 from ..loop import ControlLoop, HookHandle, Phase
@@ -63,7 +63,11 @@ class SafetyLayer:
         )
         #: block lockstep's view of the filter, the watchdogs and the gate (see :mod:`agentsdk.block`)
         self.block_seam = SafetyBlock(loop, core, command_filter, watchdogs)
+        #: the command shapes seen so far (joint indices and names validated once per shape)
+        self._shapes = shapes = CommandShapes(loop.names, loop.index)
+        command_filter.full_index = shapes.full
         # the gate's calls, bound once
+        self._resolve = shapes.resolve
         self._check_motion_allowed = core.check_motion_allowed
         self._limit_command = command_filter.limit_command
         self._limit_feedforward = command_filter.limit_feedforward
@@ -239,7 +243,8 @@ class SafetyLayer:
         """The one way a direct command reaches the setpoint; returns the command actually applied.
 
         In order: motion must be allowed (no latched e-stop, no fault), the command is validated
-        (:func:`~agentsdk.commands.resolve_command`), its joints must not be driven by a motion, its
+        (:func:`~agentsdk.commands.resolve_command`; :class:`~agentsdk.commands.CommandShapes` keeps
+        each command shape's joint indices), its joints must not be driven by a motion, its
         values are limited (clamped and recorded, or rejected under ``limit_policy: reject``), it
         is written into the setpoint (a position command starts its ramp where the limiter is),
         and the command watchdog is fed. Raises a :class:`CommandRejected` subclass or
@@ -248,8 +253,8 @@ class SafetyLayer:
         loop = self.loop
         backend = loop.backend
         self._check_motion_allowed()
-        idx, values, vel, eff = resolve_command(cmd, loop.names, loop.index, backend.capabilities.modes, backend.name)
-        assert isinstance(cmd, JointCommand)  # resolve_command checked it
+        idx, names, values, vel, eff = self._resolve(cmd, backend.capabilities.modes, backend.name)
+        assert isinstance(cmd, JointCommand)  # resolve checked it
         owner = self._motions.owner_of(idx)
         if owner is not None:
             raise CommandRejected(
@@ -258,11 +263,11 @@ class SafetyLayer:
             )
         mode = cmd.mode
         values = self._limit_command(mode, idx, values)
-        vel, eff = self._limit_feedforward(idx, vel, eff)
+        if vel is not None or eff is not None:
+            vel, eff = self._limit_feedforward(idx, vel, eff)
         loop.apply(mode, idx, values, vel, eff, position_now=self._ramp_start(mode, idx))
         self._feed(idx)
         self._start_ramp(mode, idx, values)
-        names = [loop.names[i] for i in idx.tolist()]
         return AppliedCommand(
             mode,
             MappingProxyType(dict(zip(names, values.tolist(), strict=True))),

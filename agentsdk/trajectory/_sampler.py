@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import InvalidValueError, UnknownJointError
 from ..types import FloatArray
-from ._peaks import MotionPeaks, poly_range
+from ._peaks import MotionPeaks, derivative, poly_range, poly_roots
 from ._types import Interpolation, Trajectory, Values, vector
 
 
@@ -430,9 +430,10 @@ class TrajectorySampler:
         """Exact extremes of the interpolated motion, per segment and joint (see :class:`MotionPeaks`).
 
         Every segment is a polynomial of degree <= 5 per joint; the extremes are its values at
-        the segment ends and at the roots of its derivative inside the segment (sign changes on a
-        16-cell grid bisected to machine precision, plus the companion-matrix roots, which also
-        find two extrema inside one cell). Velocity steps at the points of a
+        the segment ends and at the roots of its derivative inside the segment. Those roots are
+        isolated from the bottom up (a derivative is monotone between the roots of the next one,
+        so each piece holds at most one, bisected to machine precision), for all segments and
+        joints at once: a few numpy passes, ~20 ms for 1000 points of 12 joints. Velocity steps at the points of a
         positions-only (linear) trajectory are not motion inside a segment and are not counted.
         Computed once per sampler (the admission's limit check and the executor share it).
         """
@@ -452,14 +453,19 @@ class TrajectorySampler:
             return MotionPeaks(np.array(self._knots[:1] or [self.start_time]), empty, empty, empty, empty, empty, empty)
         T = self._T
         with np.errstate(all="ignore"):
-            kk = np.arange(6, dtype=np.float64)
             cq = c
-            cv = c[:, 1:] * kk[1:, None]  # degree 4
-            ca = cv[:, 1:] * kk[1:5, None]  # degree 3 (2*c2, 6*c3, ...)
-            cj = ca[:, 1:] * np.arange(1.0, 4.0)[:, None]  # degree 2
-            q_lo, q_hi, _ = poly_range(cq, cv, T)
-            v_lo, v_hi, v_at = poly_range(cv, ca, T)
-            a_lo, a_hi, a_at = poly_range(ca, cj, T)
+            cv = derivative(cq)  # degree 4
+            ca = derivative(cv)  # degree 3
+            cj = derivative(ca)  # degree 2
+            cs = derivative(cj)  # degree 1: monotone, no turns
+            # each derivative's roots split the one above it into monotone pieces (see poly_roots)
+            s_roots = poly_roots(cs, np.full((n_seg, 0, n), np.nan), T)
+            j_roots = poly_roots(cj, s_roots[0], T)
+            a_roots = poly_roots(ca, j_roots[0], T)
+            v_roots = poly_roots(cv, a_roots[0], T)
+            q_lo, q_hi, _ = poly_range(cq, *v_roots)
+            v_lo, v_hi, v_at = poly_range(cv, *a_roots)
+            a_lo, a_hi, a_at = poly_range(ca, *j_roots)
         v_abs = np.maximum(np.abs(v_lo), np.abs(v_hi))
         a_abs = np.maximum(np.abs(a_lo), np.abs(a_hi))
         v_t = np.where(np.abs(v_hi) >= np.abs(v_lo), v_at[1], v_at[0])

@@ -102,7 +102,7 @@ async def _measure(seconds: float, rounds: int) -> list[Comparison]:
                 best["raw"] = min(best["raw"], await _raw(robot_name, rows))
             us = {k: v * 1e6 for k, v in best.items()}
             for mode, label in (("tick", "tick-by-tick"), ("block", "block lockstep")):
-                out.append(Comparison(f"{robot_name} {what}: CPU per tick", "µs", us["raw"], us[mode],
+                out.append(Comparison(f"{robot_name} {what}, {label}: CPU per tick", "µs", us["raw"], us[mode],
                                       baseline_label="raw loop", sdk_label=label))
     return out
 
@@ -110,10 +110,10 @@ async def _measure(seconds: float, rounds: int) -> list[Comparison]:
 def main(quick: bool = False) -> list[Comparison]:
     """Measure (shorter with ``quick``) and print the table of the module documentation."""
     comps = asyncio.run(_measure(1.0 if quick else 2.0, 2 if quick else 3))
-    print(f"{'figure':34} {'raw µs':>8} {'SDK µs':>8} {'÷ raw':>6}  mode")
+    print(f"{'figure':50} {'raw µs':>8} {'SDK µs':>8} {'÷ raw':>6}")
     for c in comps:
         assert c.baseline is not None and c.sdk is not None
-        print(f"{c.figure:34} {c.baseline:8.1f} {c.sdk:8.1f} {c.sdk / c.baseline:6.2f}  {c.sdk_label}")
+        print(f"{c.figure:50} {c.baseline:8.1f} {c.sdk:8.1f} {c.sdk / c.baseline:6.2f}")
     return comps
 
 

@@ -30,23 +30,33 @@ def resolve_command(
     the backend ``backend`` supports. Returns ``(indices, values, velocity_ff, effort_ff)``;
     raises a :class:`~agentsdk.errors.CommandRejected` subclass naming the problem.
     """
+    cmd = _check_kind(cmd, modes, backend)
+    idx, values = map_values(cmd.values, "values", names, index)
+    vel = eff = None
+    if cmd.velocity is not None:
+        vidx, vel = map_values(cmd.velocity, "velocity", names, index)
+        _check_same_joints(vidx, idx, "velocity")
+    if cmd.effort is not None:
+        eidx, eff = map_values(cmd.effort, "effort", names, index)
+        _check_same_joints(eidx, idx, "effort")
+    return idx, values, vel, eff
+
+
+def _check_kind(cmd: object, modes: Collection[str], backend: str) -> JointCommand:
+    """``cmd`` if it is a :class:`JointCommand` in a mode the backend supports, else the error naming why."""
     if not isinstance(cmd, JointCommand):
         raise InvalidValueError(f"expected a JointCommand, got {type(cmd).__name__}")
     if cmd.mode not in modes:
         raise UnsupportedModeError(
             f"backend {backend!r} does not support {cmd.mode!r} commands (supported: {', '.join(sorted(modes))})"
         )
-    idx, values = map_values(cmd.values, "values", names, index)
-    vel = eff = None
-    if cmd.velocity is not None:
-        vidx, vel = map_values(cmd.velocity, "velocity", names, index)
-        if not np.array_equal(vidx, idx):
-            raise InvalidValueError("velocity feed-forward must name the same joints as values")
-    if cmd.effort is not None:
-        eidx, eff = map_values(cmd.effort, "effort", names, index)
-        if not np.array_equal(eidx, idx):
-            raise InvalidValueError("effort feed-forward must name the same joints as values")
-    return idx, values, vel, eff
+    return cmd
+
+
+def _check_same_joints(ff_idx: np.ndarray, idx: np.ndarray, what: str) -> None:
+    """A feed-forward must name the joints its command's values name (same indices, same order)."""
+    if ff_idx is not idx and not np.array_equal(ff_idx, idx):
+        raise InvalidValueError(f"{what} feed-forward must name the same joints as values")
 
 
 def map_values(
@@ -115,22 +125,15 @@ class CommandShapes:
         The index array is shared between commands of the same shape (read-only). Raises what
         :func:`resolve_command` raises for the same command.
         """
-        if not isinstance(cmd, JointCommand):
-            raise InvalidValueError(f"expected a JointCommand, got {type(cmd).__name__}")
-        if cmd.mode not in modes:
-            raise UnsupportedModeError(
-                f"backend {backend!r} does not support {cmd.mode!r} commands (supported: {', '.join(sorted(modes))})"
-            )
+        cmd = _check_kind(cmd, modes, backend)
         idx, names, values = self._map(cmd.values, "values")
         vel = eff = None
         if cmd.velocity is not None:
             vidx, _, vel = self._map(cmd.velocity, "velocity")
-            if vidx is not idx and not np.array_equal(vidx, idx):
-                raise InvalidValueError("velocity feed-forward must name the same joints as values")
+            _check_same_joints(vidx, idx, "velocity")
         if cmd.effort is not None:
             eidx, _, eff = self._map(cmd.effort, "effort")
-            if eidx is not idx and not np.array_equal(eidx, idx):
-                raise InvalidValueError("effort feed-forward must name the same joints as values")
+            _check_same_joints(eidx, idx, "effort")
         return idx, names, values, vel, eff
 
     def _map(

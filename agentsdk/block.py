@@ -73,8 +73,12 @@ class BlockStepperLike(Protocol):
     def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray) -> int:
         """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done."""
 
-    def restore(self, k: int) -> None:
-        """Put the simulation back to where it stood before tick ``k`` of the last run."""
+    def restore(self, k: int, write: Callable[[int], object]) -> None:
+        """Put the simulation back to where it stood before tick ``k`` of the last run.
+
+        ``write(j)`` writes tick ``j``'s setpoint again, as the run did, for a stepper that replays
+        ticks to get there (MuJoCo's replays from its latest checkpoint).
+        """
 
 
 class BlockLockstep:
@@ -197,6 +201,11 @@ class BlockLockstep:
                 backend.emergency_stop(0)  # it landed during write: enforce it again (as the tick does)
             return True
 
+        def rewrite(j: int) -> None:
+            # a replayed tick (restore): the same write, whatever the torque state now (the next tick enforces it)
+            spb[...] = rows[j]
+            backend.write(spv)
+
         stepper = self._stepper
         done = stepper.run(write, k, self._readings)
         fault = stepper.fault
@@ -204,7 +213,7 @@ class BlockLockstep:
         if done == 0:
             sp.block[...] = before
             if fault is not None:
-                stepper.restore(0)  # tick 0 runs alone and diverges there, tick by tick
+                stepper.restore(0, rewrite)  # tick 0 runs alone and diverges there, tick by tick
             return self._cut_short()
         # tick j's OBSERVE phase runs at (T + j + 1) * period, the clock's own product
         itick = np.add(self._one_to_k[:done], tick0, out=self._itick[:done])
@@ -220,7 +229,7 @@ class BlockLockstep:
             checked = min(checked, q)
         if q < done or fault is not None:
             # tick q runs alone, from where it started (a step that diverged: again, tick by tick)
-            stepper.restore(q)
+            stepper.restore(q, rewrite)
             self.rollbacks += 1
         if q == 0:
             sp.block[...] = before

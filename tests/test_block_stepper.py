@@ -69,28 +69,31 @@ async def test_a_block_is_tick_by_tick_bit_for_bit_and_restores_any_tick(robot_n
         assert stepper.run(lambda k: b.write(stream[k].view), K, readings) == K
         assert stepper.fault is None
         assert readings.tobytes() == expected.tobytes()
-        # the state saved before each tick is where tick by tick stood after the previous one (its
-        # physics and warm start; the controls are the next tick's)
+        # a restore to tick k (from the latest checkpoint, replaying the ticks after it) puts MuJoCo
+        # where tick by tick stood after tick k - 1 (its physics and warm start)
         sig = mujoco.mjtState.mjSTATE_FULLPHYSICS | mujoco.mjtState.mjSTATE_WARMSTART
         got, want = (np.empty(mujoco.mj_stateSize(m, sig)) for _ in range(2))
+        rewrite = lambda k: b.write(stream[k].view)  # noqa: E731
         for k in range(1, K + 1):
-            mujoco.mj_setState(m, d, stepper.states[k], _STATE)
+            stepper.restore(k, rewrite)
             mujoco.mj_getState(m, d, got, sig)
             mujoco.mj_setState(m, d, states[k - 1], _STATE)
             mujoco.mj_getState(m, d, want, sig)
             assert got.tobytes() == want.tobytes(), k
         if not hold:
             assert np.abs(readings[-1, 0] - readings[0, 0]).max() > 0.05  # it moved
-        # roll back to a tick inside the block and continue tick by tick: the same readings
-        for k0 in (0, 37, K - 1, K):
-            stepper.restore(k0)
+        # roll back to a tick inside the block (on a checkpoint or between) and continue tick by tick:
+        # the same readings
+        assert stepper.every == 16
+        for k0 in (0, 16, 37, K - 1, K):
+            stepper.restore(k0, rewrite)
             for k in range(k0, K):
                 b.write(stream[k].view)
                 await b.step(b.period)
                 q, v, e = b.read()
                 assert np.array([q, v, e]).tobytes() == expected[k].tobytes(), (k0, k)
         with pytest.raises(InvalidValueError):
-            stepper.restore(K + 1)
+            stepper.restore(K + 1, rewrite)
         with pytest.raises(InvalidValueError):
             stepper.run(lambda k: None, K + 1, readings)
 

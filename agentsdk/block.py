@@ -69,6 +69,8 @@ class BlockStepperLike(Protocol):
     """What a backend's ``block_stepper(capacity)`` returns (MuJoCo: ``backends.mujoco.block.BlockStepper``)."""
 
     fault: SimulationDiverged | None
+    #: writing the same setpoint again changes nothing: a hold's block writes it at its first tick only
+    write_once: bool
 
     def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray) -> int:
         """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done."""
@@ -187,6 +189,10 @@ class BlockLockstep:
             sp.block[...] = before
             return self._cut_short()
         backend, spv, latched, spb = loop.backend, sp.view, safety.latched, sp.block
+        stepper = self._stepper
+        # a hold's rows are all the same: where the backend's controls depend on the setpoint alone,
+        # the controls written at tick 0 stand for the whole block
+        every_tick = bool(plans) or not stepper.write_once
 
         def write(j: int) -> bool:
             # an emergency stop or latch from another thread ends the block before the next write:
@@ -195,6 +201,8 @@ class BlockLockstep:
                 return False
             if j:  # the robot time of the latest state as tick j's write sees it (another thread's events)
                 loop.stamp = (tick0 + j) * period
+                if not every_tick:
+                    return True
             spb[...] = rows[j]
             backend.write(spv)
             if loop.torque_off:
@@ -206,7 +214,6 @@ class BlockLockstep:
             spb[...] = rows[j]
             backend.write(spv)
 
-        stepper = self._stepper
         done = stepper.run(write, k, self._readings)
         fault = stepper.fault
         loop.stamp = stamp

@@ -24,6 +24,7 @@ import asyncio
 import hashlib
 from typing import Any
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -229,7 +230,7 @@ async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
     assert await _diverge(True) == await _diverge(False)
 
 
-async def _thread_estop(block: bool, at: int) -> tuple[Any, ...]:
+async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
     import threading
 
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
@@ -237,34 +238,51 @@ async def _thread_estop(block: bool, at: int) -> tuple[Any, ...]:
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=64) if block else None
         b = robot.backend
-        write = b.write
+        write, step = b.write, mujoco.mj_step
         fired = False
 
-        def write_and_stop(sp: Any) -> None:
+        def stop_at(t: float) -> None:
             nonlocal fired
-            write(sp)
-            if not fired and b.data.time >= (at - 0.5) * b.period:
-                # an e-stop from another thread lands during the write of tick ``at``
+            if not fired and t >= (at - 0.5) * b.period:
                 fired = True
                 th = threading.Thread(target=robot.safety.estop_threadsafe, args=(0,))
                 th.start()
                 th.join()
 
-        b.write = write_and_stop  # type: ignore[method-assign]
-        await robot.clock.sleep(0.5)
+        def write_and_stop(sp: Any) -> None:
+            write(sp)
+            stop_at(b.data.time)  # it lands during the write of tick ``at``
+
+        def stop_and_step(m: Any, d: Any, nstep: int = 1) -> None:
+            stop_at(d.time)  # it lands between the write of tick ``at`` and its step
+            step(m, d, nstep=nstep)
+
+        if what == "move":  # a motion's block writes every tick
+            b.write = write_and_stop  # type: ignore[method-assign]
+            q = (await robot.read()).position
+            goal = [float(x) + 0.3 for x in q]
+            robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]), stretch_to_limits=True)
+        else:  # a hold's block writes at its first tick only: the e-stop comes during a step
+            mujoco.mj_step = stop_and_step
+        try:
+            await robot.clock.sleep(0.5)
+        finally:
+            mujoco.mj_step = step
         loop = robot._loop
-        assert loop.torque_off and robot.safety.state.name == "ESTOP"
+        assert fired and loop.torque_off and robot.safety.state.name == "ESTOP"
         assert not loop.setpoint.enabled.any() and not b.data.ctrl.any()
         if runner is not None:
             assert 0 < runner.block_ticks < robot.clock.ticks
+            assert what == "hold" or runner.motion_ticks > 0
             runner.close()
         events = [(e.kind, e.detail, e.time) for e in robot.safety.events]
         return hasher.cut(), robot.clock.ticks, events
 
 
+@pytest.mark.parametrize("what", ["hold", "move"])
 @pytest.mark.parametrize("at", [10, 45, 77])
-async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(at: int) -> None:
-    assert await _thread_estop(True, at) == await _thread_estop(False, at)
+async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(at: int, what: str) -> None:
+    assert await _thread_estop(True, at, what) == await _thread_estop(False, at, what)
 
 
 async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> None:

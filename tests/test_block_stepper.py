@@ -128,3 +128,34 @@ async def test_a_diverging_step_ends_the_block_with_the_backends_error() -> None
         got = np.empty_like(start)
         mujoco.mj_getState(m, d, got, _STATE)
         assert got.tobytes() == after.tobytes()
+
+
+@pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
+async def test_a_hold_written_once_is_written_every_tick_bit_for_bit(robot_name: str) -> None:
+    """``write_once``: ``mj_step`` leaves the controls as written, so a hold's block writes at tick 0 only."""
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        assert b.gravity_route != "host"
+        n, K = len(b.names), 90
+        moving = _stream(robot, K, seed=7, hold=False)
+        hold = _stream(robot, K, seed=7, hold=True)
+        hold[0].position[:] = moving[-1].position  # a step to another pose, held: the servos pull
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        # the controls after each step of a moving reference (speeds, contacts, clamped controls) are
+        # the bytes written before it
+        for sp in moving:
+            b.write(sp.view)
+            ctrl = d.ctrl.tobytes()
+            await b.step(b.period)
+            assert d.ctrl.tobytes() == ctrl
+        mujoco.mj_setState(m, d, start, _STATE)
+        stepper = BlockStepper(b, K)
+        assert stepper.write_once
+        every, once = np.empty((K, 3, n)), np.empty((K, 3, n))
+        assert stepper.run(lambda k: b.write(hold[0].view), K, every) == K
+        mujoco.mj_setState(m, d, start, _STATE)
+        assert stepper.run(lambda k: None if k else b.write(hold[0].view), K, once) == K
+        assert once.tobytes() == every.tobytes()
+        assert np.abs(every[-1, 0] - every[0, 0]).max() > 0.01  # the servos pulled it over

@@ -63,6 +63,11 @@ class BlockStepper:
         self.fault: SimulationDiverged | None = None
         #: MuJoCo stands where the last run left it (no restore since)
         self._at_end = True
+        #: the controls :meth:`~agentsdk.Backend.write` computes depend on the setpoint alone (no host
+        #: ``g(q)`` of the measured position) and ``mj_step`` leaves ``ctrl`` as written (it clamps a
+        #: copy; a rejected control zeroes it, but that step diverges and ends the block): a setpoint
+        #: that stays the same over a block (a hold) needs its write at the first tick only
+        self.write_once = backend.gravity_route != "host"
         self._warned: tuple[np.ndarray, bytes] = (np.zeros(0), b"")
 
     def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:

@@ -16,7 +16,9 @@ most ``every - 1`` ticks after one costs less than saving all the others.
 A step that diverges (a warning counter moved, a non-finite acceleration) ends the block: the
 exception the backend's own step raises at that tick is kept in :attr:`fault`, with the ticks
 before it done and read, and MuJoCo's state left as the diverged step left it (exactly as a
-tick-by-tick run leaves it when it raises).
+tick-by-tick run leaves it when it raises). The backend's divergence checks cost about 2 µs per
+step, so a block looks once, after its last step (MuJoCo counts every divergence and steps on),
+and only a block that diverged runs again from its start with the checks after every step.
 
 Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
 enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them
@@ -79,22 +81,78 @@ class BlockStepper:
         if not 0 <= count <= self.capacity:
             raise InvalidValueError(f"count must be within 0..{self.capacity}, got {count}")
         b = self._b
+        self.fault = None
+        self.done = 0
+        self._at_end = True
+        # the backend's record of MuJoCo's warning counters before the block (see restore)
+        self._warned = (b._warn.copy(), b._warn_bytes)
+        w = b.data.warning
+        counters = (w.number.copy(), w.lastinfo.copy())  # MuJoCo's own, all of them
+        done = self._run(write, count, readings)
+        if done and self._diverged():
+            # a step diverged: again from the block's start (MuJoCo's warning counters too) with the
+            # backend's checks after every step, which end the block at that tick (rare: a diverged
+            # simulation faults the loop)
+            mujoco.mj_setState(b.model, b.data, self.states[0], _STATE)
+            w.number[:], w.lastinfo[:] = counters
+            b._warn[...] = self._warned[0]
+            b._warn_bytes = self._warned[1]
+            done = self._run_checked(write, count, readings)
+        self.done = done
+        return done
+
+    def _run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
+        """The ticks without the backend's per-step divergence checks (:meth:`_diverged` looks once, after them).
+
+        A divergence moves a warning counter (MuJoCo counts it, resets the state and steps on), and a
+        non-finite acceleration after one step is a warning of the next (``mj_checkVel``): so a block
+        that ends with the counters as they were and a finite acceleration had no divergence.
+        """
+        b = self._b
+        m, d = b.model, b.data
+        nsub = b._nsub
+        states, every = self.states, self.every
+        get_state, step = mujoco.mj_getState, mujoco.mj_step
+        read = b.read
+        # joints consecutive in qpos / qvel, effort read as it is: read() returns the same views every tick
+        fresh = b._gather or b._effort_map is not None
+        q, v, e = read()
+        for k in range(count):
+            if not k % every:  # before the write: the state tick by tick stands in before tick k
+                get_state(m, d, states[k // every], _STATE)
+            if write(k) is False:
+                return k  # (restore(k) is then the state as it stands)
+            step(m, d, nstep=nsub)
+            if fresh:
+                q, v, e = read()
+            row = readings[k]
+            row[0] = q
+            row[1] = v
+            row[2] = e
+        return count
+
+    def _diverged(self) -> bool:
+        """A step of the block diverged: the warning counters moved, or the acceleration is not finite."""
+        b = self._b
+        if b._warnings().tobytes() != b._warn_bytes:
+            return True
+        qacc, acc2 = b._qacc, b._acc2
+        np.dot(qacc, qacc, out=acc2)
+        return not math.isfinite(acc2.item()) and not np.isfinite(qacc).all()
+
+    def _run_checked(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
+        """The ticks with the backend's checks after every step: a divergence ends the block there (:attr:`fault`)."""
+        b = self._b
         m, d = b.model, b.data
         nsub = b._nsub
         states, every = self.states, self.every
         get_state, step = mujoco.mj_getState, mujoco.mj_step
         qacc, acc2 = b._qacc, b._acc2
         read = b.read
-        self.fault = None
-        self.done = 0
-        self._at_end = True
-        # the backend's record of MuJoCo's warning counters before the block (see restore)
-        self._warned = (b._warn.copy(), b._warn_bytes)
         for k in range(count):
-            if not k % every:  # before the write: the state tick by tick stands in before tick k
+            if not k % every:
                 get_state(m, d, states[k // every], _STATE)
             if write(k) is False:
-                self.done = k  # (restore(k) is then the state as it stands)
                 return k
             t0 = d.time
             step(m, d, nstep=nsub)
@@ -108,14 +166,12 @@ class BlockStepper:
                     raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
             except SimulationDiverged as exc:
                 self.fault = exc
-                self.done = k
                 return k
             q, v, e = read()
             row = readings[k]
             row[0] = q
             row[1] = v
             row[2] = e
-        self.done = count
         return count
 
     def restore(self, k: int, write: Callable[[int], object]) -> None:

@@ -123,3 +123,33 @@ async def test_ticks_until_wake_is_the_tick_that_wakes_the_sleeper() -> None:
                 predicted = clock.ticks_until_wake(1 << 20)
                 assert clock.ticks_until_wake(2) == min(2, predicted)
             assert woken == [start + predicted], (dt, loop.period)
+
+
+async def test_advance_ticks_is_advance_called_that_many_times() -> None:
+    """``LockstepClock.advance_ticks(n)``: the ticks and the sleepers woken at each, as n ``advance()`` calls."""
+    from agentsdk.clock import LockstepClock
+
+    rng = np.random.default_rng(11)
+    for case in range(200):
+        period = float(rng.choice([0.001, 0.002, 0.00123, 1.0 / 3.0]))
+        clocks = (LockstepClock(period), LockstepClock(period))
+        start = int(rng.integers(0, 1000))
+        futs: list[list[asyncio.Future[None]]] = [[], []]
+        deadlines = start * period + rng.uniform(0, 60 * period, int(rng.integers(0, 6)))
+        cancel = rng.random(len(deadlines)) < 0.3
+        for clock, fs in zip(clocks, futs, strict=True):
+            clock._tick = start
+            for dl, off in zip(deadlines, cancel, strict=True):
+                fut = clock._enqueue(float(dl))
+                if off:
+                    fut.cancel()
+                fs.append(fut)
+        one, many = clocks
+        for _ in range(int(rng.integers(1, 4))):
+            count = int(rng.integers(1, 40))
+            woke = sum(one.advance() for _ in range(count))
+            assert many.advance_ticks(count) == woke, case
+            assert many.ticks == one.ticks
+            assert [f.done() for f in futs[1]] == [f.done() for f in futs[0]], case
+            live = [sorted(d for d, _, f in c._heap if not f.done()) for c in clocks]
+            assert live[0] == live[1], case

@@ -11,16 +11,44 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from .loop import StateView
-from .types import JointInfo
+from .types import FloatArray, JointInfo
 
-__all__ = ["MeasuredPositionCheck", "SafetyCheck", "SafetyViolation"]
+__all__ = ["BlockCheck", "MeasuredPositionCheck", "SafetyCheck", "SafetyViolation"]
 
 #: a pluggable safety check: ``check(t, state) -> SafetyViolation | None``, run every tick while motion is allowed
 SafetyCheck = Callable[[float, StateView], "SafetyViolation | None"]
+
+
+@runtime_checkable
+class BlockCheck(Protocol):
+    """A :data:`SafetyCheck` that can also judge a block of K lockstep ticks at once (issue 28, block lockstep).
+
+    ``ts`` (K,) are the ticks' robot times, ``states`` (K, 3, n) their measured state blocks
+    (position, velocity, effort rows, as :attr:`StateView.block`) and ``setpoints`` (K, n) the
+    position setpoint each tick wrote. :meth:`block_quiet` returns how many leading ticks the
+    check passes *quietly*: called once per tick it would return None each time and change
+    nothing but what :meth:`commit_block` reproduces. The tick it stops at (K: none) must run
+    through ``__call__`` instead. :meth:`commit_block` then brings the check's state to where
+    ``k`` quiet calls would have left it. The mode, enabled and gain rows of the setpoint are
+    the live ones (constant over a block).
+    """
+
+    def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
+        """The per-tick check."""
+
+    def block_ready(self) -> bool:
+        """False when :meth:`block_quiet` would return 0 whatever the states (a cheap test before a block runs)."""
+
+    def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
+        """How many leading ticks of the block pass quietly."""
+
+    def commit_block(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray, k: int) -> None:
+        """Take the state ``k`` quiet per-tick calls leave."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -59,6 +87,23 @@ class MeasuredPositionCheck:
         self._ok = np.zeros((2, n), dtype=bool)
         #: ``ok.tobytes()`` when every comparison holds (a bytes compare is ~5x cheaper than np.count_nonzero)
         self._all_ok = np.ones((2, n), dtype=bool).tobytes()
+
+    def block_ready(self) -> bool:
+        """:class:`BlockCheck`: every joint is armed."""
+        return self._all_armed
+
+    def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
+        """:class:`BlockCheck`: leading ticks with every joint measured inside (0 until every joint is armed)."""
+        if not self._all_armed:
+            return 0  # arming changes state: per tick until every joint is armed
+        q = states[:, 0, :]
+        # the per-tick comparison [q, -q] >= [lo, -hi], on every tick at once (NaN: outside)
+        ok = np.greater_equal(q, self._bounds[0]) & np.greater_equal(np.negative(q), self._bounds[1])
+        quiet = ok.all(axis=1)
+        return len(quiet) if quiet.all() else int(np.argmin(quiet))
+
+    def commit_block(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray, k: int) -> None:
+        """:class:`BlockCheck`: a quiet tick changes nothing."""
 
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """Return a violation naming the first watched joint outside its limits (+ tolerance), else None."""

@@ -311,6 +311,39 @@ class LockstepClock(Clock):
             heapq.heappop(heap)
         return heap[0][0] if heap else None
 
+    def ticks_until_wake(self, limit: int) -> int:
+        """How many ticks (at most ``limit``) :meth:`advance` can run before one wakes a sleeper, that one included.
+
+        The seam of block lockstep: a block of ticks may run at once only up to the first tick
+        that makes another task runnable. Decided with :meth:`advance`'s own comparison, so the
+        answer is exact, not an estimate.
+        """
+        deadline = self.next_deadline()
+        if deadline is None or limit <= 0:
+            return max(limit, 0)
+        period, tick = self.period, self._tick
+        # a first guess from the division, then the exact test advance() makes, stepped to the boundary
+        j = max(1, min(limit, math.ceil((deadline - 1e-12) / period) - tick))
+        while j > 1 and deadline <= (tick + j - 1) * period + 1e-12:
+            j -= 1
+        while j < limit and not deadline <= (tick + j) * period + 1e-12:
+            j += 1
+        return j
+
+    def advance_ticks(self, count: int) -> int:
+        """What ``count`` calls of :meth:`advance` do (block lockstep commits a block's ticks); how many woke.
+
+        The ticks before one that wakes a sleeper (:meth:`ticks_until_wake`, the same comparison)
+        change nothing but the tick count, so they are counted at once.
+        """
+        woke = 0
+        while count > 0:
+            j = self.ticks_until_wake(count)
+            self._tick += j - 1
+            woke += self.advance()
+            count -= j
+        return woke
+
     def advance(self) -> int:
         """Move time forward one control period and wake due sleepers; returns how many woke."""
         self._tick += 1

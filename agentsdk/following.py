@@ -40,7 +40,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .backend import ModeCode
+from .backend import ModeCode, SetpointView
 from .checks import SafetyViolation
 from .errors import ConfigurationError
 from .loop import ControlLoop, StateView
@@ -131,10 +131,58 @@ class FollowingErrorCheck:
         """Start a new :attr:`peak` measurement."""
         self.peak[:] = 0.0
 
+    def _block_errors(self, states: FloatArray, setpoints: FloatArray) -> FloatArray:
+        """The per-tick error of every tick of a block (K, n): the same element operations as :meth:`__call__`."""
+        err = np.subtract(states[:, 0, :], setpoints)
+        if self._any_continuous:
+            wrapped = np.add(err, math.pi)
+            np.remainder(wrapped, 2.0 * math.pi, out=wrapped)
+            np.subtract(wrapped, math.pi, out=wrapped)
+            np.copyto(err, wrapped, where=self._continuous)
+        np.abs(err, out=err)
+        self._update_mask(self._loop.setpoint)  # the mode, enabled and gain rows: constant over a block
+        if not self._all_watched:
+            np.multiply(err, self._maskf, out=err)
+        return err
+
+    def block_ready(self) -> bool:
+        """:class:`~agentsdk.checks.BlockCheck`: no joint is outside its window (no persistence timer runs)."""
+        return not self._tracking
+
+    def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
+        """:class:`~agentsdk.checks.BlockCheck`: leading ticks with every watched joint inside its window."""
+        if self._tracking or len(ts) == 0:
+            return 0  # a joint is outside: its persistence timer runs per tick
+        err = self._block_errors(states, setpoints)
+        quiet = ~np.greater(err, self.windows).any(axis=1)
+        return len(ts) if quiet.all() else int(np.argmin(quiet))
+
+    def commit_block(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray, k: int) -> None:
+        """:class:`~agentsdk.checks.BlockCheck`: the peak error of ``k`` quiet ticks and the last tick's time."""
+        if k <= 0:
+            return
+        err = self._block_errors(states[:k], setpoints[:k])
+        # fmax keeps the larger of two numbers and ignores NaN: the same in any order
+        np.fmax(self.peak, np.fmax.reduce(err, axis=0), out=self.peak)
+        self._last_t = float(ts[k - 1])
+
+    def _update_mask(self, sp: SetpointView) -> None:
+        """The watched joints (position mode, torque on, kp > 0), recomputed only when those rows changed."""
+        mask, gain = self._mask, self._gain
+        np.greater(sp.kp, self._zeros, out=gain)
+        key = self._mask_key
+        if gain.tobytes() != key[2] or sp.mode.tobytes() != key[0] or sp.enabled.tobytes() != key[1]:
+            np.equal(sp.mode, self._pos_row, out=mask)
+            np.logical_and(mask, sp.enabled, out=mask)
+            np.logical_and(mask, gain, out=mask)
+            np.copyto(self._maskf, mask)  # (a bool -> float copy allocates nothing; a mixed multiply does)
+            self._all_watched = mask.tobytes() == self._all
+            self._mask_key = (sp.mode.tobytes(), sp.enabled.tobytes(), gain.tobytes())
+
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """Return a violation naming the joint whose error stayed outside its window longest, else None."""
         sp = self._loop.setpoint
-        err, mask = self._err, self._mask
+        err = self._err
         np.subtract(state.position, sp.position, out=err)
         if self._any_continuous:
             # a continuous joint's error is an angle: the shortest way round
@@ -148,16 +196,7 @@ class FollowingErrorCheck:
         # so it is kept while their bytes repeat (bytes compares instead of four ufunc calls and a
         # multiply; one small bytes object at a time, compared and dropped: the tick's peak memory stays low)
         # (operands of one dtype with preallocated outputs: a Python scalar or a cast allocates per tick)
-        gain = self._gain
-        np.greater(sp.kp, self._zeros, out=gain)
-        key = self._mask_key
-        if gain.tobytes() != key[2] or sp.mode.tobytes() != key[0] or sp.enabled.tobytes() != key[1]:
-            np.equal(sp.mode, self._pos_row, out=mask)
-            np.logical_and(mask, sp.enabled, out=mask)
-            np.logical_and(mask, gain, out=mask)
-            np.copyto(self._maskf, mask)  # (a bool -> float copy allocates nothing; a mixed multiply does)
-            self._all_watched = mask.tobytes() == self._all
-            self._mask_key = (sp.mode.tobytes(), sp.enabled.tobytes(), gain.tobytes())
+        self._update_mask(sp)
         if not self._all_watched:  # (times 1.0 everywhere would change no bit: skipped)
             np.multiply(err, self._maskf, out=err)  # unwatched joints: no error
         np.fmax(self.peak, err, out=self.peak)  # (NaN: not an error figure)

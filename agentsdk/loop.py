@@ -291,6 +291,10 @@ class ControlLoop:
         #: the reading being gated (NaN: none): a backend's reading ages without another clock read
         self._origin: float | None = getattr(self.clock, "origin", None)
         self._read_t = math.nan
+        #: block lockstep (opt-in, :mod:`agentsdk.block`; None: off): asked before each lockstep tick, it
+        #: runs as many ticks as it can prove uneventful at once and returns how many (0: the tick runs as
+        #: usual) and whether the last one woke a sleeper
+        self.block_runner: Callable[[], tuple[int, bool]] | None = None
 
     # ------------------------------------------------------------ views
     @property
@@ -302,6 +306,20 @@ class ControlLoop:
     def setpoint(self) -> SetpointView:
         """Read-only view of the setpoint (as last written, or as it will be written next tick)."""
         return self._sp.view
+
+    @property
+    def setpoint_buffer(self) -> Setpoint:
+        """The writable setpoint the COMMAND and LIMIT hooks get (block lockstep writes each tick's rows into it)."""
+        return self._sp
+
+    @property
+    def state_buffer(self) -> StateBuffer:
+        """The measured-state arrays the loop writes (block lockstep commits a block's last reading into them)."""
+        return self._state
+
+    def hook_functions(self, phase: Phase) -> tuple[Callable[..., Any], ...]:
+        """The functions registered in ``phase``, in the order the tick calls them."""
+        return self._hooks[phase].fns
 
     @property
     def targets(self) -> FloatArray:
@@ -574,6 +592,15 @@ class ControlLoop:
                 n_ready = -1 if single else len(ready)
                 end = perf_counter() + budget
                 while True:
+                    runner = self.block_runner
+                    if runner is not None:
+                        ran, woke_ = runner()  # a block of ticks, each what a tick here computes
+                        if ran:
+                            if woke_ or single or len(ready) != n_ready or perf_counter() >= end:
+                                break
+                            if idle_after and not command.fns:
+                                break
+                            continue
                     # one tick: _before_step, step, advance, _after_tick (inlined: this is the hot path)
                     t = self.stamp
                     acceleration.fill(0.0)  # a per-tick feed-forward: only this tick's writers set it

@@ -235,6 +235,50 @@ class SensorGate:
             return
         self._full(q, v, e, t, age)
 
+    def block_ready(self) -> bool:
+        """False when :meth:`block_quiet` would return 0 whatever the readings (a cheap test before a block runs)."""
+        return not self._any_suspect and not self._changes[0] and math.isfinite(self._dt)
+
+    def block_quiet(self, ts: np.ndarray, states: np.ndarray) -> int:
+        """How many leading readings of a lockstep block (``states`` (K, 3, n), taken at ``ts``) take the fast path.
+
+        Block lockstep (issue 28): a reading is *quiet* when :meth:`accept` would take it through its
+        fast path, every joint within the cached reach and finite, without recomputing the reach.
+        Those readings are written as they are, so the position each is compared with is the
+        previous reading of the block. The reading it stops at (K: none) must go through
+        :meth:`accept`; :meth:`commit_block` takes the state ``k`` quiet readings leave.
+        """
+        K = len(ts)
+        if K == 0 or self._any_suspect or self._changes[0]:
+            return 0
+        if self._age is not None and self._age() is not None:
+            return 0  # readings that can be old: the full rule, per tick
+        if not math.isfinite(self._dt):
+            return 0  # the reach is computed on the first fast-path reading
+        q = states[:, 0, :]
+        prev = np.empty_like(q)
+        prev[0] = self._position
+        prev[1:] = q[:-1]
+        d = np.abs(np.subtract(q, prev, out=prev))
+        dt = np.empty(K)
+        dt[0] = ts[0] - self._t_read
+        np.subtract(ts[1:], ts[:-1], out=dt[1:])
+        # the fast path with the cached reach: not late, the same time step, within reach, finite
+        quiet = (dt <= 2.0 * self._period) & (np.abs(dt - self._dt) <= 1e-12)
+        quiet &= np.less_equal(d, self._reach_fast).all(axis=1)
+        quiet &= np.isfinite(states[:, 1:, :]).all(axis=(1, 2))
+        return K if quiet.all() else int(np.argmin(quiet))
+
+    def commit_block(self, ts: np.ndarray, states: np.ndarray, k: int) -> None:
+        """The state ``k`` quiet readings of a block leave: the last one is the state, taken at its time."""
+        if k <= 0:
+            return
+        self._position[...] = states[k - 1, 0]
+        self._velocity[...] = states[k - 1, 1]
+        self._effort[...] = states[k - 1, 2]
+        self._t_read = float(ts[k - 1])
+        self._uniform = True
+
     def _full(self, q: np.ndarray, v: np.ndarray, e: np.ndarray, t: float, age: np.ndarray | None) -> None:
         """The whole rule: per-joint sample times, the velocity-aware reach, suspects, the limit rule."""
         t_ok, t_new = self._t_ok, self._t_new

@@ -36,6 +36,7 @@ from .types import AppliedCommand, FloatArray, JointCommand, JointInfo, JointSta
 if TYPE_CHECKING:
     import numpy.typing as npt
 
+    from .block import BlockLockstep
     from .description import RobotDescription
     from .kinematics import Kinematics
     from .motion import Motion, MotionManager, MotionResult, Tolerances
@@ -268,6 +269,15 @@ class Robot:
         return self.kinematics.link_names
 
     # -------------------------------------------------------------- direct
+    def block_lockstep(self, capacity: int = 256) -> BlockLockstep:
+        """Run this lockstep robot's uneventful ticks as blocks, bit for bit tick by tick (experimental, MuJoCo).
+
+        See :mod:`agentsdk.block` (``close()`` on the returned object turns it off again).
+        """
+        from .block import BlockLockstep
+
+        return BlockLockstep(self._loop, self.safety.block_seam, self._motions.block_planner, capacity)
+
     async def read(self) -> JointState:
         """The latest measured joint state (position, velocity, effort, stamp)."""
         self._loop.check_open()

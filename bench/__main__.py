@@ -123,6 +123,10 @@ def _tracking(quick: bool) -> list[Section]:
     return [tracking.run(quick)]
 
 
+def _block(quick: bool) -> list[Section]:
+    return run_external("block", "block lockstep: hold and track, block vs tick-by-tick vs the raw loop", quick)
+
+
 # --------------------------------------------------------------------------- other modules
 
 
@@ -520,6 +524,7 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
         "recording cost: arm3 lockstep recorded vs unrecorded, MB per robot-minute, read-back memory", _recording
     ),
     "sensors": ("MuJoCo camera sensor per frame vs mujoco.Renderer; sensors' cost per tick", _sensors),
+    "block": ("block lockstep (opt-in): hold and track, block vs tick-by-tick vs the raw loop", _block),
 }
 ALIASES = {
     "ros2": "ros2_serve",

@@ -67,9 +67,10 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 #: too) only the modules before it; the package ``__init__`` re-exports and nothing inside imports it
 PACKAGE_ORDER: dict[str, tuple[str, ...]] = {
     "agentsdk.motion": (
-        "_types", "_handle", "_envelope", "_records", "_ownership", "_stops", "_admission", "_executor", "_manager",
+        "_types", "_handle", "_envelope", "_records", "_ownership", "_stops", "_admission", "_executor", "_block",
+        "_manager",
     ),
-    "agentsdk.safety": ("_config", "_state", "_filter", "_stops", "_watchdogs", "_layer"),
+    "agentsdk.safety": ("_config", "_state", "_filter", "_stops", "_watchdogs", "_block", "_layer"),
     "agentsdk.cli": ("_behavior", "_run", "_robots", "_teleop", "_tools", "_main", "__main__"),
 }
 

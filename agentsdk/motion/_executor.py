@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from functools import partial
 from types import MappingProxyType
 from typing import Any
 
@@ -76,8 +77,16 @@ class _Executor:
         self._add_hook(ex)
 
     def _add_hook(self, ex: _Exec) -> None:
-        update = self.update
-        self.loop.add_hook(Phase.COMMAND, lambda t, st, sp, ex=ex: update(ex, t, st, sp))
+        # a partial, not a lambda: block lockstep tells the executor's hooks (and their records) from
+        # any other COMMAND hook by it (``hook.func == executor.update``, ``hook.args == (ex,)``)
+        self.loop.add_hook(Phase.COMMAND, partial(self.update, ex))
+
+    def record_of(self, hook: Any) -> _Exec | None:
+        """The record a COMMAND hook runs if it is one of this executor's, else None (block lockstep)."""
+        if isinstance(hook, partial) and hook.func == self.update and len(hook.args) == 1 and not hook.keywords:
+            ex = hook.args[0]
+            return ex if isinstance(ex, _Exec) else None
+        return None
 
     def start_ramp(self, idx: np.ndarray, q: Any, v: Any, a: Any, code: ResultCode | None, msg: str,
                    on_done: Any = None) -> _Exec:

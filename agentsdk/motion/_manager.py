@@ -25,6 +25,7 @@ from ..trajectory import (
     plan_point_to_point,
 )
 from ._admission import _Admission
+from ._block import BlockPlanner
 from ._executor import _Executor
 from ._handle import Motion
 from ._ownership import _Ownership
@@ -62,6 +63,8 @@ class MotionManager:
         stops = self._stops = _StopPlanner(loop, table, own, bounds, decel_scale, guard)
         admission = self._admission = _Admission(loop, table, own, bounds, limiter)
         self._executor = _Executor(loop, table, own, stops, admission, limiter, guard, offload)
+        #: block lockstep's motion side (see :mod:`agentsdk.block`)
+        self.block_planner = BlockPlanner(loop, table, None if guard is None else guard.origin, self._executor)
         #: the robot's kinematics (set by the Robot), for link poses in motion feedback
         self.kinematics_source: Callable[[], Kinematics] | None = None
         #: the robot's sensors (set by the Robot), for ``motion.feedback(sensors=...)``

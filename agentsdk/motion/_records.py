@@ -155,6 +155,9 @@ class _Exec:
     env: _Envelope | None = None
     #: every path tolerance is infinite (the path check only rejects NaN errors)
     path_unbounded: bool = False
+    #: block lockstep only: a stop ramp's sampler and its envelope (None: nothing proven), made when a
+    #: block first asks (the tick itself keeps the limiter's full path for stop ramps)
+    ramp_env: tuple[Any, _Envelope | None] | None = None
     #: its joints as a slice when they are consecutive (basic indexing: ~4x cheaper than ``idx`` per write)
     sel: Any = None
     #: the tick path's preallocated arrays (made on the first tick)

@@ -39,6 +39,7 @@ holds one object, none a subclass of another (the facade builds them and passes 
   :class:`~agentsdk.limits.StepLimiter`)
 * :mod:`._stops`: ``Stops`` (e-stops and controlled stops, reset and enable)
 * :mod:`._watchdogs`: ``Watchdogs`` (the per-tick checks, the command watchdog, sensor faults, the loop-stall watchdog)
+* :mod:`._block`: ``SafetyBlock`` (block lockstep: the filter's, the gate's and the checks' rules over K ticks)
 * :mod:`._layer`: :class:`SafetyLayer`, the facade that builds and wires them, and its command gate
   :meth:`SafetyLayer.admit`
 """

@@ -327,6 +327,43 @@ class CommandFilter:
         if streamed.any():
             self._limit_streams(st.position, sp, streamed)
 
+    def block_quiet(self, rows: np.ndarray, mode: np.ndarray, enabled: np.ndarray) -> int:
+        """Block lockstep: how many leading ticks of a block the LIMIT tick would leave as they are.
+
+        ``rows`` (K, 3, n) are the position, velocity and effort rows each tick's COMMAND phase
+        leaves in the setpoint; ``mode`` and ``enabled`` are the setpoint's (constant over a
+        block). A tick is quiet when :meth:`tick` takes its common path (no latch to take over, no
+        ramp, every joint in position mode with torque on) and changes no bit of the rows: the
+        bounds clip and the step window around the previous tick's position are the identity.
+        Computed with the tick's own element operations on all rows at once; the first tick that
+        is not quiet (K: none) must run through :meth:`tick`. :meth:`commit_block` then takes
+        the state ``k`` quiet ticks leave.
+        """
+        K = len(rows)
+        if K == 0 or self._latch_is_set() or self._ramping.tobytes() != self._all_false:
+            return 0
+        if not self.all_position_on(mode, enabled):
+            return 0
+        limiter = self.limiter
+        clipped = np.maximum(rows, limiter.rows_min)
+        np.minimum(clipped, limiter.rows_max, out=clipped)
+        quiet = (clipped.view(np.uint64) == rows.view(np.uint64)).all(axis=(1, 2))
+        step = limiter.step
+        if step is not None:
+            prev = np.empty((K, rows.shape[2]))
+            prev[0] = self._written
+            prev[1:] = rows[:-1, 0]
+            pos = rows[:, 0]
+            out = np.maximum(pos, np.subtract(prev, step))
+            np.minimum(out, np.add(prev, step, out=prev), out=out)
+            quiet &= (out.view(np.uint64) == np.ascontiguousarray(pos).view(np.uint64)).all(axis=1)
+        return K if quiet.all() else int(np.argmin(quiet))
+
+    def commit_block(self, rows: np.ndarray, k: int) -> None:
+        """The state ``k`` quiet LIMIT ticks of a block leave: the last position written."""
+        if k > 0:
+            self._written[...] = rows[k - 1, 0]
+
     def all_position_on(self, mode: np.ndarray, enabled: np.ndarray) -> bool:
         """Every joint in position mode with torque on (the common case)."""
         return mode.tobytes() == self._all_position and enabled.tobytes() == self._all_true

@@ -19,6 +19,7 @@ from ..errors import CommandRejected
 from ..limits import PositionBounds, StepGuard, StepLimiter
 from ..loop import ControlLoop, HookHandle, Phase
 from ..types import AppliedCommand, JointCommand
+from ._block import SafetyBlock
 from ._config import SafetyConfig
 from ._filter import CommandFilter
 from ._state import SAFETY_OBSERVE_ORDER, SafetyCore, SafetyEvent, SafetyState, StopPort, _NoMotions
@@ -60,6 +61,8 @@ class SafetyLayer:
         self._watchdogs = watchdogs = Watchdogs(
             loop, config, core, command_filter, stops, self._motions, self.sensor_gate
         )
+        #: block lockstep's view of the filter, the watchdogs and the gate (see :mod:`agentsdk.block`)
+        self.block_seam = SafetyBlock(loop, core, command_filter, watchdogs)
         #: the command shapes seen so far (joint indices and names validated once per shape)
         self._shapes = shapes = CommandShapes(loop.names, loop.index)
         command_filter.full_index = shapes.full

@@ -359,6 +359,62 @@ class TrajectorySampler:
         np.dot(self._B, self._segs[i], out=out)
         return out
 
+    def sample_block(self, ts: FloatArray, out: FloatArray, regions: np.ndarray | None = None) -> FloatArray:
+        """Write ``[q, qd, qdd]`` at each absolute time ``ts[k]`` into ``out[k]`` (shape (K, 3, joints)).
+
+        Bit for bit what :meth:`sample_into` writes at each ``ts[k]`` (the same basis entries from
+        the same float operations, and one matrix product per segment with the stacked bases as
+        its rows: a row of a product does not depend on the other rows), for block lockstep, which
+        computes the setpoints of many ticks at once. ``ts`` must be non-decreasing (trajectory
+        time). :attr:`region` ends where the last sample lies; ``regions`` (K,), if given, receives
+        each sample's region (as :attr:`region` would be after it).
+        """
+        K = len(ts)
+        if K == 0:
+            return out
+        n_seg = len(self._c)
+        knots = self._knots
+        # bisect_right per time: the same segment choice as sample_into
+        seg = np.searchsorted(np.asarray(knots, dtype=np.float64), ts, side="right") - 1 if knots else np.full(K, -1)
+        # runs of equal segment (ts is sorted, so each segment's ticks are consecutive)
+        np.clip(seg, -1, n_seg, out=seg)  # before the first segment: -1, after the last: n_seg
+        if regions is not None:
+            regions[...] = seg
+        cuts = np.flatnonzero(np.diff(seg)) + 1
+        starts = [0, *cuts.tolist()]
+        ends = [*cuts.tolist(), K]
+        for a, b in zip(starts, ends, strict=True):
+            i = int(seg[a])
+            if i >= n_seg:
+                out[a:b] = self._end_state
+                continue
+            if i < 0:
+                out[a:b] = self._start_state
+                continue
+            tau = ts[a:b] - knots[i]
+            t2 = tau * tau
+            t3 = t2 * tau
+            B = np.zeros((b - a, 3, 6))
+            B[:, 0, 0] = 1.0
+            B[:, 0, 1] = tau
+            B[:, 0, 2] = t2
+            B[:, 0, 3] = t3
+            B[:, 0, 4] = t3 * tau
+            B[:, 0, 5] = t3 * t2
+            B[:, 1, 1] = 1.0
+            B[:, 1, 2] = 2.0 * tau
+            B[:, 1, 3] = 3.0 * t2
+            B[:, 1, 4] = 4.0 * t3
+            B[:, 1, 5] = 5.0 * t3 * tau
+            B[:, 2, 2] = 2.0
+            B[:, 2, 3] = 6.0 * tau
+            B[:, 2, 4] = 12.0 * t2
+            B[:, 2, 5] = 20.0 * t3
+            rows = np.dot(B.reshape(-1, 6), self._segs[i])
+            out[a:b] = rows.reshape(b - a, 3, self._n)
+        self.region = int(seg[-1])
+        return out
+
     def sample(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:
         """``(q, qd, qdd)`` at absolute time ``t``, in the trajectory's joint order (fresh arrays)."""
         out = self.sample_into(t, np.empty((3, self._n)))

@@ -51,7 +51,7 @@ import logging
 import math
 from collections.abc import Sequence
 from math import inf
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import mujoco
 import numpy as np
@@ -74,6 +74,9 @@ from agentsdk.types import MODES
 
 from .gravcomp import StepGravity, drop_model_gravcomp, step_gravity_obstacle
 from .sensors import SERVED, MujocoSensors
+
+if TYPE_CHECKING:
+    from .block import BlockStepper
 
 __all__ = ["MujocoBackend", "MujocoController", "MujocoOptions"]
 
@@ -530,6 +533,12 @@ class MujocoBackend(Backend):
         np.dot(qacc, qacc, out=acc2)
         if not math.isfinite(acc2.item()) and not np.isfinite(qacc).all():
             raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
+
+    def block_stepper(self, capacity: int) -> BlockStepper:
+        """A :class:`~.block.BlockStepper` of this backend: up to ``capacity`` ticks per call (block lockstep)."""
+        from .block import BlockStepper
+
+        return BlockStepper(self, capacity)
 
     def _warnings(self) -> np.ndarray:
         """The counters of the divergence warnings (in code order, ``_warn_codes``)."""

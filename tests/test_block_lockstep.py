@@ -1,0 +1,311 @@
+"""Block lockstep in the loop (issue 28 item 1, agentsdk.block): random runs hash tick for tick as without it.
+
+Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
+sleep of random length (what blocks run): a move of random length and goal (``follow``, with a path
+tolerance or none, on every joint or some, consecutive or not: several moves run at once; now or
+scheduled later), a cancel of the running move (its stop ramp runs in blocks too), a speed scaling
+factor, a feedback stream of the running move at a random rate, with a link's pose or not (hashed:
+what it read), a direct position command (the filter's ramp: per tick, then blocks; refused while a
+move drives the joints), an external push (``qfrc_applied``, strong enough at random to trip the
+path tolerance, the following-error or the measured-position check, or the plausibility gate, in the
+middle of a block: a rollback), its release, or an e-stop of a random category (then mostly reset
+and enable).
+The same program runs with block lockstep off and on; every tick's time, setpoint and measured
+state (an OBSERVE hook that takes blocks, :class:`agentsdk.block.BlockObserver`), and after each
+segment the safety state and events, every move's latest feedback message and its result, are hashed;
+the hashes must be equal segment by segment.
+The test also demands that blocks ran and that some were cut short (so it exercises the path
+it claims to test).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import hashlib
+from typing import Any
+
+import mujoco
+import numpy as np
+import pytest
+
+import agentsdk
+from agentsdk import JointCommand, Phase, Tolerances, Trajectory, TrajectoryPoint
+from agentsdk.registry import load_backend
+
+SAFETY = {"stall_timeout": 30.0}
+#: seeds per robot and segments per seed: 2 x 13 x 40 = 1,040 cases
+SEEDS, SEGMENTS = 13, 40
+TRACE = False
+
+
+class _Hasher:
+    """sha256 of every tick's time, setpoint and measured state, per segment; takes blocks too."""
+
+    def __init__(self) -> None:
+        self.h = hashlib.sha256()
+        self.ticks = 0
+
+    def __call__(self, t: float, st: Any, sp: Any) -> None:
+        self._one(t, (sp.position, sp.velocity, sp.effort, sp.kp, sp.kd, sp.target, sp.acceleration), sp,
+                  st.position, st.velocity, st.effort)
+
+    def observe_block(self, ts: np.ndarray, states: np.ndarray, rows: np.ndarray, sp: Any) -> None:
+        for k in range(len(ts)):
+            self._one(float(ts[k]), rows[k], sp, states[k, 0], states[k, 1], states[k, 2])
+
+    def _one(self, t: float, rows: Any, sp: Any, q: np.ndarray, v: np.ndarray, e: np.ndarray) -> None:
+        h = self.h
+        h.update(np.float64(t).tobytes())
+        for a in (*rows, sp.enabled, sp.mode, q, v, e):
+            h.update(np.ascontiguousarray(a).tobytes())
+        self.ticks += 1
+
+    def cut(self, *items: Any) -> str:
+        """The hash of the segment so far (and ``items``); starts the next segment."""
+        self.h.update(repr(items).encode())
+        out = self.h.hexdigest()
+        self.h = hashlib.sha256()
+        return out
+
+
+def _message(fb: Any) -> tuple[Any, ...] | None:
+    if fb is None:
+        return None
+    return (fb.time, fb.progress, fb.desired_positions.tobytes(), fb.desired_velocities.tobytes(),
+            fb.actual_positions.tobytes(), fb.actual_velocities.tobytes(), fb.error.tobytes())
+
+
+async def _stream(motion: Any, rate: float, seen: list[Any], links: tuple[str, ...]) -> None:
+    async for fb in motion.feedback(rate=rate, links=links):
+        poses = sorted((k, repr(p)) for k, p in (fb.poses or {}).items())
+        seen.append((_message(fb), poses))
+
+
+def _result(m: Any) -> tuple[Any, ...]:
+    try:
+        r = m.result()
+    except Exception as exc:  # the motion failed (e.g. the loop faulted)
+        return (repr(exc),)
+    return (r.code.name, r.message, r.time, sorted(r.error.items()))
+
+
+async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], dict[str, int]]:
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+        hasher = _Hasher()
+        robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        runner = robot.block_lockstep(capacity=128) if block else None
+        b = robot.backend
+        rng = np.random.default_rng(seed)
+        names = list(robot.joint_names)
+        n = len(names)
+        dofs = np.array([b.model.jnt_dofadr[b.model.joint(name).id] for name in names])
+        lo = np.array([j.lower if np.isfinite(j.lower) else -1.0 for j in robot.joints])
+        hi = np.array([j.upper if np.isfinite(j.upper) else 1.0 for j in robot.joints])
+        effort = np.array([j.max_effort if 0 < j.max_effort < np.inf else 10.0 for j in robot.joints])
+        out = []
+        events = 0
+        motion: Any = None
+        streams: list[asyncio.Task[None]] = []
+        motions: list[Any] = []
+        seen: list[Any] = []
+        for seg in range(SEGMENTS):
+            what = str(rng.choice(["sleep", "sleep", "command", "follow", "follow", "follow", "cancel", "stream",
+                                   "speed", "push", "push", "release", "estop"]))
+            note = ""
+            if what == "command" and robot.safety.state.name == "OK":
+                goal = np.clip((await robot.read()).position + rng.uniform(-0.15, 0.15, n), lo, hi)
+                try:
+                    await robot.command(JointCommand("position", goal.tolist()))
+                except agentsdk.errors.AgentSDKError as exc:  # a motion drives the joints
+                    note = repr(exc)
+            elif what == "follow" and robot.safety.state.name == "OK":
+                # a move of random length from where the setpoint is, with a path tolerance or none
+                # (mostly inside the limits by a margin: a segment that touches a bound runs tick by tick)
+                margin = (hi - lo) * (0.1 if rng.random() < 0.8 else 0.0)
+                goal = np.clip(np.asarray(robot.setpoint.position) + rng.uniform(-0.6, 0.6, n),
+                               lo + margin, hi - margin)
+                tol = (Tolerances(path=float(rng.choice([0.01, 0.05, 0.2])), goal=0.05, goal_time=0.5)
+                       if rng.random() < 0.5 else None)
+                # all joints, or some of them (consecutive or not; another motion may go on on the rest)
+                part = np.arange(n) if rng.random() < 0.6 else np.sort(rng.choice(n, int(rng.integers(1, n)), False))
+                if rng.random() < 0.5 and len(part) < n:
+                    part = np.arange(int(part[0]), min(n, int(part[0]) + len(part)))
+                plan = Trajectory([names[i] for i in part],
+                                  [TrajectoryPoint(float(rng.uniform(0.1, 1.2)), goal[part].tolist())])
+                # now, or scheduled to start later (it waits, then preempts what drives its joints)
+                start = None if rng.random() < 0.7 else robot.clock.now() + float(rng.uniform(0.005, 0.3))
+                try:
+                    motion = robot.follow(plan, tol, stretch_to_limits=True, start_time=start)
+                    motions.append(motion)
+                except agentsdk.errors.AgentSDKError as exc:
+                    note = repr(exc)
+            elif what == "speed":
+                # speed scaling: it ramps per tick, then a constant factor runs in blocks (0: paused)
+                robot.set_speed_scaling(float(rng.choice([1.0, 1.0, 0.5, 0.3, 0.0, float(rng.uniform(0.1, 1.0))])))
+            elif what == "cancel" and motion is not None and not motion.done():
+                motion.cancel()
+            elif what == "stream" and motion is not None and not motion.done():
+                # a feedback stream at a random rate: it wakes between blocks and reads what they committed
+                links = () if rng.random() < 0.5 else (robot.description.links[-1],)  # (+ link poses)
+                streams.append(asyncio.create_task(_stream(motion, float(rng.uniform(20.0, 300.0)), seen, links)))
+            elif what == "push":
+                # a fraction of the joints' effort limits on a few of them, now and then more: a following
+                # error, a limit hit or a reading the plausibility gate refuses, often in the middle of a block
+                j = rng.choice(n, size=int(rng.integers(1, n + 1)), replace=False)
+                scale = float(rng.choice([0.3, 0.8, 1.1, 1.6]))
+                b.data.qfrc_applied[dofs[j]] = rng.uniform(-scale, scale, len(j)) * effort[j]
+            elif what == "release":
+                b.data.qfrc_applied[:] = 0.0
+            elif what == "estop":
+                await robot.estop(int(rng.integers(0, 3)))
+            await robot.clock.sleep(float(rng.choice([0.002, rng.uniform(0.0, 0.05), rng.uniform(0.05, 0.4)])))
+            if rng.random() < 0.5:
+                b.data.qfrc_applied[:] = 0.0  # most pushes last one segment
+            if robot.safety.state.name not in ("OK", "HOLD") and rng.random() < 0.85:
+                b.data.qfrc_applied[:] = 0.0
+                await robot.safety.wait_stopped()
+                await robot.reset()
+                await robot.enable()
+            new = robot.safety.events[events:] if len(robot.safety.events) >= events else ()
+            events = len(robot.safety.events)
+            if runner is not None and TRACE:
+                print(seg, what, robot.safety.state.name, runner.blocks, runner.block_ticks, runner.rollbacks,
+                      runner.motion_ticks, note[:60])
+            # every move's latest feedback message and result (several may run, on different joints)
+            feedback = [(_message(m._feedback), None if not m.done() else _result(m)) for m in motions]
+            motions = [m for m in motions if not m.done()]
+            out.append(hasher.cut(seg, what, note, robot.safety.state.name, robot.clock.ticks,
+                                  [(e.kind, e.detail, e.joint, e.time) for e in new], feedback, seen))
+            seen.clear()
+        for task in streams:
+            task.cancel()
+        await asyncio.gather(*streams, return_exceptions=True)
+        stats = {"ticks": hasher.ticks}
+        if runner is not None:
+            stats.update(blocks=runner.blocks, block_ticks=runner.block_ticks, rollbacks=runner.rollbacks,
+                         motion_ticks=runner.motion_ticks)
+            runner.close()
+        return out, stats
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
+async def test_block_lockstep_is_tick_by_tick_bit_for_bit(robot_name: str) -> None:
+    blocks = block_ticks = rollbacks = ticks = motion_ticks = 0
+    for seed in range(SEEDS):
+        want, base = await _program(robot_name, seed, block=False)
+        got, stats = await _program(robot_name, seed, block=True)
+        for seg, (a, c) in enumerate(zip(want, got, strict=True)):
+            assert a == c, f"{robot_name} seed {seed}: segment {seg} differs with block lockstep"
+        assert stats["ticks"] == base["ticks"]
+        blocks += stats["blocks"]
+        block_ticks += stats["block_ticks"]
+        rollbacks += stats["rollbacks"]
+        motion_ticks += stats["motion_ticks"]
+        ticks += stats["ticks"]
+    # the test exercises what it claims: most held ticks ran in blocks, and checks cut some blocks short
+    assert blocks > 50 and block_ticks > ticks // 10 and motion_ticks > ticks // 100, (
+        blocks, block_ticks, motion_ticks, ticks)
+    assert rollbacks > 5, rollbacks
+
+
+async def _diverge(block: bool) -> tuple[str, int, str, str]:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        hasher = _Hasher()
+        robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        runner = robot.block_lockstep(capacity=64) if block else None
+        b = robot.backend
+        await robot.clock.sleep(0.2)
+        b.data.qfrc_applied[:] = 1e300  # the next step's acceleration is not finite: SimulationDiverged
+        with pytest.raises(agentsdk.errors.BackendFault):
+            await robot.clock.sleep(0.3)
+        fault = robot._loop.fault
+        if runner is not None:
+            assert runner.block_ticks > 0
+            runner.close()
+        return hasher.cut(), robot.clock.ticks, repr(fault), robot.safety.state.name
+
+
+async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
+    assert await _diverge(True) == await _diverge(False)
+
+
+async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
+    import threading
+
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        hasher = _Hasher()
+        robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        runner = robot.block_lockstep(capacity=64) if block else None
+        b = robot.backend
+        write, step = b.write, mujoco.mj_step
+        fired = False
+
+        def stop_at(t: float) -> None:
+            nonlocal fired
+            if not fired and t >= (at - 0.5) * b.period:
+                fired = True
+                th = threading.Thread(target=robot.safety.estop_threadsafe, args=(0,))
+                th.start()
+                th.join()
+
+        def write_and_stop(sp: Any) -> None:
+            write(sp)
+            stop_at(b.data.time)  # it lands during the write of tick ``at``
+
+        def stop_and_step(m: Any, d: Any, nstep: int = 1) -> None:
+            stop_at(d.time)  # it lands between the write of tick ``at`` and its step
+            step(m, d, nstep=nstep)
+
+        if what == "move":  # a motion's block writes every tick
+            b.write = write_and_stop  # type: ignore[method-assign]
+            q = (await robot.read()).position
+            goal = [float(x) + 0.3 for x in q]
+            robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]), stretch_to_limits=True)
+        else:  # a hold's block writes at its first tick only: the e-stop comes during a step
+            mujoco.mj_step = stop_and_step
+        try:
+            await robot.clock.sleep(0.5)
+        finally:
+            mujoco.mj_step = step
+        loop = robot._loop
+        assert fired and loop.torque_off and robot.safety.state.name == "ESTOP"
+        assert not loop.setpoint.enabled.any() and not b.data.ctrl.any()
+        if runner is not None:
+            assert 0 < runner.block_ticks < robot.clock.ticks
+            assert what == "hold" or runner.motion_ticks > 0
+            runner.close()
+        events = [(e.kind, e.detail, e.time) for e in robot.safety.events]
+        return hasher.cut(), robot.clock.ticks, events
+
+
+@pytest.mark.parametrize("what", ["hold", "move"])
+@pytest.mark.parametrize("at", [10, 45, 77])
+async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(at: int, what: str) -> None:
+    assert await _thread_estop(True, at, what) == await _thread_estop(False, at, what)
+
+
+async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> None:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, realtime=True) as robot:
+        with pytest.raises(agentsdk.errors.ConfigurationError, match="lockstep"):
+            robot.block_lockstep()
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        with pytest.raises(agentsdk.errors.InvalidValueError, match="capacity"):
+            robot.block_lockstep(capacity=1)
+        runner = robot.block_lockstep()
+        with pytest.raises(agentsdk.errors.ConfigurationError, match="already on"):
+            robot.block_lockstep()
+        await robot.clock.sleep(0.2)
+        assert runner.block_ticks > 0
+        runner.close()
+        ran = runner.block_ticks
+        await robot.clock.sleep(0.2)
+        assert runner.block_ticks == ran  # off: every tick runs on its own
+        robot.block_lockstep().close()  # and it can be turned on again
+    try:
+        load_backend("pybullet")
+    except agentsdk.errors.BackendUnavailableError:
+        return
+    async with agentsdk.connect("pybullet", robot="arm3", safety=SAFETY) as robot:
+        with pytest.raises(agentsdk.errors.ConfigurationError, match="block_stepper"):
+            robot.block_lockstep()

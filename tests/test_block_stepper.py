@@ -1,0 +1,161 @@
+"""Block lockstep's backend half (issue 28 item 1): K ticks in one call are tick-by-tick bit for bit.
+
+``backends.mujoco.block.BlockStepper`` runs the setpoints of a moving reference (and a hold) on
+arm3 and humanoid; its readings and MuJoCo states equal a tick-by-tick run from the same start
+(``write``, ``await step``, ``read``), a restore to any tick continues identically tick by tick,
+and a step that diverges ends the block at that tick with the backend's own error.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+import pytest
+
+import agentsdk
+from agentsdk.backends.mujoco.block import BlockStepper
+from agentsdk.errors import InvalidValueError, SimulationDiverged
+from agentsdk.loop import Setpoint
+
+SAFETY = {"stall_timeout": 5.0}
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+
+
+def _stream(robot: agentsdk.Robot, ticks: int, seed: int, hold: bool) -> list[Setpoint]:
+    """Setpoints of a smooth move (position, velocity, acceleration) from the current pose, or a hold."""
+    b = robot.backend
+    n = len(b.names)
+    rng = np.random.default_rng(seed)
+    q0 = b.data.qpos[b._qadr].copy()
+    lo = np.where(np.isfinite(b.lower), b.lower, -np.pi)
+    hi = np.where(np.isfinite(b.upper), b.upper, np.pi)
+    goal = q0 if hold else np.clip(q0 + rng.uniform(-0.3, 0.3, n), lo, hi)
+    duration = ticks * b.period
+    kp = np.array([g.p for g in robot.gains.values()])
+    kd = np.array([g.d for g in robot.gains.values()])
+    out = []
+    for k in range(ticks):
+        s = (k + 1) / ticks
+        sp = Setpoint(n)
+        sp.position[:] = q0 + (10 * s**3 - 15 * s**4 + 6 * s**5) * (goal - q0)
+        sp.velocity[:] = (30 * s**2 - 60 * s**3 + 30 * s**4) / duration * (goal - q0)
+        sp.acceleration[:] = (60 * s - 180 * s**2 + 120 * s**3) / duration**2 * (goal - q0)
+        sp.kp[:], sp.kd[:], sp.target[:] = kp, kd, goal
+        out.append(sp)
+    return out
+
+
+@pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
+@pytest.mark.parametrize("hold", [False, True])
+async def test_a_block_is_tick_by_tick_bit_for_bit_and_restores_any_tick(robot_name: str, hold: bool) -> None:
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        n, K = len(b.names), 120
+        stream = _stream(robot, K, seed=3, hold=hold)
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        expected = np.empty((K, 3, n))
+        states = np.empty((K, start.size))
+        for k, sp in enumerate(stream):
+            b.write(sp.view)
+            await b.step(b.period)
+            q, v, e = b.read()
+            expected[k] = (q, v, e)
+            mujoco.mj_getState(m, d, states[k], _STATE)
+        mujoco.mj_setState(m, d, start, _STATE)
+        stepper = BlockStepper(b, K)
+        readings = np.empty((K, 3, n))
+        assert stepper.run(lambda k: b.write(stream[k].view), K, readings) == K
+        assert stepper.fault is None
+        assert readings.tobytes() == expected.tobytes()
+        # a restore to tick k (from the latest checkpoint, replaying the ticks after it) puts MuJoCo
+        # where tick by tick stood after tick k - 1 (its physics and warm start)
+        sig = mujoco.mjtState.mjSTATE_FULLPHYSICS | mujoco.mjtState.mjSTATE_WARMSTART
+        got, want = (np.empty(mujoco.mj_stateSize(m, sig)) for _ in range(2))
+        rewrite = lambda k: b.write(stream[k].view)  # noqa: E731
+        for k in range(1, K + 1):
+            stepper.restore(k, rewrite)
+            mujoco.mj_getState(m, d, got, sig)
+            mujoco.mj_setState(m, d, states[k - 1], _STATE)
+            mujoco.mj_getState(m, d, want, sig)
+            assert got.tobytes() == want.tobytes(), k
+        if not hold:
+            assert np.abs(readings[-1, 0] - readings[0, 0]).max() > 0.05  # it moved
+        # roll back to a tick inside the block (on a checkpoint or between) and continue tick by tick:
+        # the same readings
+        assert stepper.every == 16
+        for k0 in (0, 16, 37, K - 1, K):
+            stepper.restore(k0, rewrite)
+            for k in range(k0, K):
+                b.write(stream[k].view)
+                await b.step(b.period)
+                q, v, e = b.read()
+                assert np.array([q, v, e]).tobytes() == expected[k].tobytes(), (k0, k)
+        with pytest.raises(InvalidValueError):
+            stepper.restore(K + 1, rewrite)
+        with pytest.raises(InvalidValueError):
+            stepper.run(lambda k: None, K + 1, readings)
+
+
+async def test_a_diverging_step_ends_the_block_with_the_backends_error() -> None:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        n, K, bad = len(b.names), 30, 17
+        stream = _stream(robot, K, seed=5, hold=False)
+        stream[bad].effort[0] = np.inf  # MuJoCo rejects the control: a divergence warning
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        warn0 = (d.warning.number.copy(), d.warning.lastinfo.copy(), b._warn.copy(), b._warn_bytes)
+        expected = np.empty((K, 3, n))
+        with pytest.raises(SimulationDiverged) as tick_by_tick:
+            for k, sp in enumerate(stream):
+                b.write(sp.view)
+                await b.step(b.period)
+                expected[k] = b.read()
+        after = np.empty_like(start)
+        mujoco.mj_getState(m, d, after, _STATE)
+        # the same start, warning counters included
+        mujoco.mj_setState(m, d, start, _STATE)
+        d.warning.number[:], d.warning.lastinfo[:] = warn0[0], warn0[1]
+        b._warn[:], b._warn_bytes = warn0[2], warn0[3]
+        stepper = BlockStepper(b, K)
+        readings = np.empty((K, 3, n))
+        assert stepper.run(lambda k: b.write(stream[k].view), K, readings) == bad
+        assert str(stepper.fault) == str(tick_by_tick.value)
+        assert readings[:bad].tobytes() == expected[:bad].tobytes()
+        got = np.empty_like(start)
+        mujoco.mj_getState(m, d, got, _STATE)
+        assert got.tobytes() == after.tobytes()
+
+
+@pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
+async def test_a_hold_written_once_is_written_every_tick_bit_for_bit(robot_name: str) -> None:
+    """``write_once``: ``mj_step`` leaves the controls as written, so a hold's block writes at tick 0 only."""
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        assert b.gravity_route != "host"
+        n, K = len(b.names), 90
+        moving = _stream(robot, K, seed=7, hold=False)
+        hold = _stream(robot, K, seed=7, hold=True)
+        hold[0].position[:] = moving[-1].position  # a step to another pose, held: the servos pull
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        # the controls after each step of a moving reference (speeds, contacts, clamped controls) are
+        # the bytes written before it
+        for sp in moving:
+            b.write(sp.view)
+            ctrl = d.ctrl.tobytes()
+            await b.step(b.period)
+            assert d.ctrl.tobytes() == ctrl
+        mujoco.mj_setState(m, d, start, _STATE)
+        stepper = BlockStepper(b, K)
+        assert stepper.write_once
+        every, once = np.empty((K, 3, n)), np.empty((K, 3, n))
+        assert stepper.run(lambda k: b.write(hold[0].view), K, every) == K
+        mujoco.mj_setState(m, d, start, _STATE)
+        assert stepper.run(lambda k: None if k else b.write(hold[0].view), K, once) == K
+        assert once.tobytes() == every.tobytes()
+        assert np.abs(every[-1, 0] - every[0, 0]).max() > 0.01  # the servos pulled it over

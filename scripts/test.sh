@@ -4,6 +4,7 @@
 #
 #   ./scripts/test.sh            # everything
 #   SKIP_VCAN=1 ./scripts/test.sh   # skip the user-mode-linux vcan suite
+#   TEST_WORKERS=0 ./scripts/test.sh   # the main suite in one process (default: 2 parallel workers)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
@@ -75,7 +76,10 @@ suite "mypy" "$PY" scripts/typecheck.py
 suite "sphinx" "$PY" -m sphinx -W --keep-going -q -b html docs build/docs
 
 # Main suite (vcan- and netns-marked tests run below: this kernel has no CAN, and may lack netem).
-suite "pytest (main suite)" "$PY" -m pytest -m "not vcan and not netns" "$@"
+# Its files run in parallel worker processes, one file per worker at a time (pytest-xdist; each worker's DDS
+# tests pick their ROS domains from a share of their own: tests/ros_domains.py); TEST_WORKERS=0 runs them
+# in this process, one after another.
+suite "pytest (main suite)" "$PY" -m pytest -m "not vcan and not netns" -n "${TEST_WORKERS:-2}" --dist loadfile "$@"
 
 if [ "${SKIP_VCAN:-0}" != 1 ]; then
     # the VM's real-time tests share this machine's CPUs: show what else runs (a process the main suite

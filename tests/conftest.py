@@ -6,6 +6,7 @@ import ast
 import asyncio
 import functools
 import gc
+import os
 import sys
 import threading
 from collections.abc import AsyncIterator, Iterable, Iterator
@@ -13,8 +14,17 @@ from typing import Any
 
 import pytest
 import pytest_asyncio
+from ros_domains import share
 
 import agentsdk
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """A parallel worker (pytest-xdist) gets its own share of the ROS 2 domains its DDS tests pick from."""
+    worker, count = os.environ.get("PYTEST_XDIST_WORKER", ""), os.environ.get("PYTEST_XDIST_WORKER_COUNT")
+    if worker.startswith("gw") and count:
+        lo, hi = share(int(worker[2:]), int(count))
+        os.environ["AGENTSDK_TEST_DOMAINS"] = f"{lo}-{hi}"
 
 if sys.version_info < (3, 12):
     # CPython 3.11 keeps ast.parse's recursion-depth count in one per-interpreter state

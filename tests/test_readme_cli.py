@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import re
 import shlex
 import signal
@@ -33,6 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from ros_domains import random_domain
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -141,7 +141,7 @@ def _prepare(cmd: str) -> list[str]:
         else:
             argv += ["--port", str(_free_port())]
     if argv[0] == "serve":  # a domain of its own: the other tests' DDS participants are not disturbed
-        domain = str(random.randint(120, 230))
+        domain = str(random_domain())
         if "--domain-id" in argv:
             argv[argv.index("--domain-id") + 1] = domain
         else:

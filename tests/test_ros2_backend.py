@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
-import random
 import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -23,6 +22,7 @@ import pytest
 pytest.importorskip("cyclonedds")
 
 import test_ros2_interop as interop
+from ros_domains import random_domain
 
 import agentsdk
 from agentsdk import BackendFault, BackendStartError, ConfigurationError, JointCommand, SafetyFault
@@ -43,7 +43,7 @@ SAFETY = {"stall_timeout": 5.0}  # a loaded 2-core machine also runs the server 
 
 
 def _domain() -> int:
-    return random.SystemRandom().randint(30, 230)
+    return random_domain()
 
 
 class Served:

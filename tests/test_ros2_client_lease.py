@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import random
 import signal
 import sys
 import textwrap
@@ -17,6 +16,8 @@ from pathlib import Path
 import pytest
 
 pytest.importorskip("cyclonedds")
+
+from ros_domains import random_domain
 
 import agentsdk
 from agentsdk.ros2 import expose
@@ -63,7 +64,7 @@ async def _client(domain: int, how: str) -> asyncio.subprocess.Process:
 
 
 async def test_killing_the_ros2_client_stops_the_served_robot_and_leaving_does_not() -> None:
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     async with agentsdk.connect("mock", robot="arm3", realtime=True, safety=SAFETY) as robot:
         async with expose(robot, "/lease", domain_id=domain, lease=0.5) as face:
             deadman = face.deadman

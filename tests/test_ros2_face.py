@@ -7,7 +7,6 @@ ROS side. The interop with independent DDS implementations is ``tests/test_ros2_
 from __future__ import annotations
 
 import asyncio
-import random
 from collections.abc import Callable
 from typing import Any
 
@@ -15,6 +14,8 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cyclonedds")
+
+from ros_domains import random_domain
 
 import agentsdk
 from agentsdk import InvalidValueError
@@ -127,7 +128,7 @@ class Peer:
 
 async def test_lockstep_robot_publishes_sim_time_clock_and_states() -> None:
     """A lockstep robot: stamps are robot time, clock carries it; diagnostics name the safety state."""
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot, Peer(domain, "/sim") as peer:
         peer.subscribe("joint_states", JointState)
         peer.subscribe("clock", Clock, QOS_SENSOR)
@@ -160,7 +161,7 @@ async def test_lockstep_robot_publishes_sim_time_clock_and_states() -> None:
 
 
 async def test_close_is_idempotent_and_robot_stays_usable() -> None:
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     async with agentsdk.connect("mock", robot="arm3") as robot:
         face = expose(robot, "/x", domain_id=domain)
         await face.start()
@@ -173,7 +174,7 @@ async def test_close_is_idempotent_and_robot_stays_usable() -> None:
 
 async def test_ros_discovery_info_names_the_node_and_its_endpoints() -> None:
     """What ``ros2 node list`` reads: the node's name and namespace, its readers' and writers' ids."""
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     async with agentsdk.connect("mock", robot="arm3") as robot, Peer(domain, "") as peer:
         assert peer.node is not None
         got: list[ParticipantEntitiesInfo] = []
@@ -212,7 +213,7 @@ async def test_state_machine_transitions_are_published_live() -> None:
             await ctx.robot.move_to({"joint1": 0.3})
             return "arrived"
 
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     async with agentsdk.connect("mock", robot="arm3") as robot, Peer(domain, "/sm") as peer:
         peer.subscribe("behavior/transitions", String)
         assert peer.node is not None

@@ -12,7 +12,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import random
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -20,6 +19,8 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cyclonedds")
+
+from ros_domains import random_domain
 
 import agentsdk
 from agentsdk import ResultCode, Tolerances, Trajectory, TrajectoryPoint
@@ -54,7 +55,7 @@ SAFETY = {"stall_timeout": 5.0}
 
 
 def _domain() -> int:
-    return random.SystemRandom().randint(30, 230)
+    return random_domain()
 
 
 async def _until(predicate: Callable[[], bool]) -> None:

@@ -22,7 +22,6 @@ import bisect
 import hashlib
 import importlib.metadata
 import os
-import random
 import shutil
 import subprocess
 import tempfile
@@ -35,6 +34,8 @@ import numpy as np
 import pytest
 
 pytest.importorskip("cyclonedds")
+
+from ros_domains import random_domain
 
 import agentsdk
 from agentsdk import Robot
@@ -156,7 +157,7 @@ class Domain:
 @pytest.fixture
 def domain(tmp_path: Path) -> Iterator[Domain]:
     """A random ROS domain for this test, and the peers' environment: loopback only."""
-    did = random.SystemRandom().randint(30, 230)
+    did = random_domain()
     profile = tmp_path / "fastdds_loopback.xml"
     profile.write_text(FASTDDS_PROFILE)
     env = dict(os.environ, ROS_DOMAIN_ID=str(did), CYCLONEDDS_URI=loopback_config(did),

@@ -7,11 +7,12 @@ client) on a random domain. The same over a real (emulated) network: ``tests/tes
 from __future__ import annotations
 
 import asyncio
-import random
 
 import pytest
 
 pytest.importorskip("cyclonedds")
+
+from ros_domains import random_domain
 
 import agentsdk
 from agentsdk import InvalidValueError
@@ -77,7 +78,7 @@ async def _until(cond: object, limit: float) -> None:
 
 
 async def test_a_silent_commanding_client_stops_the_robot_until_reset() -> None:
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     async with agentsdk.connect("mock", robot="arm3", realtime=True, safety=SAFETY) as robot:
         async with expose(robot, "/dm", domain_id=domain, lease=0.4) as face:
             client = DdsNode(domain, "/dm", asyncio.get_running_loop())
@@ -124,7 +125,7 @@ async def test_a_silent_commanding_client_stops_the_robot_until_reset() -> None:
 
 
 async def test_require_lease_refuses_commands_without_a_live_lease() -> None:
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     async with agentsdk.connect("mock", robot="arm3", realtime=True, safety=SAFETY) as robot:
         async with expose(robot, "/rq", domain_id=domain, lease=0.5, require_lease=True) as face:
             with pytest.raises(LeaseRequired, match="heartbeat"):

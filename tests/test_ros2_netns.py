@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import IO, Any
 
 import pytest
+from ros_domains import random_domain
 
 pytest.importorskip("cyclonedds")
 
@@ -141,7 +142,7 @@ def _serve_far(link: Link, tmp_path: Path, domain: int, log: IO[str]) -> subproc
 
 
 def test_remote_agent_over_delay_loss_and_a_partition(link: Link, tmp_path: Path) -> None:
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     server_log = (tmp_path / "serve.log").open("w")
     server = _serve_far(link, tmp_path, domain, server_log)
     client: subprocess.Popen[str] | None = None
@@ -208,7 +209,7 @@ def test_ros2_backend_goals_over_delay_and_loss(link: Link, tmp_path: Path) -> N
     """``connect("ros2")`` in the other namespace, 50 ms delay and 5 % loss each way: its move_to and follow
     go as FollowJointTrajectory goals (services over the lossy link), come back SUCCESSFUL with feedback,
     and the served robot ends at the last target; the client's lease holds all along."""
-    domain = random.SystemRandom().randint(30, 230)
+    domain = random_domain()
     server_log = (tmp_path / "serve.log").open("w")
     server = _serve_far(link, tmp_path, domain, server_log)
     try:

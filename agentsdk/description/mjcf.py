@@ -32,6 +32,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal, cast
@@ -103,9 +104,15 @@ def _mesh_file(model: Any, mesh_id: int) -> Path:
     if not out.exists():
         lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in verts.tolist()]
         lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces.tolist()]
-        tmp = out.with_suffix(".tmp")
-        tmp.write_text("\n".join(lines) + "\n")
-        tmp.replace(out)
+        # a name of its own: another process (or thread) may be writing the same mesh right now
+        fd, name = tempfile.mkstemp(dir=out.parent, prefix=out.stem, suffix=".tmp")
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write("\n".join(lines) + "\n")
+            os.replace(name, out)
+        except BaseException:
+            Path(name).unlink(missing_ok=True)
+            raise
     return out
 
 

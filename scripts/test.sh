@@ -75,11 +75,23 @@ suite "mypy" "$PY" scripts/typecheck.py
 # The API reference (docs/, Sphinx autodoc): docstring or cross-reference problems fail the build.
 suite "sphinx" "$PY" -m sphinx -W --keep-going -q -b html docs build/docs
 
-# Main suite (vcan- and netns-marked tests run below: this kernel has no CAN, and may lack netem).
-# Its files run in parallel worker processes, one file per worker at a time (pytest-xdist; each worker's DDS
-# tests pick their ROS domains from a share of their own: tests/ros_domains.py); TEST_WORKERS=0 runs them
-# in this process, one after another.
-suite "pytest (main suite)" "$PY" -m pytest -m "not vcan and not netns" -n "${TEST_WORKERS:-2}" --dist loadfile "$@"
+# Main suite (vcan- and netns-marked tests run below: this kernel has no CAN, and may lack netem), in two parts.
+# First its files in parallel worker processes, one file per worker at a time (pytest-xdist; each worker's DDS
+# tests pick their ROS domains from a share of their own: tests/ros_domains.py; TEST_WORKERS=0 runs them in
+# this process). Then the tests marked `serial` alone: they run in realtime against wall-clock deadlines (a
+# browser, signals, teleop, leases, realtime buses), and a second worker beside them is extra CPU load.
+# (with arguments, e.g. -k NAME, one part may select no test: pytest's exit status 5 then is not a failure;
+# without arguments every part must run tests)
+part() {
+    "$PY" -m pytest "$@"
+    local rc=$?
+    if [ $rc -eq 5 ] && [ "$NARGS" -gt 0 ]; then echo "(no test of this part selected)"; return 0; fi
+    return $rc
+}
+NARGS=$#
+suite "pytest (main suite)" part -m "not vcan and not netns and not serial" -n "${TEST_WORKERS:-2}" \
+    --dist loadfile "$@"
+suite "pytest (main suite, realtime tests alone)" part -m "serial and not vcan and not netns" "$@"
 
 if [ "${SKIP_VCAN:-0}" != 1 ]; then
     # the VM's real-time tests share this machine's CPUs: show what else runs (a process the main suite

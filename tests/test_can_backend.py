@@ -33,6 +33,9 @@ from agentsdk.backends.can.mit import DISABLE, ENABLE
 from agentsdk.cli import main as cli_main
 from agentsdk.testing import BackendConformance
 
+# runs alone, not beside another test worker: realtime timing (see the 'serial' marker in pyproject.toml)
+pytestmark = pytest.mark.serial
+
 ROOT = Path(__file__).resolve().parents[1]
 
 #: Consecutive missed cycles before a motor is declared lost (backend default 5 = 10 ms at

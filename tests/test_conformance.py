@@ -15,6 +15,9 @@ from agentsdk.backends.ros2.testing import ServedRos2Conformance
 from agentsdk.registry import available_backends
 from agentsdk.testing import BackendConformance, SensorConformance
 
+# runs alone, not beside another test worker: realtime timing (see the 'serial' marker in pyproject.toml)
+pytestmark = pytest.mark.serial
+
 pytest_plugins = ["pytester"]
 
 #: backends that need a fixture around them (hardware -> emulator)

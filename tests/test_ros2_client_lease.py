@@ -23,7 +23,7 @@ import agentsdk
 from agentsdk.ros2 import expose
 from agentsdk.safety import SafetyState
 
-pytestmark = [pytest.mark.timeout(180), pytest.mark.slow]
+pytestmark = [pytest.mark.timeout(180), pytest.mark.slow, pytest.mark.serial]
 SAFETY = {"stall_timeout": 5.0}  # a loaded 2-core test machine
 
 CLIENT = textwrap.dedent("""

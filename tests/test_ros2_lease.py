@@ -22,7 +22,7 @@ from agentsdk.ros2.lease import Heartbeat, LeaseRequired, LeaseTable, heartbeat_
 from agentsdk.ros2.msgs import Duration, Header, JointTrajectory, JointTrajectoryPoint
 from agentsdk.safety import SafetyState
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.serial]
 SAFETY = {"stall_timeout": 5.0}  # a loaded 2-core test machine
 
 

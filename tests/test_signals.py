@@ -23,6 +23,9 @@ import pytest
 from agentsdk.recording import read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
+# runs alone, not beside another test worker: realtime timing (see the 'serial' marker in pyproject.toml)
+pytestmark = pytest.mark.serial
+
 TRIALS = int(os.environ.get("AGENTSDK_SIGNAL_TRIALS", "5"))
 
 BEHAVIOR = """\

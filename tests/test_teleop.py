@@ -16,6 +16,9 @@ from agentsdk import Trajectory, TrajectoryPoint
 from agentsdk.errors import ConfigurationError
 from agentsdk.teleop import follow_leader, parse_endpoint
 
+# runs alone, not beside another test worker: realtime timing (see the 'serial' marker in pyproject.toml)
+pytestmark = pytest.mark.serial
+
 SAFETY = {"stall_timeout": 5.0}
 
 

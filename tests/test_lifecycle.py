@@ -155,6 +155,9 @@ async def test_connect_loads_and_builds_off_the_event_loop() -> None:
 
 
 @pytest.mark.slow
+# alone (scripts/test.sh's serial part): it compares deadlines missed in two stretches of wall time, which another
+# test worker's load spikes would make unequal (5 against 2 allowed in a parallel run)
+@pytest.mark.serial
 async def test_a_realtime_robot_keeps_its_deadlines_while_another_connects(tmp_path: Path) -> None:
     """Before: a second connect() blocked the loop for its whole load and compile (34 missed deadlines).
 

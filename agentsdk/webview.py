@@ -24,10 +24,10 @@ second gets fewer, newer ones rather than a backlog that would leave it unable t
 
 Connection loss is never silent (:mod:`agentsdk.webconnection`): while the page is not connected it shows a
 full-width red **DISCONNECTED** banner and greys the last known state out (viser's client already blocks its
-buttons then); a page that has had no new frame for :data:`~agentsdk.webconnection.STALE_AFTER` seconds says so,
-and a jog, Reset or Enable from such a page is refused rather than run late (never the E-STOP); the server
-tolerates a page too busy to answer its keepalive pings for up to :data:`~agentsdk.webconnection.PING_TIMEOUT`
-seconds; and a jog step a page started is cancelled (the robot holds) when that page disconnects.
+buttons then); a page that has had no new frame for :data:`~agentsdk.webconnection.STALE_AFTER` seconds says so;
+the server tolerates a page too busy to answer its keepalive pings for up to
+:data:`~agentsdk.webconnection.PING_TIMEOUT` seconds; and a jog step a page started is cancelled (the robot holds)
+when that page disconnects.
 
 Bound to 127.0.0.1 only. There is deliberately no option to serve on another address: to
 watch from another machine forward the port over SSH (``ssh -L 8080:127.0.0.1:8080 robot-pc``).

@@ -13,10 +13,7 @@ What the operator sees (viser's browser client is used as it is; nothing here ed
 * **No news**: a socket can stay open while nothing arrives (a stalled machine, a network that holds packets).
   Every frame the view publishes replaces the element :func:`heartbeat_html` draws; a CSS animation restarted by
   each replacement shows an orange "NO UPDATE FOR OVER :data:`STALE_AFTER` s" notice once no frame has come for
-  that long, however the page's scripts are doing. A jog, Reset or Enable that reaches the server from a page
-  that has confirmed no frame for that long (:meth:`agentsdk.webpacing.PagePacer.confirmed_age`) is refused and
-  the page shown a notification: it was pressed on a stale view, or held up on the way (a stalled link
-  delivers it late); it is never run late. The E-STOP is never refused.
+  that long, however the page's scripts are doing.
 
 What the server does (:class:`ConnectionWatch`):
 
@@ -86,7 +83,7 @@ body:has({gate} .{MARKER})::after {{
 def heartbeat_html(frame: int) -> str:
     """The no-new-frame notice of frame number ``frame`` (hidden until :data:`STALE_AFTER` s after it is drawn)."""
     return (f'<div class="{BEAT}" data-frame="{int(frame)}">NO UPDATE FOR OVER {STALE_AFTER:g} s: the state '
-            "shown may be stale, a press may not reach the robot, and a jog, Reset or Enable is refused.</div>")
+            "shown may be stale and a press may not reach the robot.</div>")
 
 
 @dataclass(frozen=True)

@@ -45,16 +45,6 @@ class PagePacer:
         self.last_round_trip = 0.0
         #: round trips that ran into :attr:`max_wait` (a page that did not answer in time)
         self.timeouts = 0
-        self._confirmed: dict[int, float] = {}
-        self._lock = threading.Lock()
-
-    def confirmed_age(self, client_id: int) -> float | None:
-        """Seconds since page ``client_id`` last confirmed it had applied a frame (since the pacer first saw
-        it, if it has not yet); None for a page the pacer does not pace (not seen yet, or no localStorage).
-        """
-        with self._lock:
-            stamp = self._confirmed.get(client_id)
-        return None if stamp is None else time.monotonic() - stamp
 
     def sync(self, closed: threading.Event | None = None) -> float:
         """Wait until every connected page has applied what was published so far; return the wait (s).
@@ -66,28 +56,20 @@ class PagePacer:
         start = time.monotonic()
         deadline = start + self.max_wait
         with_storage = []
-        clients = self.server.get_clients()
-        with self._lock:
-            for client_id in [c for c in self._confirmed if c not in clients]:
-                del self._confirmed[client_id]  # gone
-            for client_id, client in clients.items():
-                storage = getattr(client, "local_storage", None)  # (viser versions without it are not paced)
-                if storage is not None:
-                    with_storage.append((int(client_id), storage))
-                    self._confirmed.setdefault(int(client_id), start)
+        for client in list(self.server.get_clients().values()):
+            storage = getattr(client, "local_storage", None)  # (viser versions without it are not paced)
+            if storage is not None:
+                with_storage.append(storage)
         if not with_storage:
             self.last_round_trip = 0.0
             return 0.0
         self.server.flush()  # the frame leaves before the requests that follow it
-        for client_id, storage in with_storage:
+        for storage in with_storage:
             remaining = deadline - time.monotonic()
             if remaining <= 0 or (closed is not None and closed.is_set()):
                 break
             try:
                 storage.get_item(SYNC_KEY, timeout=remaining)
-                with self._lock:
-                    if client_id in self._confirmed:
-                        self._confirmed[client_id] = time.monotonic()
             except TimeoutError:
                 self.timeouts += 1
                 log.debug("web view: a page did not apply a frame within %.1f s", self.max_wait)

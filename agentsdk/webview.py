@@ -52,7 +52,7 @@ import numpy as np
 
 from .errors import BackendUnavailableError, ConfigurationError
 from .jog import CARTESIAN_KEYS, JOG_STEP, JOINT_STEP, SHIFTED_DIGITS, JogAction, Jogger
-from .webconnection import STALE_AFTER, ConnectionWatch, connection_css, heartbeat_html
+from .webconnection import ConnectionWatch, connection_css, heartbeat_html
 from .webpacing import PagePacer
 
 if TYPE_CHECKING:
@@ -303,25 +303,6 @@ class WebView:
         stop = gui.add_command("Stop the jog", hotkey="space")
         stop.on_trigger(lambda _: self.stop_jog())
 
-    def _page_is_live(self, client_id: int, what: str) -> bool:
-        """False (and the page and the log told why) if the page that asked had shown no new frame for over
-        :data:`STALE_AFTER` s: the press was made on a stale view, or held up on its way (a stalled link delivers
-        it late), so it is refused rather than run late. The E-STOP is never refused.
-        """
-        age = self.pacer.confirmed_age(client_id) if self.pacer is not None else None
-        if age is None or age <= STALE_AFTER:
-            return True
-        log.warning("web view: %s refused: the page had shown no new frame for %.1f s", what, age)
-        client = self.server.get_clients().get(client_id)
-        if client is not None:
-            with contextlib.suppress(Exception):  # (the page may be gone by now)
-                client.add_notification(
-                    title=f"Refused: {what}",
-                    body=f"this page had not received an update for {age:.0f} s, so the press may have been made "
-                         "on a stale view or held up on its way; press again once the page is live",
-                    color="red", auto_close_seconds=15.0)
-        return False
-
     def _on_page_gone(self, client_id: int) -> None:
         """A page disconnected: if its jog step runs, cancel it (the arm decelerates and holds)."""
         with self._jog_lock:
@@ -363,8 +344,6 @@ class WebView:
 
     def _jog(self, make: Callable[[], Any], action: JogAction, client_id: int | None) -> None:
         """Start a step unless one runs; ``client_id``: the page that asked (its disconnect cancels the step)."""
-        if client_id is not None and not self._page_is_live(client_id, f"jog {action.describe(self._names)}"):
-            return
         with self._jog_lock:
             if self._jogging is not None and not self._jogging.done():
                 return
@@ -388,10 +367,9 @@ class WebView:
             yes = client.gui.add_button(f"Yes, {action}", color="orange")
             no = client.gui.add_button("Cancel")
 
-            def _yes(event: Any) -> None:
+            def _yes(_: Any) -> None:
                 modal.close()
-                if event.client_id is None or self._page_is_live(event.client_id, action):
-                    self.request(action)
+                self.request(action)
 
             yes.on_click(_yes)
             no.on_click(lambda _: modal.close())

@@ -40,6 +40,22 @@ pytestmark = [
 ROW = re.compile(r"^(joint\d)\s+([+-]\d+\.\d+)\s+([+-]\d+\.\d+)\s*$", re.M)
 
 
+def _stop(proc: subprocess.Popen[str], readers: list[threading.Thread]) -> None:
+    """End the behavior's process (SIGINT: its category-1 stop, then a kill after 60 s) and its output readers."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    for r in readers:
+        r.join(timeout=10)
+    for stream in (proc.stdout, proc.stderr):
+        if stream is not None:
+            stream.close()
+
+
 def _robot_yaml(tmp_path: Path) -> str:
     """arm3 whose stall watchdog tolerates a machine loaded by a software-rendering browser (wall-time slack)."""
     import yaml
@@ -194,18 +210,7 @@ def test_wave_live_in_a_browser_and_the_estop_button(browser: Any, tmp_path: Pat
         assert max(abs(b[j] - a[j]) for j in a) < 1e-3, (a, b)
         assert "safety: ESTOP" in _text(browser)
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        reader.join(timeout=10)
-        if proc.stdout is not None:
-            proc.stdout.close()
-        if proc.stderr is not None:
-            proc.stderr.close()
+        _stop(proc, [reader])
     assert not any("Traceback" in line for line in err), "".join(err)
 
 
@@ -304,18 +309,7 @@ def test_keyboard_jog_through_the_page_moves_the_end_effector(browser: Any, tmp_
         time.sleep(1.0)
         assert len([x for x in out if x.startswith("settled ")]) == 4, "".join(out)
     finally:
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        for r in readers:
-            r.join(timeout=10)
-        for stream in (proc.stdout, proc.stderr):
-            if stream is not None:
-                stream.close()
+        _stop(proc, readers)
     assert not any("Traceback" in line for line in err), "".join(err)
 
 
@@ -484,15 +478,5 @@ def test_a_lost_connection_is_shown_and_a_press_meanwhile_is_not_lost_silently(b
     finally:
         if relay is not None:
             relay.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        reader.join(timeout=10)
-        for stream in (proc.stdout, proc.stderr):
-            if stream is not None:
-                stream.close()
+        _stop(proc, [reader])
     assert not any("Traceback" in line for line in err), "".join(err)

@@ -79,6 +79,10 @@ def _ratios(sdk: list[float], base: list[float]) -> list[float]:
     return [a / b for a, b in zip(sdk, base, strict=True)]
 
 
+def _range(values: list[float]) -> str:
+    return f"{min(values):.2f}-{max(values):.2f}x"
+
+
 def read_back(path: Path) -> dict[str, Any]:
     """Peak traced memory of ``read_recording(path)`` and the bytes of the arrays it returns."""
     from agentsdk.recording import read_recording
@@ -169,6 +173,13 @@ def run(quick: bool = False, sim_s: float | None = None, repeats: int | None = N
             "the arrays are small: the fixed cost of one decompressed chunk (~1-3 MB) dominates the read-back "
             "ratio, so the 2x bound is checked only from 4 MB of arrays (a full run, --sim 60 or more)"
         )
+    sec.notes.append(
+        f"ticks run in blocks with block lockstep on: {min(bshare):.1%}-{max(bshare):.1%} unrecorded, "
+        f"{min(bshare_recorded):.1%}-{max(bshare_recorded):.1%} recorded (the recorder takes blocks); recorded "
+        f"÷ unrecorded per repeat, blocks on: wall {_range(_ratios(brecorded, bplain))}, CPU "
+        f"{_range(_ratios(brecorded_cpu, bplain_cpu))}; tick by tick: wall {_range(_ratios(recorded, plain))}, "
+        f"CPU {_range(_ratios(recorded_cpu, plain_cpu))}"
+    )
     sec.notes.append(
         f"file {size / 1e6:.2f} MB for {back['robot_s']:.1f} s of robot time ({back['states']} joint states at the "
         f"default rate, {back['commands']} commands); read back in {back['seconds']:.2f} s with a traced peak of "

@@ -108,3 +108,15 @@ async def test_a_recording_with_blocks_is_byte_equal_to_the_tick_by_tick_one(
     if x != y:
         where = next(i for i, (p, q) in enumerate(zip(x, y, strict=False)) if p != q) if len(x) == len(y) else -1
         pytest.fail(f"{robot_name}: the recordings differ ({len(x)} vs {len(y)} bytes, first difference at {where})")
+
+
+async def test_a_recorder_of_sensors_keeps_the_per_tick_hook(tmp_path: Path) -> None:
+    """Sensor samples exist only in the tick: with recorded sensors the hook takes no blocks."""
+    arm = Path(__file__).parent / "fixtures" / "sensor_arm" / "nocam.yaml"
+    async with agentsdk.connect("mujoco", arm, safety=SAFETY) as robot:
+        rec = Recorder(robot, tmp_path / "run.mcap")
+        assert rec.sensor_tracks
+        hooks = robot._loop.hook_functions(Phase.OBSERVE)
+        assert rec._on_tick in hooks and not any(isinstance(fn, BlockObserver) for fn in hooks)
+        await robot.clock.sleep(0.01)
+    rec.finish()

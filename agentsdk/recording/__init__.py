@@ -100,6 +100,13 @@ ticks are dropped (counted in :attr:`Recorder.dropped_ticks`, logged) rather
 than the loop blocked or memory grown.  :meth:`Recorder.finish` joins the
 thread: call it after the robot is closed, as the CLI does.
 
+With block lockstep (:meth:`agentsdk.Robot.block_lockstep`) the hook takes a
+block of ticks at once (it is a :class:`agentsdk.block.BlockObserver`): one
+copy of the block's rows, cut where the per-tick hook would hand a block to the
+writer, so a recorded run keeps its blocks and its file is byte for byte the
+one written tick by tick.  A robot with recorded sensors or cameras records
+tick by tick (their samples exist only in the tick).
+
 Crash safety
 ------------
 Every hand-off closes an MCAP chunk and pushes it to the OS, so a killed run

@@ -10,7 +10,7 @@ import os
 import queue
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -21,6 +21,7 @@ from ..errors import ConfigurationError
 from ..loop import Phase, StateView
 from ..statemachine import StateMachine
 from ..threads import run_blocking
+from ..types import FloatArray
 from ._channels import FORMAT, SAFETY_EVENTS, TRANSITIONS, stamp_ns
 from ._images import IMAGE_FORMATS, ImageTap, camera_names
 from ._reader import RunData, read_recording
@@ -59,6 +60,23 @@ SENSOR_RATE = 50.0
 CAMERA_RATE = 5.0
 #: ``--record-format`` choices
 RECORD_FORMATS = ("mcap", "ros2")
+
+
+class _BlockTap:
+    """The recorder's OBSERVE hook in the form block lockstep takes (:class:`agentsdk.block.BlockObserver`)."""
+
+    __slots__ = ("_block", "_tick")
+
+    def __init__(self, rec: Recorder) -> None:
+        self._tick = rec._on_tick
+        self._block = rec._on_block
+
+    def __call__(self, t: float, state: StateView, setpoint: SetpointView) -> None:
+        self._tick(t, state, setpoint)
+
+    def observe_block(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray,
+                      setpoint: SetpointView) -> None:
+        self._block(ts, states, setpoints, setpoint)
 
 
 class Recorder:
@@ -195,8 +213,13 @@ class Recorder:
             names=self.names,
             images=self._images,
         )
-        # first observer: sees the setpoint exactly as written, before a watchdog changes it
-        self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, self._on_tick, order=RECORDER_ORDER)
+        # first observer: sees the setpoint exactly as written, before a watchdog changes it. Without
+        # sensors or cameras (whose values exist only at the tick) it takes blocks of ticks too, so that
+        # block lockstep keeps its blocks on a recorded robot (agentsdk.block.BlockObserver)
+        hook: _BlockTap | Callable[[float, StateView, SetpointView], None] = (
+            self._on_tick if self._sensor_views or self._images is not None else _BlockTap(self)
+        )
+        self._tick_handle = robot.add_tick_hook(Phase.OBSERVE, hook, order=RECORDER_ORDER)
         self._transition_handle = StateMachine.add_transition_listener(self._on_transition)
 
     def _kinematics(self) -> Kinematics:
@@ -311,6 +334,55 @@ class Recorder:
             self._handoff()
         elif k == self._cap or (not (k & 15) and time.perf_counter() - self._rotated_at > FLUSH_INTERVAL):
             self._handoff()
+
+    def _on_block(self, ts: FloatArray, states: FloatArray, rows: FloatArray, sp: SetpointView) -> None:
+        """What ``len(ts)`` calls of :meth:`_on_tick` record, for a block of lockstep ticks (no sensors, no cameras).
+
+        ``states`` (K, 3, n) and ``rows`` (K, 7, n, :attr:`agentsdk.loop.Setpoint.FIELDS` order) as
+        :class:`agentsdk.block.BlockObserver` gets them; ``mode`` and ``enabled`` are constant over a block.
+        The rows are copied a segment at a time: up to where the block fills (a hand-off, as the tick
+        that fills it makes) or, when the wall-clock flush is due, up to the next 16th row (where the
+        tick's check would have found it due: a block's ticks all run at one wall-clock instant).
+        """
+        count = len(ts)
+        self.ticks += count
+        if self._robot.safety.event_count != self._event_cursor:
+            self._take_events()
+        i = 0
+        while i < count:
+            b = self._block
+            if b is None:
+                b = self._block = self._take_free()
+                if b is None:  # the writer is behind by the whole pool (after the lockstep wait): these ticks are lost
+                    self.dropped_ticks += count - i
+                    self._prev_t = float(ts[count - 1])
+                    return
+            k = self._k
+            m = min(count - i, self._cap - k)
+            due = time.perf_counter() - self._rotated_at > FLUSH_INTERVAL
+            if due:
+                m = min(m, 16 - (k & 15))
+            j, e = i + m, k + m
+            b.t[k:e] = ts[i:j]
+            b.tc[k] = self._prev_t
+            b.tc[k + 1 : e] = ts[i : j - 1]
+            self._prev_t = float(ts[j - 1])
+            b.q[k:e] = states[i:j, 0]
+            b.v[k:e] = states[i:j, 1]
+            b.e[k:e] = states[i:j, 2]
+            b.sp_q[k:e] = rows[i:j, 0]
+            b.sp_v[k:e] = rows[i:j, 1]
+            b.sp_e[k:e] = rows[i:j, 2]
+            b.kp[k:e] = rows[i:j, 3]
+            b.kd[k:e] = rows[i:j, 4]
+            b.target[k:e] = rows[i:j, 5]
+            b.sp_a[k:e] = rows[i:j, 6]
+            b.en[k:e] = sp.enabled
+            b.mode[k:e] = sp.mode
+            self._k = e
+            i = j
+            if e == self._cap or (due and not (e & 15)):
+                self._handoff()
 
     def _take_free(self) -> Block | None:
         try:

@@ -1,0 +1,122 @@
+"""Recordings of block lockstep runs are byte-equal to tick-by-tick ones (issue 28 acceptance 4).
+
+The same behavior (a hold, a follow of a multi-point trajectory, a direct command, a cancelled
+follow and its stop ramp, an e-stop during a follow, then reset, enable and a hold) is recorded on
+MuJoCo arm3 and humanoid with block lockstep off and on; the two files must be equal byte for
+byte, and the block run must actually have run blocks (the recorder's hook takes them:
+:class:`agentsdk.block.BlockObserver`). The recorder's blocks are small (100 rows), so that its
+hand-offs fall inside lockstep blocks; the wall-clock flush is either never due (hand-offs where
+blocks fill only) or always due (a hand-off every 16th row, where the per-tick hook checks it),
+so that both runs cut their chunks at the same ticks. The ``created`` metadata (the wall-clock
+date) is fixed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+import agentsdk
+from agentsdk import JointCommand, Trajectory, TrajectoryPoint
+from agentsdk.block import BlockObserver
+from agentsdk.loop import Phase
+from agentsdk.recording import Recorder, read_recording
+from agentsdk.recording import _recorder as recorder_module
+
+SAFETY = {"stall_timeout": None}
+#: recorder rows per block: hand-offs inside the lockstep blocks (up to 128 ticks)
+ROWS = 100
+
+
+async def _behavior(robot: Any) -> None:
+    names = list(robot.joint_names)
+    n = len(names)
+    lo = np.array([j.lower if np.isfinite(j.lower) else -1.0 for j in robot.joints])
+    hi = np.array([j.upper if np.isfinite(j.upper) else 1.0 for j in robot.joints])
+    lo, hi = lo + 0.2 * (hi - lo), hi - 0.2 * (hi - lo)
+    rng = np.random.default_rng(7)
+
+    def points(*times: float) -> list[TrajectoryPoint]:
+        return [TrajectoryPoint(t, rng.uniform(lo, hi).tolist()) for t in times]
+
+    await robot.clock.sleep(0.3)  # a hold
+    await robot.follow(Trajectory(names, points(0.4, 0.8, 1.1)), stretch_to_limits=True)  # to its end and settled
+    await robot.clock.sleep(0.1)
+    goal = np.clip(np.asarray((await robot.read()).position) + rng.uniform(-0.1, 0.1, n), lo, hi)
+    await robot.command(JointCommand("position", goal.tolist()))  # a direct command: the filter's ramp
+    await robot.clock.sleep(0.2)
+    motion = robot.follow(Trajectory(names, points(0.5, 1.0)), stretch_to_limits=True)
+    await robot.clock.sleep(0.25)
+    motion.cancel()  # its stop ramp
+    await robot.clock.sleep(0.3)
+    motion = robot.follow(Trajectory(names, points(0.5, 0.9)), stretch_to_limits=True)
+    await robot.clock.sleep(0.2)
+    await robot.estop(1)
+    await robot.safety.wait_stopped()
+    await robot.clock.sleep(0.1)
+    await robot.reset()
+    await robot.enable()
+    await robot.clock.sleep(0.3)  # a hold again
+
+
+async def _record(robot_name: str, path: Path, block: bool, rate: float | None) -> dict[str, Any]:
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+        rec = Recorder(robot, path, rate=rate, block_ticks=ROWS, metadata={"created": "fixed"})
+        runner = robot.block_lockstep(capacity=128) if block else None
+        await _behavior(robot)
+        ticks = robot.ticks
+        hooks = robot._loop.hook_functions(Phase.OBSERVE)
+        stats = {"ticks": ticks, "blocks": 0, "block_ticks": 0}
+        if runner is not None:
+            stats.update(blocks=runner.blocks, block_ticks=runner.block_ticks, rollbacks=runner.rollbacks)
+            runner.close()
+    rec.finish()
+    stats.update(recorded=rec.ticks, dropped=rec.dropped_ticks, counts=rec.counts,
+                 block_hook=any(isinstance(fn, BlockObserver) and getattr(fn, "_tick", None) == rec._on_tick
+                                for fn in hooks))
+    return stats
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(("robot_name", "rate", "flush"), [
+    ("arm3", None, "never"), ("arm3", 50.0, "every 16 rows"),
+    ("humanoid", None, "every 16 rows"), ("humanoid", 50.0, "never"),
+])
+async def test_a_recording_with_blocks_is_byte_equal_to_the_tick_by_tick_one(
+    robot_name: str, rate: float | None, flush: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(recorder_module, "FLUSH_INTERVAL", 1e9 if flush == "never" else -1.0)
+    (tmp_path / "ticks").mkdir()
+    (tmp_path / "blocks").mkdir()
+    a, b = tmp_path / "ticks" / "run.mcap", tmp_path / "blocks" / "run.mcap"  # (the name is in the file)
+    plain = await _record(robot_name, a, block=False, rate=rate)
+    blocked = await _record(robot_name, b, block=True, rate=rate)
+    # the block run ran blocks (the recorder did not force it tick by tick), and recorded every tick
+    assert blocked["block_hook"]
+    assert blocked["blocks"] > 10 and blocked["block_ticks"] > blocked["ticks"] // 2, blocked
+    assert plain["ticks"] == blocked["ticks"] == plain["recorded"] == blocked["recorded"]
+    assert plain["dropped"] == blocked["dropped"] == 0
+    # the behavior reached the file: a stop and its events, many commands
+    counts = plain["counts"]
+    assert counts["/safety/events"] > 0 and counts["/joint_commands"] > 1000, counts
+    data = read_recording(a)
+    assert len(data.state_time) == (plain["ticks"] if rate is None else int(plain["ticks"] * 0.002 * rate) + 1)
+    x, y = a.read_bytes(), b.read_bytes()
+    if x != y:
+        where = next(i for i, (p, q) in enumerate(zip(x, y, strict=False)) if p != q) if len(x) == len(y) else -1
+        pytest.fail(f"{robot_name}: the recordings differ ({len(x)} vs {len(y)} bytes, first difference at {where})")
+
+
+async def test_a_recorder_of_sensors_keeps_the_per_tick_hook(tmp_path: Path) -> None:
+    """Sensor samples exist only in the tick: with recorded sensors the hook takes no blocks."""
+    arm = Path(__file__).parent / "fixtures" / "sensor_arm" / "nocam.yaml"
+    async with agentsdk.connect("mujoco", arm, safety=SAFETY) as robot:
+        rec = Recorder(robot, tmp_path / "run.mcap")
+        assert rec.sensor_tracks
+        hooks = robot._loop.hook_functions(Phase.OBSERVE)
+        assert rec._on_tick in hooks and not any(isinstance(fn, BlockObserver) for fn in hooks)
+        await robot.clock.sleep(0.01)
+    rec.finish()

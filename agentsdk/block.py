@@ -123,6 +123,10 @@ class BlockLockstep:
         self.block_ticks = 0
         self.motion_ticks = 0
         self.rollbacks = 0
+        #: the OBSERVE hooks as last seen and what :meth:`_observers` found for them (``isinstance``
+        #: against the runtime-checkable :class:`BlockObserver` costs ~10 µs: once per change of the hooks)
+        self._observe_hooks: tuple[object, ...] | None = None
+        self._observe_found: list[BlockObserver] | None = None
         loop.block_runner = self.run
 
     def close(self) -> None:
@@ -132,16 +136,21 @@ class BlockLockstep:
 
     def _observers(self) -> list[BlockObserver] | None:
         """The OBSERVE hooks besides the watchdogs if each takes blocks (None: one does not, or no watchdogs)."""
-        out: list[BlockObserver] = []
+        fns = self._loop.hook_functions(Phase.OBSERVE)
+        if fns is self._observe_hooks:
+            return self._observe_found
+        out: list[BlockObserver] | None = []
         seen = False
-        for fn in self._loop.hook_functions(Phase.OBSERVE):
+        for fn in fns:
             if self._safety.is_watchdog_hook(fn):
                 seen = True
-            elif isinstance(fn, BlockObserver):
+            elif isinstance(fn, BlockObserver) and out is not None:
                 out.append(fn)
             else:
-                return None
-        return out if seen else None
+                out = None
+        self._observe_hooks = fns
+        self._observe_found = out if seen else None
+        return self._observe_found
 
     def run(self) -> tuple[int, bool]:
         """One block if one can run now: ``(ticks committed, whether the last woke a sleeper)``, else ``(0, False)``."""

@@ -75,6 +75,12 @@ class BlockStepperLike(Protocol):
     def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray) -> int:
         """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done."""
 
+    def controls(self, rows: FloatArray, setpoint: SetpointView) -> Callable[[int], None] | None:
+        """``put(j)``: writes the controls the backend's write of setpoint ``rows[j]`` leaves, computed at once.
+
+        ``rows`` (K, 7, n); None where the backend cannot (then each tick writes its setpoint).
+        """
+
     def restore(self, k: int, write: Callable[[int], object]) -> None:
         """Put the simulation back to where it stood before tick ``k`` of the last run.
 
@@ -202,6 +208,9 @@ class BlockLockstep:
         # a hold's rows are all the same: where the backend's controls depend on the setpoint alone,
         # the controls written at tick 0 stand for the whole block
         every_tick = bool(plans) or not stepper.write_once
+        # a motion's controls for every tick at once, where the backend computes them from the setpoint
+        # alone (tick 0 still writes its setpoint: that sets what the gains and enabled joints decide)
+        put = stepper.controls(rows[:k], spv) if plans else None
 
         def write(j: int) -> bool:
             # an emergency stop or latch from another thread ends the block before the next write:
@@ -211,6 +220,11 @@ class BlockLockstep:
             if j:  # the robot time of the latest state as tick j's write sees it (another thread's events)
                 loop.stamp = (tick0 + j) * period
                 if not every_tick:
+                    return True
+                if put is not None:
+                    put(j)
+                    if loop.torque_off:
+                        backend.emergency_stop(0)  # it landed during the write: enforce it again
                     return True
             spb[...] = rows[j]
             backend.write(spv)

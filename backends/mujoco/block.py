@@ -174,18 +174,18 @@ class BlockStepper:
         # joints consecutive in qpos / qvel, effort read as it is: read() returns the same views every tick
         fresh = b._gather or b._effort_map is not None
         q, v, e = read()
+        qs, vs, es = readings[:, 0], readings[:, 1], readings[:, 2]  # (one view per row kind, not per tick)
         for k in range(count):
             if not k % every:  # before the write: the state tick by tick stands in before tick k
                 get_state(m, d, states[k // every], _STATE)
             if write(k) is False:
                 return k  # (restore(k) is then the state as it stands)
-            step(m, d, nstep=nsub)
+            step(m, d, nsub)
             if fresh:
                 q, v, e = read()
-            row = readings[k]
-            row[0] = q
-            row[1] = v
-            row[2] = e
+            qs[k] = q
+            vs[k] = v
+            es[k] = e
         return count
 
     def _diverged(self) -> bool:

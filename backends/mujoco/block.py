@@ -20,6 +20,12 @@ tick-by-tick run leaves it when it raises). The backend's divergence checks cost
 step, so a block looks once, after its last step (MuJoCo counts every divergence and steps on),
 and only a block that diverged runs again from its start with the checks after every step.
 
+For a motion the caller need not write each setpoint through the backend: :meth:`BlockStepper.controls`
+computes the controls the write would leave in ``ctrl`` for every tick of the block at once (the
+servo law on all rows, the inverse-dynamics feed-forward per row with only its matrix products and
+``mj_inverse``), and the block's ``write(k)`` puts row ``k`` into ``ctrl`` (tick 0 still writes its
+setpoint: that sets the model arrays below).
+
 Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
 enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them
 constant (pre-planned motions write the loop's gains), which is the caller's precondition.

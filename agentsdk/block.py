@@ -199,7 +199,14 @@ class BlockLockstep:
             rows[:, 1, sel] = va[:, 0]  # velocity
             rows[:, 5, sel] = samples[:, 0]  # target
             rows[:, 6, sel] = va[:, 1]  # acceleration
-        k = safety.limit_quiet(np.ascontiguousarray(rows[:, 0:3]), sp.mode, sp.enabled)
+        if plans:
+            k = safety.limit_quiet(np.ascontiguousarray(rows[:, 0:3]), sp.mode, sp.enabled)
+        else:
+            # a hold: every row the same, so ticks 1.. all run the LIMIT rule on the same row with the
+            # same previous position (the row's own): the first two ticks decide them all
+            k = safety.limit_quiet(np.ascontiguousarray(rows[:2, 0:3]), sp.mode, sp.enabled)
+            if k == 2:
+                k = K
         if k < 2:
             sp.block[...] = before
             return self._cut_short()

@@ -75,6 +75,12 @@ class BlockStepperLike(Protocol):
     def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray) -> int:
         """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done."""
 
+    def controls(self, rows: FloatArray, setpoint: SetpointView) -> Callable[[int], None] | None:
+        """``put(j)``: writes the controls the backend's write of setpoint ``rows[j]`` leaves, computed at once.
+
+        ``rows`` (K, 7, n); None where the backend cannot (then each tick writes its setpoint).
+        """
+
     def restore(self, k: int, write: Callable[[int], object]) -> None:
         """Put the simulation back to where it stood before tick ``k`` of the last run.
 
@@ -123,6 +129,10 @@ class BlockLockstep:
         self.block_ticks = 0
         self.motion_ticks = 0
         self.rollbacks = 0
+        #: the OBSERVE hooks as last seen and what :meth:`_observers` found for them (``isinstance``
+        #: against the runtime-checkable :class:`BlockObserver` costs ~10 µs: once per change of the hooks)
+        self._observe_hooks: tuple[object, ...] | None = None
+        self._observe_found: list[BlockObserver] | None = None
         loop.block_runner = self.run
 
     def close(self) -> None:
@@ -132,16 +142,21 @@ class BlockLockstep:
 
     def _observers(self) -> list[BlockObserver] | None:
         """The OBSERVE hooks besides the watchdogs if each takes blocks (None: one does not, or no watchdogs)."""
-        out: list[BlockObserver] = []
+        fns = self._loop.hook_functions(Phase.OBSERVE)
+        if fns is self._observe_hooks:
+            return self._observe_found
+        out: list[BlockObserver] | None = []
         seen = False
-        for fn in self._loop.hook_functions(Phase.OBSERVE):
+        for fn in fns:
             if self._safety.is_watchdog_hook(fn):
                 seen = True
-            elif isinstance(fn, BlockObserver):
+            elif isinstance(fn, BlockObserver) and out is not None:
                 out.append(fn)
             else:
-                return None
-        return out if seen else None
+                out = None
+        self._observe_hooks = fns
+        self._observe_found = out if seen else None
+        return self._observe_found
 
     def run(self) -> tuple[int, bool]:
         """One block if one can run now: ``(ticks committed, whether the last woke a sleeper)``, else ``(0, False)``."""
@@ -184,7 +199,14 @@ class BlockLockstep:
             rows[:, 1, sel] = va[:, 0]  # velocity
             rows[:, 5, sel] = samples[:, 0]  # target
             rows[:, 6, sel] = va[:, 1]  # acceleration
-        k = safety.limit_quiet(np.ascontiguousarray(rows[:, 0:3]), sp.mode, sp.enabled)
+        if plans:
+            k = safety.limit_quiet(np.ascontiguousarray(rows[:, 0:3]), sp.mode, sp.enabled)
+        else:
+            # a hold: every row the same, so ticks 1.. all run the LIMIT rule on the same row with the
+            # same previous position (the row's own): the first two ticks decide them all
+            k = safety.limit_quiet(np.ascontiguousarray(rows[:2, 0:3]), sp.mode, sp.enabled)
+            if k == 2:
+                k = K
         if k < 2:
             sp.block[...] = before
             return self._cut_short()
@@ -193,6 +215,9 @@ class BlockLockstep:
         # a hold's rows are all the same: where the backend's controls depend on the setpoint alone,
         # the controls written at tick 0 stand for the whole block
         every_tick = bool(plans) or not stepper.write_once
+        # a motion's controls for every tick at once, where the backend computes them from the setpoint
+        # alone (tick 0 still writes its setpoint: that sets what the gains and enabled joints decide)
+        put = stepper.controls(rows[:k], spv) if plans else None
 
         def write(j: int) -> bool:
             # an emergency stop or latch from another thread ends the block before the next write:
@@ -202,6 +227,11 @@ class BlockLockstep:
             if j:  # the robot time of the latest state as tick j's write sees it (another thread's events)
                 loop.stamp = (tick0 + j) * period
                 if not every_tick:
+                    return True
+                if put is not None:
+                    put(j)
+                    if loop.torque_off:
+                        backend.emergency_stop(0)  # it landed during the write: enforce it again
                     return True
             spb[...] = rows[j]
             backend.write(spv)

@@ -31,7 +31,7 @@ the same name (``connect("mujoco", robot, inverse_dynamics=False)``).
 from __future__ import annotations
 
 import copy
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Literal
 
 import mujoco
@@ -104,6 +104,8 @@ class InverseDynamicsTerm:
         self._zero = np.zeros(len(joints)).tobytes()
         self._acc = np.zeros(len(joints))
         self._acc_rounded = np.zeros(len(joints), dtype=ACCELERATION_DTYPE)
+        #: compute_block's work arrays: the rounded accelerations (float64, float32)
+        self._blk: tuple[np.ndarray, np.ndarray] | None = None
 
     def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
         """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
@@ -166,4 +168,61 @@ class InverseDynamicsTerm:
             np.equal(mode, _EFFORT, out=effort)
             if effort.tobytes() != self._no_effort:  # (np.count_nonzero's Python wrapper costs more)
                 out[effort] = 0.0
+        return out
+
+    def compute_block(
+        self,
+        qpos: np.ndarray,
+        put: Callable[[np.ndarray, np.ndarray], None],
+        positions: np.ndarray,
+        velocity: np.ndarray,
+        acceleration: np.ndarray,
+        rows: Sequence[int],
+        out: np.ndarray,
+        mode: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """:meth:`compute` for the references ``rows`` of a block at once, into ``out[rows]`` (bit for bit).
+
+        ``positions``, ``velocity``, ``acceleration`` and ``out`` are (K, n); ``qpos`` is the
+        model's full position vector around the references (what stays put: a floating base's
+        pose) and ``put(qpos, positions[j])`` writes reference ``j``'s joints (and mimic followers)
+        into it, as the caller does per tick before :meth:`compute`. Every element operation is
+        the per-call one: the acceleration's rounding and the effort-mode mask run on all rows at
+        once, the matrix products and ``mj_inverse`` per row (block lockstep, issue 28: the
+        feed-forward of a pre-planned motion computed before its block). With the Coulomb
+        friction term each row runs :meth:`compute` itself. The other rows of ``out`` are left as
+        they are.
+        """
+        K = len(velocity)
+        if not rows:
+            return out
+        if self._friction is not None:
+            own = qpos.copy()
+            for j in rows:
+                put(own, positions[j])
+                self.compute(own, velocity[j], acceleration[j], out[j], mode, moving=True)
+            return out
+        blk = self._blk
+        if blk is None or len(blk[0]) < K:
+            blk = self._blk = (np.empty((K, len(self._acc))), np.empty((K, len(self._acc)), dtype=ACCELERATION_DTYPE))
+        acc, rounded = blk[0][:K], blk[1][:K]
+        np.copyto(rounded, acceleration, casting="same_kind")  # see ACCELERATION_DTYPE
+        np.copyto(acc, rounded)
+        m, d = self.model, self._data
+        s, st, qvel, qacc, full = self._s, self._st, self._qvel, self._qacc, self._qfrc
+        own_q = self._qpos
+        own_q[...] = qpos
+        inverse, dot = mujoco.mj_inverse, np.dot
+        for j in rows:
+            put(own_q, positions[j])
+            dot(s, velocity[j], out=qvel)
+            dot(s, acc[j], out=qacc)
+            inverse(m, d)
+            dot(st, full, out=out[j])
+        if mode is not None:
+            effort = self._effort
+            np.equal(mode, _EFFORT, out=effort)
+            if effort.tobytes() != self._no_effort:
+                for j in rows:
+                    out[j][effort] = 0.0
         return out

@@ -126,14 +126,27 @@ class FollowingErrorCheck:
         self._all_watched = False
         #: largest error seen per watched joint since construction or :meth:`reset_peak` (diagnostics)
         self.peak = np.zeros(n)
+        # block lockstep's work arrays: the errors of the last block judged, their per-joint peak, and
+        # which block that was (its states' and setpoints' buffers, first time and length)
+        self._blk_err = np.empty((0, n))
+        self._blk_peak = np.empty(n)
+        self._gain_tmp = np.empty(n, dtype=bool)
+        self._blk_key: tuple[int, int, float, int] | None = None
 
     def reset_peak(self) -> None:
         """Start a new :attr:`peak` measurement."""
         self.peak[:] = 0.0
 
     def _block_errors(self, states: FloatArray, setpoints: FloatArray) -> FloatArray:
-        """The per-tick error of every tick of a block (K, n): the same element operations as :meth:`__call__`."""
-        err = np.subtract(states[:, 0, :], setpoints)
+        """The per-tick error of every tick of a block (K, n): the same element operations as :meth:`__call__`.
+
+        Into a work array kept between blocks (grown when a longer block comes).
+        """
+        K = len(setpoints)
+        buf = self._blk_err
+        if len(buf) < K:
+            buf = self._blk_err = np.empty((max(K, 2 * len(buf)), len(self._err)))
+        err = np.subtract(states[:, 0, :], setpoints, out=buf[:K])
         if self._any_continuous:
             wrapped = np.add(err, math.pi)
             np.remainder(wrapped, 2.0 * math.pi, out=wrapped)
@@ -150,10 +163,20 @@ class FollowingErrorCheck:
         return not self._tracking
 
     def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
-        """:class:`~agentsdk.checks.BlockCheck`: leading ticks with every watched joint inside its window."""
+        """:class:`~agentsdk.checks.BlockCheck`: leading ticks with every watched joint inside its window.
+
+        Keeps the block's errors and their per-joint peak for :meth:`commit_block` of the same block.
+        """
+        self._blk_key = None
         if self._tracking or len(ts) == 0:
             return 0  # a joint is outside: its persistence timer runs per tick
         err = self._block_errors(states, setpoints)
+        # fmax ignores NaN, as the tick's ``err > window`` does (NaN is inside): every tick is inside
+        # exactly when every joint's largest error is; the same peak is what the commit takes
+        peak = np.fmax.reduce(err, axis=0, out=self._blk_peak)
+        self._blk_key = (states.ctypes.data, setpoints.ctypes.data, float(ts[0]), len(ts))
+        if np.greater(peak, self.windows, out=self._gain_tmp).tobytes() == self._none:
+            return len(ts)
         quiet = ~np.greater(err, self.windows).any(axis=1)
         return len(ts) if quiet.all() else int(np.argmin(quiet))
 
@@ -161,9 +184,17 @@ class FollowingErrorCheck:
         """:class:`~agentsdk.checks.BlockCheck`: the peak error of ``k`` quiet ticks and the last tick's time."""
         if k <= 0:
             return
-        err = self._block_errors(states[:k], setpoints[:k])
+        key = self._blk_key
+        self._blk_key = None
+        if key is not None and key == (states.ctypes.data, setpoints.ctypes.data, float(ts[0]), key[3]) and k <= key[3]:
+            # the block block_quiet judged: its errors are still in the work array
+            err = self._blk_err[:k]
+            peak = self._blk_peak if k == key[3] else np.fmax.reduce(err, axis=0, out=self._blk_peak)
+        else:
+            err = self._block_errors(states[:k], setpoints[:k])
+            peak = np.fmax.reduce(err, axis=0, out=self._blk_peak)
         # fmax keeps the larger of two numbers and ignores NaN: the same in any order
-        np.fmax(self.peak, np.fmax.reduce(err, axis=0), out=self.peak)
+        np.fmax(self.peak, peak, out=self.peak)
         self._last_t = float(ts[k - 1])
 
     def _update_mask(self, sp: SetpointView) -> None:

@@ -151,6 +151,8 @@ class SensorGate:
         self._reported = np.zeros(n, dtype=bool)
         #: readings rejected since connect, per joint
         self.rejected = np.zeros(n, dtype=np.int64)
+        #: block_quiet's work arrays (made on the first block)
+        self._blk: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ queries
     @property
@@ -256,18 +258,39 @@ class SensorGate:
         if not math.isfinite(self._dt):
             return 0  # the reach is computed on the first fast-path reading
         q = states[:, 0, :]
-        prev = np.empty_like(q)
-        prev[0] = self._position
-        prev[1:] = q[:-1]
-        d = np.abs(np.subtract(q, prev, out=prev))
-        dt = np.empty(K)
+        d, ok, fin, dt = self._block_scratch(K)
+        # each reading against the previous one (the last accepted, then the block's own)
+        np.subtract(q[0], self._position, out=d[0])
+        np.subtract(q[1:], q[:-1], out=d[1:])
+        np.abs(d, out=d)
         dt[0] = ts[0] - self._t_read
         np.subtract(ts[1:], ts[:-1], out=dt[1:])
-        # the fast path with the cached reach: not late, the same time step, within reach, finite
+        np.less_equal(d, self._reach_fast, out=ok)
+        # the common case at once: every time step the cached one (|dt - _dt| <= 1e-12 for all of them
+        # exactly when it holds for the largest and the smallest: a rounded difference is monotone),
+        # none late, every joint within reach, every velocity and effort finite
+        hi, lo = float(np.maximum.reduce(dt)), float(np.minimum.reduce(dt))
+        np.isfinite(states[:, 1:, :], out=fin)
+        if (hi <= 2.0 * self._period and abs(hi - self._dt) <= 1e-12 and abs(lo - self._dt) <= 1e-12
+                and np.logical_and.reduce(ok, axis=None) and np.logical_and.reduce(fin, axis=None)):
+            return K
+        # where it stops: the fast path's tests per reading
         quiet = (dt <= 2.0 * self._period) & (np.abs(dt - self._dt) <= 1e-12)
-        quiet &= np.less_equal(d, self._reach_fast).all(axis=1)
-        quiet &= np.isfinite(states[:, 1:, :]).all(axis=(1, 2))
+        quiet &= ok.all(axis=1)
+        quiet &= fin.all(axis=(1, 2))
         return K if quiet.all() else int(np.argmin(quiet))
+
+    def _block_scratch(self, K: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`block_quiet`'s work arrays for K readings (kept, grown when a longer block comes)."""
+        scratch = self._blk
+        if scratch is None or len(scratch[3]) < K:
+            n = len(self._position)
+            size = max(K, 2 * len(scratch[3]) if scratch is not None else 0)
+            scratch = self._blk = (np.empty((size, n)), np.empty((size, n), dtype=bool),
+                                   np.empty((size, 2, n), dtype=bool),
+                                   np.empty(size))
+        d, ok, fin, dt = scratch
+        return d[:K], ok[:K], fin[:K], dt[:K]
 
     def commit_block(self, ts: np.ndarray, states: np.ndarray, k: int) -> None:
         """The state ``k`` quiet readings of a block leave: the last one is the state, taken at its time."""

@@ -61,17 +61,20 @@ def _inject(rng: np.random.Generator, q: np.ndarray, scale: float) -> None:
 
 
 def _differential(check_a: BlockCheck, check_b: BlockCheck, ts: np.ndarray, states: np.ndarray, sps: np.ndarray,
-                  set_sp: Any, changed: Any, busy: Any) -> int:
+                  set_sp: Any, changed: Any, busy: Any, kept: Any = None) -> int:
     """Run both copies; returns the stop tick.
 
     A tick is an event when ``busy(check)`` holds before it (a state a block does not start from:
     the check arms joints, a persistence timer runs) or when it returns a violation or changes
-    ``changed(check)``.
+    ``changed(check)``. ``kept(check)``, if given, is what the commit must leave: as before the stop tick.
     """
     K = len(ts)
     results_a = []
     first_event = K
+    kept_a = []
     for k in range(K):
+        if kept is not None:
+            kept_a.append(kept(check_a))
         set_sp(check_a, sps[k])
         before = changed(check_a)
         was_busy = busy(check_a)
@@ -82,6 +85,8 @@ def _differential(check_a: BlockCheck, check_b: BlockCheck, ts: np.ndarray, stat
     k = check_b.block_quiet(ts, states, sps)
     assert k == first_event
     check_b.commit_block(ts, states, sps, k)
+    if kept is not None:
+        assert kept(check_b) == (kept_a[k] if k < K else kept(check_a))
     results_b = [None] * k
     for j in range(k, K):
         set_sp(check_b, sps[j])
@@ -164,7 +169,7 @@ def test_the_following_error_check_decides_a_block_as_tick_by_tick(seed: int) ->
 
         with np.errstate(invalid="ignore"):  # inf on a continuous joint: the per-tick wrap warns too
             k = _differential(a, b, ts, states, sps, set_sp, lambda c: (c._tracking, c._since.tobytes()),
-                              lambda c: c._tracking)
+                              lambda c: c._tracking, lambda c: (c.peak.tobytes(), c._last_t))
         stops += k < K
         assert a.peak.tobytes() == b.peak.tobytes()
         assert a._since.tobytes() == b._since.tobytes()
@@ -209,6 +214,8 @@ def test_the_sensor_gate_decides_a_block_as_tick_by_tick(seed: int) -> None:
         ts = ts[2:]
         if rng.random() < 0.1:  # a late reading: a stalled loop
             ts[int(rng.integers(0, K)):] += 0.01
+        if rng.random() < 0.1:  # an early reading: a shorter time step than the cached reach's
+            ts[int(rng.integers(0, K)):] -= 0.001
         vmax = gate_a._vmax
         steps = rng.uniform(-1.0, 1.0, size=(K, n)) * vmax * period * rng.uniform(0.1, 2.5)
         q = q0 + np.cumsum(steps, axis=0) + lo * 0

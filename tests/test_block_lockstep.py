@@ -238,7 +238,7 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=64) if block else None
         b = robot.backend
-        write, step = b.write, mujoco.mj_step
+        step = mujoco.mj_step
         fired = False
 
         def stop_at(t: float) -> None:
@@ -249,22 +249,19 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
                 th.start()
                 th.join()
 
-        def write_and_stop(sp: Any) -> None:
-            write(sp)
-            stop_at(b.data.time)  # it lands during the write of tick ``at``
-
         def stop_and_step(m: Any, d: Any, nstep: int = 1) -> None:
             stop_at(d.time)  # it lands between the write of tick ``at`` and its step
             step(m, d, nstep=nstep)
 
-        if what == "move":  # a motion's block writes every tick
-            b.write = write_and_stop  # type: ignore[method-assign]
-            q = (await robot.read()).position
-            goal = [float(x) + 0.3 for x in q]
-            robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]), stretch_to_limits=True)
-        else:  # a hold's block writes at its first tick only: the e-stop comes during a step
-            mujoco.mj_step = stop_and_step
+        # a hold's block writes at its first tick only, a motion's puts each tick's controls computed
+        # before the block: either way the e-stop comes between a tick's controls and its step
         try:
+            mujoco.mj_step = stop_and_step
+            if what == "move":
+                q = (await robot.read()).position
+                goal = [float(x) + 0.3 for x in q]
+                robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]),
+                             stretch_to_limits=True)
             await robot.clock.sleep(0.5)
         finally:
             mujoco.mj_step = step

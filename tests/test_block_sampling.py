@@ -79,3 +79,19 @@ def test_the_executor_accumulates_trajectory_time_in_tick_order() -> None:
             total = v if i == 0 else total + v
             seq.append(total)
         assert acc.tobytes() == np.array(seq).tobytes()
+
+
+def test_samples_exactly_at_the_knots_take_the_segment_a_single_sample_takes() -> None:
+    """Times that are knots (and repeat): each lands in the segment bisect_right picks, as sample_into."""
+    rng = np.random.default_rng(17)
+    for _ in range(60):
+        s = _random_sampler(rng)
+        knots = [s.start_time, *(s.start_time + np.asarray([p.time_from_start for p in s.trajectory.points])).tolist()]
+        ts = np.sort(np.concatenate((knots, knots, rng.uniform(s.start_time - 0.2, s.end_time + 0.2, size=20))))
+        regions = np.empty(len(ts), dtype=np.intp)
+        block = s.sample_block(ts, np.empty((len(ts), 3, len(s.joint_names))), regions)
+        single = np.empty((3, len(s.joint_names)))
+        for k, t in enumerate(ts.tolist()):
+            s.sample_into(t, single)
+            assert regions[k] == s.region, (k, t)
+            assert block[k].tobytes() == single.tobytes(), (k, t)

@@ -8,6 +8,9 @@ and a step that diverges ends the block at that tick with the backend's own erro
 
 from __future__ import annotations
 
+import importlib.metadata
+from pathlib import Path
+
 import mujoco
 import numpy as np
 import pytest
@@ -159,3 +162,45 @@ async def test_a_hold_written_once_is_written_every_tick_bit_for_bit(robot_name:
         assert stepper.run(lambda k: None if k else b.write(hold[0].view), K, once) == K
         assert once.tobytes() == every.tobytes()
         assert np.abs(every[-1, 0] - every[0, 0]).max() > 0.01  # the servos pulled it over
+
+
+_PANDA = str(Path(str(importlib.metadata.distribution("example-robot-data").locate_file(
+    "cmeel.prefix/share/example-robot-data/robots"))) / "panda_description/urdf/panda.urdf")
+
+
+@pytest.mark.parametrize("robot_name", ["arm3", "humanoid", "panda"])
+async def test_a_blocks_controls_are_the_writes_bit_for_bit(robot_name: str) -> None:
+    """``controls(rows)`` computes the ctrl each tick's ``write`` leaves, for moving, resting and odd references.
+
+    Rows at rest, with -0.0, tiny velocities whose squares round to 0 (the feed-forward's ``moving``
+    says no), accelerations only, and gains and feed-forward efforts that vary per row; Panda's
+    mimic fingers take the feed-forward's follower path.
+    """
+    name = _PANDA if robot_name == "panda" else robot_name
+    async with agentsdk.connect("mujoco", robot=name, safety=SAFETY) as robot:
+        b = robot.backend
+        n = len(b.names)
+        rng = np.random.default_rng(11)
+        stepper = b.block_stepper(200)
+        stream = _stream(robot, 200, seed=5, hold=False)
+        rows = np.stack([sp.block for sp in stream])
+        rows[:, 2] = rng.normal(0.0, 0.5, size=(200, n))  # effort feed-forward
+        rows[:, 3:5] *= rng.uniform(0.5, 1.5, size=(200, 2, 1))
+        rows[10:20, 1] = rows[10:20, 6] = 0.0  # at rest
+        rows[20:25, 1] = rows[20:25, 6] = -0.0
+        rows[25:30, 1], rows[25:30, 6] = 1e-170, 0.0  # squares round to 0: at rest for the feed-forward
+        rows[30:35, 1] = 0.0  # accelerating from rest
+        rows[35:40, 1] = 1e-150  # a square that does not round to 0
+        sp = Setpoint(n)
+        put = stepper.controls(rows, sp.view)
+        assert put is not None
+        ctrl = b.data.ctrl
+        for j in range(len(rows)):
+            sp.block[...] = rows[j]
+            b.write(sp.view)
+            expected = ctrl.tobytes()
+            ctrl[...] = np.nan
+            put(j)
+            assert ctrl.tobytes() == expected, j
+        sp.enabled[0] = False  # a joint with torque off: each tick writes its setpoint
+        assert stepper.controls(rows, sp.view) is None

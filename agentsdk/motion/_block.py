@@ -197,7 +197,13 @@ class BlockPlanner:
             np.abs(gerr, out=gerr)
             reached = np.less_equal(gerr, ex.goal_tol).all(axis=1)
             return int(np.argmax(reached)) if reached.any() else q
-        ok = np.less_equal(err if ex.path_unbounded else np.abs(err), ex.path_tol)
+        if ex.path_unbounded:
+            # err <= inf fails only for NaN: a sum without NaN had none (a NaN sum from inf - inf: the test below)
+            if not math.isnan(np.add.reduce(err, axis=None)):
+                return q
+            ok = np.less_equal(err, ex.path_tol)
+        else:
+            ok = np.less_equal(np.abs(err), ex.path_tol)
         good = ok.all(axis=1)
         return q if good.all() else int(np.argmin(good))
 
@@ -306,8 +312,8 @@ class BlockPlanner:
         if not dts[1] > 0.0:
             return 0
         np.minimum(dts[1:], self.loop.period, out=dts[1:])
-        if not stopping:
-            np.multiply(dts[1:], ex.s, out=dts[1:])  # tau += s * dt (s = 1: the same bits)
+        if not stopping and ex.s != 1.0:
+            np.multiply(dts[1:], ex.s, out=dts[1:])  # tau += s * dt (s = 1: the same bits, skipped)
         np.add.accumulate(dts, out=dts)
         taus[...] = dts[1:]
         sampler = ex.sampler
@@ -321,12 +327,21 @@ class BlockPlanner:
         # the motion's own event: its trajectory (or ramp) ends, at the first elapsed >= duration; while it
         # settles at the goal, its goal time runs out (the goal tolerance itself is a measured test: path_quiet)
         end = sampler.duration + ex.goal_time if ex.phase is MotionPhase.SETTLE else sampler.duration
-        ended = np.flatnonzero(np.subtract(taus, ex.t0) >= end)
-        k = int(ended[0]) if len(ended) else K
-        # a sample outside the proven envelope takes the limiter's full path: per tick from there
-        inside = np.asarray(env.inside)[regions[:k] + 1]
-        if not inside.all():
-            k = int(np.argmin(inside))
+        # (taus grows, and so does a rounded difference: none has ended when the last has not)
+        if float(taus[-1]) - ex.t0 >= end:
+            ended = np.flatnonzero(np.subtract(taus, ex.t0) >= end)
+            k = int(ended[0]) if len(ended) else K
+        else:
+            k = K
+        if k == 0:
+            return 0
+        # a sample outside the proven envelope takes the limiter's full path: per tick from there (the
+        # regions grow too: when every region from the first tick's to the last's is inside, every tick is)
+        first, last = int(regions[0]), int(regions[k - 1])
+        if not all(env.inside[first + 1 : last + 2]):
+            inside = np.asarray(env.inside)[regions[:k] + 1]
+            if not inside.all():
+                k = int(np.argmin(inside))
         return k
 
     def _ramp_envelope(self, ex: _Exec, lim: StepLimiter) -> _Envelope | None:

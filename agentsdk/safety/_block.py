@@ -32,6 +32,20 @@ class SafetyBlock:
         self._wd_tick = watchdogs.tick
         #: True once an e-stop latch is set (any thread)
         self.latched: Callable[[], bool] = core._latched.is_set
+        #: the watchdogs' checks as last seen, and the same as block checks if each is one (else None):
+        #: ``isinstance`` against a runtime-checkable protocol costs ~10 µs, so once per change of the list
+        self._checks_seen: tuple[object, ...] = ()
+        self._block_checks: tuple[BlockCheck, ...] | None = ()
+
+    def _checks(self) -> tuple[BlockCheck, ...] | None:
+        """The watchdogs' checks if every one has a block form (:class:`BlockCheck`), else None."""
+        checks = self._watchdogs._checks
+        seen = self._checks_seen
+        if len(checks) != len(seen) or any(a is not b for a, b in zip(checks, seen, strict=True)):
+            self._checks_seen = tuple(checks)
+            ok = all(isinstance(c, BlockCheck) for c in checks)
+            self._block_checks = tuple(c for c in checks if isinstance(c, BlockCheck)) if ok else None
+        return self._block_checks
 
     def ready(self, limit_hooks: tuple[Callable[..., object], ...]) -> bool:
         """The cheap preconditions: the filter is the only LIMIT hook, state OK, every check has a block form.
@@ -50,7 +64,8 @@ class SafetyBlock:
         wd = self._watchdogs
         if wd._watch_position:
             return False
-        return all(isinstance(c, BlockCheck) and c.block_ready() for c in wd._checks)
+        checks = self._checks()
+        return checks is not None and all(c.block_ready() for c in checks)
 
     def is_watchdog_hook(self, fn: Callable[..., object]) -> bool:
         """True for the safety watchdogs' OBSERVE hook (its block form is :meth:`observe_quiet`)."""
@@ -74,10 +89,11 @@ class SafetyBlock:
         if gate is not None:
             q = min(q, gate.block_quiet(ts, states))
         checked = min(q, done - 1 if self.latched() else done)
-        for c in self._watchdogs._checks:
+        checks = self._checks()
+        assert checks is not None  # (ready() said so, and nothing runs between ready() and the block)
+        for c in checks:
             if checked == 0:
                 break
-            assert isinstance(c, BlockCheck)
             quiet = c.block_quiet(ts[:checked], states[:checked], setpoints[:checked])
             if quiet < checked:
                 checked = q = quiet  # this tick's check acts: it runs alone
@@ -87,8 +103,9 @@ class SafetyBlock:
                checked: int) -> bool:
         """Take the state ``q`` quiet ticks leave (the checks ran in ``checked``); False: no gate wrote the state."""
         self._filter.commit_block(rows, q)
-        for c in self._watchdogs._checks:
-            assert isinstance(c, BlockCheck)
+        checks = self._checks()
+        assert checks is not None
+        for c in checks:
             c.commit_block(ts, states, setpoints, checked)
         gate = self._loop.sensor_gate
         if gate is None:

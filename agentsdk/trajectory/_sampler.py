@@ -14,6 +14,10 @@ from ..types import FloatArray
 from ._peaks import MotionPeaks, derivative, poly_range, poly_roots
 from ._types import Interpolation, Trajectory, Values, vector
 
+#: the factors of the velocity and acceleration rows of sample_block's bases
+_ROW1 = np.array([2.0, 3.0, 4.0])
+_ROW2 = np.array([6.0, 12.0, 20.0])
+
 
 def quintic(
     q0: FloatArray, v0: FloatArray, a0: FloatArray, q1: FloatArray, v1: FloatArray, a1: FloatArray, T: FloatArray
@@ -118,12 +122,14 @@ class TrajectorySampler:
 
     __slots__ = (
         "_B",
+        "_Bblock",
         "_Bm",
         "_T",
         "_c",
         "_end_state",
         "_has_start",
         "_knots",
+        "_knots_arr",
         "_n",
         "_peaks",
         "_segs",
@@ -274,6 +280,9 @@ class TrajectorySampler:
             seg_coeffs.append(body)
         self._c = np.concatenate(seg_coeffs, axis=0) if seg_coeffs else np.zeros((0, 6, n))
         self._knots = knots
+        self._knots_arr = np.array(knots, dtype=np.float64)
+        #: sample_block's stacked bases (K, 3, 6), constant entries written once; grown on demand
+        self._Bblock = np.zeros((0, 3, 6))
         self._T = np.concatenate(([pts.points[0].time_from_start], T)) if has_start else T
         self._has_start = has_start
         self._B = np.zeros((3, 6))
@@ -374,45 +383,49 @@ class TrajectorySampler:
             return out
         n_seg = len(self._c)
         knots = self._knots
-        # bisect_right per time: the same segment choice as sample_into
-        seg = np.searchsorted(np.asarray(knots, dtype=np.float64), ts, side="right") - 1 if knots else np.full(K, -1)
-        # runs of equal segment (ts is sorted, so each segment's ticks are consecutive)
-        np.clip(seg, -1, n_seg, out=seg)  # before the first segment: -1, after the last: n_seg
-        if regions is not None:
-            regions[...] = seg
-        cuts = np.flatnonzero(np.diff(seg)) + 1
-        starts = [0, *cuts.tolist()]
-        ends = [*cuts.tolist(), K]
-        for a, b in zip(starts, ends, strict=True):
-            i = int(seg[a])
+        # the segments of the first and the last time (bisect_right, as sample_into), clipped to
+        # -1 (before the first) .. n_seg (after the last); ts is sorted, so each segment's ticks
+        # are consecutive and begin at the first tick at or after its knot (knots[i] <= t, the
+        # same comparison as bisect_right's)
+        i0 = min(bisect_right(knots, float(ts[0])) - 1, n_seg)
+        i1 = min(bisect_right(knots, float(ts[-1])) - 1, n_seg)
+        cuts = np.searchsorted(ts, self._knots_arr[i0 + 1 : i1 + 1], side="left").tolist() if i1 > i0 else []
+        B = self._Bblock
+        if len(B) < K and i1 >= 0 and i0 < n_seg:
+            B = self._Bblock = np.zeros((max(K, 2 * len(B)), 3, 6))
+            B[:, 0, 0] = B[:, 1, 1] = 1.0  # the constant entries, written once
+            B[:, 2, 2] = 2.0
+        n = self._n
+        flat_out = out.flags.c_contiguous
+        a = 0
+        for i, b in zip(range(i0, i1 + 1), [*cuts, K], strict=True):
+            if a == b:
+                continue  # a segment no tick falls in
+            if regions is not None:
+                regions[a:b] = i
             if i >= n_seg:
                 out[a:b] = self._end_state
-                continue
-            if i < 0:
+            elif i < 0:
                 out[a:b] = self._start_state
-                continue
-            tau = ts[a:b] - knots[i]
-            t2 = tau * tau
-            t3 = t2 * tau
-            B = np.zeros((b - a, 3, 6))
-            B[:, 0, 0] = 1.0
-            B[:, 0, 1] = tau
-            B[:, 0, 2] = t2
-            B[:, 0, 3] = t3
-            B[:, 0, 4] = t3 * tau
-            B[:, 0, 5] = t3 * t2
-            B[:, 1, 1] = 1.0
-            B[:, 1, 2] = 2.0 * tau
-            B[:, 1, 3] = 3.0 * t2
-            B[:, 1, 4] = 4.0 * t3
-            B[:, 1, 5] = 5.0 * t3 * tau
-            B[:, 2, 2] = 2.0
-            B[:, 2, 3] = 6.0 * tau
-            B[:, 2, 4] = 12.0 * t2
-            B[:, 2, 5] = 20.0 * t3
-            rows = np.dot(B.reshape(-1, 6), self._segs[i])
-            out[a:b] = rows.reshape(b - a, 3, self._n)
-        self.region = int(seg[-1])
+            else:
+                # B = [[1, tau, t2, t3, t3 tau, t3 t2], [0, 1, 2 tau, 3 t2, 4 t3, 5 t3 tau], [0, 0, 2, 6 tau,
+                # 12 t2, 20 t3]]: the entries sample_into writes, from the same float operations
+                Bk = B[: b - a]
+                x = Bk[:, 0, 1:4]  # tau, t2, t3
+                np.subtract(ts[a:b], knots[i], out=x[:, 0])
+                np.multiply(x[:, 0], x[:, 0], out=x[:, 1])
+                np.multiply(x[:, 1], x[:, 0], out=x[:, 2])
+                np.multiply(x[:, 2:3], x[:, 0:2], out=Bk[:, 0, 4:6])  # t3 tau, t3 t2
+                np.multiply(x, _ROW1, out=Bk[:, 1, 2:5])  # 2 tau, 3 t2, 4 t3
+                np.multiply(x[:, 2], 5.0, out=Bk[:, 1, 5])
+                np.multiply(Bk[:, 1, 5], x[:, 0], out=Bk[:, 1, 5])  # (5 t3) tau
+                np.multiply(x, _ROW2, out=Bk[:, 2, 3:6])  # 6 tau, 12 t2, 20 t3
+                if flat_out:
+                    np.dot(Bk.reshape(-1, 6), self._segs[i], out=out[a:b].reshape(-1, n))
+                else:
+                    out[a:b] = np.dot(Bk.reshape(-1, 6), self._segs[i]).reshape(b - a, 3, n)
+            a = b
+        self.region = i1
         return out
 
     def sample(self, t: float) -> tuple[FloatArray, FloatArray, FloatArray]:

@@ -20,6 +20,12 @@ tick-by-tick run leaves it when it raises). The backend's divergence checks cost
 step, so a block looks once, after its last step (MuJoCo counts every divergence and steps on),
 and only a block that diverged runs again from its start with the checks after every step.
 
+For a motion the caller need not write each setpoint through the backend: :meth:`BlockStepper.controls`
+computes the controls the write would leave in ``ctrl`` for every tick of the block at once (the
+servo law on all rows, the inverse-dynamics feed-forward per row with only its matrix products and
+``mj_inverse``), and the block's ``write(k)`` puts row ``k`` into ``ctrl`` (tick 0 still writes its
+setpoint: that sets the model arrays below).
+
 Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
 enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them
 constant (pre-planned motions write the loop's gains), which is the caller's precondition.
@@ -38,6 +44,8 @@ import numpy as np
 from agentsdk.errors import InvalidValueError, SimulationDiverged
 
 if TYPE_CHECKING:
+    from agentsdk.backend import SetpointView
+
     from . import MujocoBackend
 
 __all__ = ["BlockStepper"]
@@ -71,6 +79,61 @@ class BlockStepper:
         #: that stays the same over a block (a hold) needs its write at the first tick only
         self.write_once = backend.gravity_route != "host"
         self._warned: tuple[np.ndarray, bytes] = (np.zeros(0), b"")
+        #: :meth:`controls`' rows (one per tick) and its work array
+        self._ctrls = np.empty((capacity, m.nu))
+        self._ctrl_tmp = np.empty((capacity, len(backend.joints)))
+        self._ctrl_ff = np.empty((capacity, len(backend.joints)))
+
+    def controls(self, rows: np.ndarray, setpoint: SetpointView) -> Callable[[int], None] | None:
+        """The controls :meth:`~agentsdk.Backend.write` computes from each of K setpoints, all before the block.
+
+        ``rows`` (K, 7, n): each tick's setpoint rows (:attr:`agentsdk.loop.Setpoint.FIELDS` order);
+        ``setpoint``: the live view, whose ``mode`` and ``enabled`` rows are the block's (constant).
+        Returns ``put(j)``, which writes tick ``j``'s controls into MuJoCo's ``ctrl`` (bit for bit
+        what the backend's write of that setpoint leaves there: the servo law's element operations
+        in the same order, on all K rows at once, and the inverse-dynamics feed-forward of each
+        moving reference as the write computes it), or None where the controls depend on more than
+        the setpoint (the host's ``g(q)`` of the measured position) or a joint's torque is off.
+        The block's first tick still runs the whole write (it sets the model arrays that the gains
+        and the enabled joints decide, constant over a block); ``put`` serves the others.
+        """
+        b = self._b
+        K = len(rows)
+        if b._gravity is not None or K > self.capacity or setpoint.enabled.tobytes() != b._all_enabled:
+            return None
+        ctrls = self._ctrls[:K]
+        tmp = self._ctrl_tmp[:K]
+        # ctrl = kp q_des + kd v_des + effort_ff (+ the feed-forward), as MujocoBackend._write per tick
+        np.multiply(rows[:, 3], rows[:, 0], out=ctrls)
+        np.multiply(rows[:, 4], rows[:, 1], out=tmp)
+        ctrls += tmp
+        ctrls += rows[:, 2]
+        inverse = b._inverse
+        if inverse is not None:
+            # InverseDynamicsTerm.moving per row: a dot product of squares is 0 exactly when every rounded
+            # square is (no term is negative), whatever the order of its sum
+            sq = np.multiply(rows[:, 1], rows[:, 1], out=tmp)
+            moving = np.not_equal(sq, 0.0).any(axis=1)
+            np.multiply(rows[:, 6], rows[:, 6], out=tmp)
+            moving |= np.not_equal(tmp, 0.0).any(axis=1)
+            qadr, followers = b._qadr, b._qdes_followers
+
+            def put_q(qpos: np.ndarray, q: np.ndarray) -> None:  # the desired position, as the write puts it
+                np.put(qpos, qadr, q)
+                for adr, leader, c1, c0 in followers:
+                    qpos[adr] = c0 + c1 * q[leader]
+
+            idx = np.flatnonzero(moving)
+            if len(idx):
+                ff = inverse.compute_block(b._qdes, put_q, rows[:, 0], rows[:, 1], rows[:, 6], idx.tolist(),
+                                           self._ctrl_ff[:K], setpoint.mode)
+                ctrls[idx] += ff[idx]
+        ctrl = b._ctrl
+
+        def put(j: int) -> None:
+            ctrl[...] = ctrls[j]
+
+        return put
 
     def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
         """Run ticks ``0 .. count - 1``: ``write(k)``, step one control period, read into ``readings[k]`` (3, n).
@@ -117,18 +180,18 @@ class BlockStepper:
         # joints consecutive in qpos / qvel, effort read as it is: read() returns the same views every tick
         fresh = b._gather or b._effort_map is not None
         q, v, e = read()
+        qs, vs, es = readings[:, 0], readings[:, 1], readings[:, 2]  # (one view per row kind, not per tick)
         for k in range(count):
             if not k % every:  # before the write: the state tick by tick stands in before tick k
                 get_state(m, d, states[k // every], _STATE)
             if write(k) is False:
                 return k  # (restore(k) is then the state as it stands)
-            step(m, d, nstep=nsub)
+            step(m, d, nsub)
             if fresh:
                 q, v, e = read()
-            row = readings[k]
-            row[0] = q
-            row[1] = v
-            row[2] = e
+            qs[k] = q
+            vs[k] = v
+            es[k] = e
         return count
 
     def _diverged(self) -> bool:

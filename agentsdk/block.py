@@ -65,6 +65,12 @@ class BlockObserver(Protocol):
         """The same for K ticks at once."""
 
 
+def check_capacity(capacity: int) -> None:
+    """``capacity`` is a block size :class:`BlockLockstep` takes (at least 2 ticks), else :class:`InvalidValueError`."""
+    if capacity < 2:
+        raise InvalidValueError(f"capacity must be at least 2 ticks, got {capacity}")
+
+
 class BlockStepperLike(Protocol):
     """What a backend's ``block_stepper(capacity)`` returns (MuJoCo: ``backends.mujoco.block.BlockStepper``)."""
 
@@ -97,8 +103,7 @@ class BlockLockstep:
         clock = loop.clock
         if not isinstance(clock, LockstepClock):
             raise ConfigurationError("block lockstep needs a lockstep robot (realtime=False)")
-        if capacity < 2:
-            raise InvalidValueError(f"capacity must be at least 2 ticks, got {capacity}")
+        check_capacity(capacity)
         make = getattr(loop.backend, "block_stepper", None)
         if make is None:
             raise ConfigurationError(f"backend {loop.backend.name!r} cannot run a block of ticks (no block_stepper)")
@@ -125,8 +130,13 @@ class BlockLockstep:
         self.rollbacks = 0
         loop.block_runner = self.run
 
+    @property
+    def active(self) -> bool:
+        """The loop runs its blocks through this runner (not closed, not replaced)."""
+        return self._loop.block_runner == self.run
+
     def close(self) -> None:
-        """Turn block lockstep off (ticks run one by one again)."""
+        """Turn block lockstep off (ticks run one by one again). Idempotent."""
         if self._loop.block_runner == self.run:
             self._loop.block_runner = None
 

@@ -25,7 +25,7 @@ from .backend import Backend, Capabilities, SetpointView
 from .clock import Clock
 from .config import Gains
 from .description import apply_overrides, resolve_robot
-from .errors import AgentSDKError, BackendStartError
+from .errors import AgentSDKError, BackendStartError, ConfigurationError
 from .limits import PositionBounds
 from .loop import ControlLoop, HookHandle, Phase
 from .registry import load_backend
@@ -69,6 +69,8 @@ class Robot:
         #: the robot's sensors: names, types, frames and latest readings (:mod:`agentsdk.sensors`)
         self.sensors: Sensors = sensors
         self._motions = motions
+        #: block lockstep's runner (:meth:`block_lockstep`); connect turns it on where it can run
+        self._block: BlockLockstep | None = None
         self._kinematics: Kinematics | None = None
         self._kinematics_error: Exception | None = None
         motions.kinematics_source = lambda: self.kinematics  # link poses in motion feedback
@@ -270,13 +272,40 @@ class Robot:
 
     # -------------------------------------------------------------- direct
     def block_lockstep(self, capacity: int = 256) -> BlockLockstep:
-        """Run this lockstep robot's uneventful ticks as blocks, bit for bit tick by tick (experimental, MuJoCo).
+        """This lockstep robot's block runner (at most ``capacity`` ticks per block): the one on, or a new one.
 
-        See :mod:`agentsdk.block` (``close()`` on the returned object turns it off again).
+        Block lockstep (see :mod:`agentsdk.block`) runs uneventful ticks as blocks, bit for bit tick by
+        tick. :func:`connect` turns it on by default wherever it can run (lockstep, a backend with a
+        block stepper: MuJoCo), at 256 ticks; ``connect(..., block_lockstep=False)`` leaves it off.
+        This returns the runner that is on when its capacity is ``capacity`` (its counters go on),
+        else turns on a new one of that size in its place. ``close()`` on it turns block lockstep
+        off (until the next call); closing the robot closes it. A realtime robot, or a backend that
+        cannot step a block, raises :class:`ConfigurationError`.
         """
-        from .block import BlockLockstep
+        from .block import BlockLockstep, check_capacity
 
-        return BlockLockstep(self._loop, self.safety.block_seam, self._motions.block_planner, capacity)
+        check_capacity(capacity)
+        current = self._block
+        if current is not None and current.active:
+            if current.capacity == capacity:
+                return current
+            current.close()
+        self._block = BlockLockstep(self._loop, self.safety.block_seam, self._motions.block_planner, capacity)
+        return self._block
+
+    @property
+    def block_runner(self) -> BlockLockstep | None:
+        """The block lockstep runner that is on (:meth:`block_lockstep`), or None: every tick runs on its own."""
+        current = self._block
+        return current if current is not None and current.active else None
+
+    def _start_block_lockstep(self) -> None:
+        """Block lockstep at its default capacity, where it can run (connect's default)."""
+        from .clock import LockstepClock
+
+        loop = self._loop
+        if isinstance(loop.clock, LockstepClock) and callable(getattr(loop.backend, "block_stepper", None)):
+            self.block_lockstep()
 
     async def read(self) -> JointState:
         """The latest measured joint state (position, velocity, effort, stamp)."""
@@ -457,7 +486,12 @@ class Robot:
                 try:
                     await asyncio.shield(self.safety.shutdown())
                 finally:
-                    await self._loop.stop()
+                    try:
+                        await self._loop.stop()
+                    finally:
+                        if self._block is not None:
+                            self._block.close()  # (no task or thread of its own: the loop ran it)
+                            self._block = None
 
     async def __aenter__(self) -> Robot:
         return self
@@ -480,8 +514,12 @@ async def _open_robot(
     strict: bool | None = None,
     trusted: bool | None = None,
     update_rate: float | None = None,
+    block_lockstep: bool = True,
 ) -> Robot:
     from .motion import MotionManager
+
+    if not isinstance(block_lockstep, bool):
+        raise ConfigurationError(f"block_lockstep must be True or False, got {block_lockstep!r}")
 
     def prepare() -> tuple[Backend, SafetyConfig, PositionBounds, Kinematics | Exception]:
         # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
@@ -526,6 +564,12 @@ async def _open_robot(
 
     robot_obj = Robot(loop, layer, motions, connect_sensors(loop, layer))
     robot_obj._adopt_kinematics(kin)
+    if block_lockstep:
+        try:
+            robot_obj._start_block_lockstep()
+        except BaseException:
+            await robot_obj.close()
+            raise
     return robot_obj
 
 
@@ -576,6 +620,7 @@ def connect(
     strict: bool | None = None,
     trusted: bool | None = None,
     update_rate: float | None = None,
+    block_lockstep: bool = True,
     **options: Any,
 ) -> _Connection:
     """Connect to ``robot`` on ``backend``.
@@ -591,10 +636,13 @@ def connect(
     allowed (by default a robot file is data, see README "Bring your own robot").
     ``safety`` overrides fields of the robot.yaml ``safety`` section;
     ``update_rate`` (Hz) overrides robot.yaml's control rate (like ros2_control's
-    ``controller_manager.update_rate`` set at launch); other keyword options go to the backend (they override robot.yaml
+    ``controller_manager.update_rate`` set at launch); ``block_lockstep=False`` runs every lockstep
+    tick on its own instead of running uneventful stretches as blocks (bit for bit the same results,
+    see :meth:`Robot.block_lockstep`; the default turns blocks on wherever they can run: MuJoCo in
+    lockstep); other keyword options go to the backend (they override robot.yaml
     ``backends.<name>``). Use as ``async with connect(...) as robot`` or
     ``robot = await connect(...)`` (then ``await robot.close()``).
     """
-    return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted, update_rate))
+    return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted, update_rate, block_lockstep))
 
 

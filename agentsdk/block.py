@@ -1,4 +1,4 @@
-"""Block lockstep (issue 28 item 1, opt-in, experimental): uneventful lockstep ticks run as one block.
+"""Block lockstep (issue 28 item 1, on by default in MuJoCo lockstep): uneventful lockstep ticks run as one block.
 
 In lockstep the control loop ticks while every other task waits. When nothing can happen for a
 while (no task wakes, no check fires, the setpoints are known in advance), the ticks' phases are
@@ -20,6 +20,13 @@ executor record; a steady speed scaling, samples the limiter provably leaves alo
 safety layer's filter as the only LIMIT hook, the safety watchdogs and :class:`BlockObserver` hooks
 as the only OBSERVE hooks, safety state OK, every check a :class:`~agentsdk.checks.BlockCheck`, the
 command watchdog not watching position mode. Anything else runs tick by tick, as without it.
+
+On by default: :func:`agentsdk.connect` starts a runner of 256 ticks for every lockstep robot whose
+backend has a ``block_stepper`` (MuJoCo); realtime robots and the other backends run every tick on its
+own. ``connect(..., block_lockstep=False)`` (``agentsdk run --no-block-lockstep``) opts out.
+:meth:`agentsdk.Robot.block_lockstep` returns the runner (or one of another capacity in its place),
+:attr:`agentsdk.Robot.block_runner` reads it, :meth:`BlockLockstep.close` turns it off, and closing the
+robot closes it (it has no task or thread of its own: the control loop calls :meth:`BlockLockstep.run`).
 """
 
 from __future__ import annotations

@@ -85,6 +85,9 @@ class BlockStepperLike(Protocol):
     #: writing the same setpoint again changes nothing: a hold's block writes it at its first tick only
     write_once: bool
 
+    def ready(self) -> bool:
+        """A block may run now (False: e.g. the backend's step was replaced, which a block would bypass)."""
+
     def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray) -> int:
         """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done."""
 
@@ -135,6 +138,10 @@ class BlockLockstep:
         self.block_ticks = 0
         self.motion_ticks = 0
         self.rollbacks = 0
+        #: the OBSERVE hooks last looked at and :meth:`_observers`' answer for them (the loop builds a new
+        #: tuple whenever its hooks change: the scan and its list are not redone, nor allocated, per tick)
+        self._observe_fns: tuple[Callable[..., object], ...] | None = None
+        self._observe_ok: list[BlockObserver] | None = None
         loop.block_runner = self.run
 
     @property
@@ -149,9 +156,16 @@ class BlockLockstep:
 
     def _observers(self) -> list[BlockObserver] | None:
         """The OBSERVE hooks besides the watchdogs if each takes blocks (None: one does not, or no watchdogs)."""
+        fns = self._loop.hook_functions(Phase.OBSERVE)
+        if fns is not self._observe_fns:  # (held here: a tuple seen before cannot be another one now)
+            self._observe_fns = fns
+            self._observe_ok = self._scan(fns)
+        return self._observe_ok
+
+    def _scan(self, fns: tuple[Callable[..., object], ...]) -> list[BlockObserver] | None:
         out: list[BlockObserver] = []
         seen = False
-        for fn in self._loop.hook_functions(Phase.OBSERVE):
+        for fn in fns:
             if self._safety.is_watchdog_hook(fn):
                 seen = True
             elif isinstance(fn, BlockObserver):
@@ -166,10 +180,10 @@ class BlockLockstep:
             self._skip -= 1
             return _NONE
         loop, clock, safety = self._loop, self._clock, self._safety
-        if loop.torque_off or loop.fault is not None or not safety.ready(loop.hook_functions(Phase.LIMIT)):
-            return _NONE
-        observers = self._observers()
+        observers = self._observers()  # (first: the cheapest test, and the one a recorder keeps failing)
         if observers is None:
+            return _NONE
+        if loop.torque_off or loop.fault is not None or not safety.ready(loop.hook_functions(Phase.LIMIT)):
             return _NONE
         hooks = loop.hook_functions(Phase.COMMAND)
         if hooks and self._planner is None:
@@ -181,6 +195,19 @@ class BlockLockstep:
         stamp = loop.stamp
         if stamp != tick0 * period:
             return _NONE  # (the COMMAND phases' times below are the clock's products)
+        return self._block(K, hooks, observers, tick0, period, stamp)
+
+    def _block(self, K: int, hooks: tuple[Callable[..., object], ...], observers: list[BlockObserver],
+               tick0: int, period: float, stamp: float) -> tuple[int, bool]:
+        """Try a block of up to ``K`` ticks from tick ``tick0`` (:meth:`run`'s checks passed).
+
+        Apart from :meth:`run`: its closures' cells are made on every call, and :meth:`run` runs
+        before every lockstep tick, most of them without a block (nothing allocated there).
+        """
+        stepper = self._stepper
+        if not stepper.ready():
+            return self._cut_short()
+        loop, clock, safety = self._loop, self._clock, self._safety
         sp = loop.setpoint_buffer
         before = sp.block.copy()
         sp.acceleration.fill(0.0)  # as each tick does first (only a motion writes it again)
@@ -206,7 +233,6 @@ class BlockLockstep:
             sp.block[...] = before
             return self._cut_short()
         backend, spv, latched, spb = loop.backend, sp.view, safety.latched, sp.block
-        stepper = self._stepper
         # a hold's rows are all the same: where the backend's controls depend on the setpoint alone,
         # the controls written at tick 0 stand for the whole block
         every_tick = bool(plans) or not stepper.write_once

@@ -110,3 +110,30 @@ def test_agentsdk_run_has_blocks_unless_told_not_to(tmp_path: Path, flag: list[s
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == ("blocks\n" if not flag else "none\n")
+
+
+async def test_a_replaced_backend_step_is_not_bypassed_by_blocks() -> None:
+    """A block steps MuJoCo itself: where the backend's ``_step`` was replaced, every tick goes through it."""
+    async with agentsdk.connect("mujoco", robot="arm3") as robot:
+        runner = robot.block_runner
+        assert runner is not None
+        await robot.clock.sleep(0.2)
+        ran = runner.block_ticks
+        assert ran > 0
+        b = robot.backend
+        original = b._step
+        calls = 0
+
+        async def counting_step(dt: float) -> None:
+            nonlocal calls
+            calls += 1
+            await original(dt)
+
+        b._step = counting_step  # type: ignore[method-assign]
+        ticks = robot.clock.ticks
+        await robot.clock.sleep(0.3)
+        assert calls == robot.clock.ticks - ticks > 100
+        assert runner.block_ticks == ran
+        del b._step  # the backend's own again: blocks again
+        await robot.clock.sleep(0.3)
+        assert runner.block_ticks > ran

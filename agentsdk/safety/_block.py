@@ -29,7 +29,13 @@ class SafetyBlock:
         self._filter = command_filter
         self._watchdogs = watchdogs
         self._filter_tick = command_filter.tick
+        #: the LIMIT hooks a block allows (built once: ready() runs before every lockstep tick and allocates nothing)
+        self._filter_only = (self._filter_tick,)
         self._wd_tick = watchdogs.tick
+        #: the checks' version (``Watchdogs.checks_version``) the block forms were last looked up at, and
+        #: whether each check then had one (a Protocol isinstance costs microseconds and allocates)
+        self._checks_seen = -1
+        self._all_block_forms = False
         #: True once an e-stop latch is set (any thread)
         self.latched: Callable[[], bool] = core._latched.is_set
 
@@ -40,7 +46,7 @@ class SafetyBlock:
         (:meth:`~agentsdk.checks.BlockCheck.block_ready`) and the command watchdog not watching
         position mode (its per-tick test would then have to run).
         """
-        if limit_hooks != (self._filter_tick,):
+        if limit_hooks != self._filter_only:
             return False
         if self._core._state is not SafetyState.OK or self.latched():
             return False
@@ -50,7 +56,16 @@ class SafetyBlock:
         wd = self._watchdogs
         if wd._watch_position:
             return False
-        return all(isinstance(c, BlockCheck) and c.block_ready() for c in wd._checks)
+        checks = wd._checks
+        if wd.checks_version != self._checks_seen:
+            self._checks_seen = wd.checks_version
+            self._all_block_forms = all(isinstance(c, BlockCheck) for c in checks)
+        if not self._all_block_forms:
+            return False
+        for c in checks:  # (a loop, not all() of a generator: nothing allocated per tick)
+            if not c.block_ready():  # type: ignore[attr-defined]  # (a BlockCheck: seen above)
+                return False
+        return True
 
     def is_watchdog_hook(self, fn: Callable[..., object]) -> bool:
         """True for the safety watchdogs' OBSERVE hook (its block form is :meth:`observe_quiet`)."""

@@ -78,6 +78,25 @@ def check_capacity(capacity: int) -> None:
         raise InvalidValueError(f"capacity must be at least 2 ticks, got {capacity}")
 
 
+def available(loop: ControlLoop) -> bool:
+    """Block lockstep can run on ``loop``: a lockstep clock and a backend with a ``block_stepper`` (MuJoCo)."""
+    return isinstance(loop.clock, LockstepClock) and callable(getattr(loop.backend, "block_stepper", None))
+
+
+def lockstep_runner(loop: ControlLoop, safety: SafetyBlock, planner: BlockPlanner | None,
+                    current: BlockLockstep | None, capacity: int) -> BlockLockstep:
+    """``current`` if it is on at ``capacity`` ticks, else a new runner of that size in its place.
+
+    What :meth:`agentsdk.Robot.block_lockstep` does (a bad ``capacity`` raises before ``current`` goes off).
+    """
+    check_capacity(capacity)
+    if current is not None and current.active:
+        if current.capacity == capacity:
+            return current
+        current.close()
+    return BlockLockstep(loop, safety, planner, capacity)
+
+
 class BlockStepperLike(Protocol):
     """What a backend's ``block_stepper(capacity)`` returns (MuJoCo: ``backends.mujoco.block.BlockStepper``)."""
 
@@ -180,16 +199,18 @@ class BlockLockstep:
             self._skip -= 1
             return _NONE
         loop, clock, safety = self._loop, self._clock, self._safety
-        observers = self._observers()  # (first: the cheapest test, and the one a recorder keeps failing)
+        # the tests a tick that cannot be blocked fails most often come first: an OBSERVE hook without a
+        # block form (a recorder), a task that wakes at the next tick (a behavior commanding every tick)
+        observers = self._observers()
         if observers is None:
+            return _NONE
+        K = clock.ticks_until_wake(self.capacity)
+        if K < 2:
             return _NONE
         if loop.torque_off or loop.fault is not None or not safety.ready(loop.hook_functions(Phase.LIMIT)):
             return _NONE
         hooks = loop.hook_functions(Phase.COMMAND)
         if hooks and self._planner is None:
-            return _NONE
-        K = clock.ticks_until_wake(self.capacity)
-        if K < 2:
             return _NONE
         tick0, period = clock.ticks, clock.period
         stamp = loop.stamp

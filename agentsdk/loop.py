@@ -425,6 +425,7 @@ class ControlLoop:
                 await asyncio.shield(asyncio.gather(task, return_exceptions=True))
             except asyncio.CancelledError:
                 cancelled = True
+        self.block_runner = None  # block lockstep ends with the loop (its runner has no task of its own)
         self.clock.fail(RobotClosedError(f"robot on backend {self.backend.name!r} is closed"), final=True)
         if isinstance(self.clock, RealtimeClock):
             self.clock.release()  # its timerfd (after fail: the pending sleepers got the reason)

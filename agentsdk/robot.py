@@ -69,7 +69,7 @@ class Robot:
         #: the robot's sensors: names, types, frames and latest readings (:mod:`agentsdk.sensors`)
         self.sensors: Sensors = sensors
         self._motions = motions
-        #: block lockstep's runner (:meth:`block_lockstep`); connect turns it on where it can run
+        #: block lockstep's runner (:meth:`block_lockstep`): connect turns it on where it can run
         self._block: BlockLockstep | None = None
         self._kinematics: Kinematics | None = None
         self._kinematics_error: Exception | None = None
@@ -272,40 +272,22 @@ class Robot:
 
     # -------------------------------------------------------------- direct
     def block_lockstep(self, capacity: int = 256) -> BlockLockstep:
-        """This lockstep robot's block runner (at most ``capacity`` ticks per block): the one on, or a new one.
+        """This lockstep robot's block runner of ``capacity`` ticks: the one on, or a new one in its place.
 
-        Block lockstep (see :mod:`agentsdk.block`) runs uneventful ticks as blocks, bit for bit tick by
-        tick. :func:`connect` turns it on by default wherever it can run (lockstep, a backend with a
-        block stepper: MuJoCo), at 256 ticks; ``connect(..., block_lockstep=False)`` leaves it off.
-        This returns the runner that is on when its capacity is ``capacity`` (its counters go on),
-        else turns on a new one of that size in its place. ``close()`` on it turns block lockstep
-        off (until the next call); closing the robot closes it. A realtime robot, or a backend that
-        cannot step a block, raises :class:`ConfigurationError`.
+        Block lockstep (:mod:`agentsdk.block`: uneventful ticks as blocks, bit for bit tick by tick) is
+        on from :func:`connect` (256 ticks) unless ``block_lockstep=False``; ``close()`` on the runner
+        turns it off. A realtime robot, or a backend without blocks, raises :class:`ConfigurationError`.
         """
-        from .block import BlockLockstep, check_capacity
+        from .block import lockstep_runner
 
-        check_capacity(capacity)
-        current = self._block
-        if current is not None and current.active:
-            if current.capacity == capacity:
-                return current
-            current.close()
-        self._block = BlockLockstep(self._loop, self.safety.block_seam, self._motions.block_planner, capacity)
+        seam, planner = self.safety.block_seam, self._motions.block_planner
+        self._block = lockstep_runner(self._loop, seam, planner, self._block, capacity)
         return self._block
 
     @property
     def block_runner(self) -> BlockLockstep | None:
-        """The block lockstep runner that is on (:meth:`block_lockstep`), or None: every tick runs on its own."""
-        current = self._block
-        return current if current is not None and current.active else None
-
-    def _start_block_lockstep(self) -> None:
-        """Block lockstep at its default capacity, where it can run (connect's default)."""
-        from .clock import LockstepClock
-
-        loop = self._loop
-        if isinstance(loop.clock, LockstepClock) and callable(getattr(loop.backend, "block_stepper", None)):
-            self.block_lockstep()
+        """The block lockstep runner that is on (:meth:`block_lockstep`), or None: every tick on its own."""
+        return self._block if self._block is not None and self._block.active else None
 
     async def read(self) -> JointState:
         """The latest measured joint state (position, velocity, effort, stamp)."""
@@ -486,12 +468,7 @@ class Robot:
                 try:
                     await asyncio.shield(self.safety.shutdown())
                 finally:
-                    try:
-                        await self._loop.stop()
-                    finally:
-                        if self._block is not None:
-                            self._block.close()  # (no task or thread of its own: the loop ran it)
-                            self._block = None
+                    await self._loop.stop()
 
     async def __aenter__(self) -> Robot:
         return self
@@ -564,12 +541,10 @@ async def _open_robot(
 
     robot_obj = Robot(loop, layer, motions, connect_sensors(loop, layer))
     robot_obj._adopt_kinematics(kin)
-    if block_lockstep:
-        try:
-            robot_obj._start_block_lockstep()
-        except BaseException:
-            await robot_obj.close()
-            raise
+    from .block import available
+
+    if block_lockstep and available(loop):
+        robot_obj.block_lockstep()  # (cannot fail: a lockstep loop, a block stepper, no runner yet)
     return robot_obj
 
 
@@ -637,11 +612,9 @@ def connect(
     ``safety`` overrides fields of the robot.yaml ``safety`` section;
     ``update_rate`` (Hz) overrides robot.yaml's control rate (like ros2_control's
     ``controller_manager.update_rate`` set at launch); ``block_lockstep=False`` runs every lockstep
-    tick on its own instead of running uneventful stretches as blocks (bit for bit the same results,
-    see :meth:`Robot.block_lockstep`; the default turns blocks on wherever they can run: MuJoCo in
-    lockstep); other keyword options go to the backend (they override robot.yaml
-    ``backends.<name>``). Use as ``async with connect(...) as robot`` or
-    ``robot = await connect(...)`` (then ``await robot.close()``).
+    tick on its own, never as blocks (:meth:`Robot.block_lockstep`; the same results); other keyword
+    options go to the backend (they override robot.yaml ``backends.<name>``). Use as
+    ``async with connect(...) as robot`` or ``robot = await connect(...)`` (then ``await robot.close()``).
     """
     return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted, update_rate, block_lockstep))
 

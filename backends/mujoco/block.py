@@ -87,7 +87,7 @@ class BlockStepper:
         b = self._b
         cls = type(b)
         own = getattr(b, "__dict__", None) or {}
-        return ((cls.step, cls._step) == self._stock  # type: ignore[comparison-overlap]
+        return ((cls.step, cls._step) == self._stock
                 and "step" not in own and "_step" not in own)
 
     def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:

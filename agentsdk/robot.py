@@ -280,6 +280,7 @@ class Robot:
         """
         from .block import lockstep_runner
 
+        self._loop.check_open()
         seam, planner = self.safety.block_seam, self._motions.block_planner
         self._block = lockstep_runner(self._loop, seam, planner, self._block, capacity)
         return self._block

@@ -311,6 +311,8 @@ async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> 
         assert 0 < again.block_ticks and again.blocks * 32 >= again.block_ticks
         assert robot.block_lockstep(capacity=64) is not again and not again.active  # replaced
     assert robot.block_runner is None  # closing the robot turns it off
+    with pytest.raises(agentsdk.errors.RobotClosedError):
+        robot.block_lockstep()
     try:
         load_backend("pybullet")
     except agentsdk.errors.BackendUnavailableError:

@@ -108,7 +108,7 @@ async def _measure(seconds: float, rounds: int) -> list[Comparison]:
                 tick = (await _run(robot_name, what, seconds, False, False))[0]
                 blk = (await _run(robot_name, what, seconds, True, False))[0]
                 runs.append({"raw": raw * 1e6, "tick": tick * 1e6, "block": blk * 1e6})
-            for mode, label in (("tick", "tick-by-tick"), ("block", "block lockstep")):
+            for mode, label in (("tick", "tick-by-tick (opted out)"), ("block", "block lockstep (default)")):
                 # the round with the median ratio to its own raw loop (this shared machine's speed
                 # drifts by up to 2x between rounds; a ratio within one round is steadier than the best
                 # of each mode taken from different rounds)

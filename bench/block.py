@@ -121,10 +121,10 @@ async def _measure(seconds: float, rounds: int) -> list[Comparison]:
 def main(quick: bool = False) -> list[Comparison]:
     """Measure (shorter with ``quick``) and print the table of the module documentation."""
     comps = asyncio.run(_measure(1.0 if quick else 2.0, 4 if quick else 6))
-    print(f"{'figure':50} {'raw µs':>8} {'SDK µs':>8} {'÷ raw':>6}")
+    print(f"{'figure':60} {'raw µs':>8} {'SDK µs':>8} {'÷ raw':>6}")
     for c in comps:
         assert c.baseline is not None and c.sdk is not None
-        print(f"{c.figure:50} {c.baseline:8.1f} {c.sdk:8.1f} {c.sdk / c.baseline:6.2f}")
+        print(f"{c.figure:60} {c.baseline:8.1f} {c.sdk:8.1f} {c.sdk / c.baseline:6.2f}")
     return comps
 
 

@@ -1,4 +1,4 @@
-"""Block lockstep (issue 28 item 1, opt-in, experimental): uneventful lockstep ticks run as one block.
+"""Block lockstep (issue 28 item 1, on by default in MuJoCo lockstep): uneventful lockstep ticks run as one block.
 
 In lockstep the control loop ticks while every other task waits. When nothing can happen for a
 while (no task wakes, no check fires, the setpoints are known in advance), the ticks' phases are
@@ -20,6 +20,13 @@ executor record; a steady speed scaling, samples the limiter provably leaves alo
 safety layer's filter as the only LIMIT hook, the safety watchdogs and :class:`BlockObserver` hooks
 as the only OBSERVE hooks, safety state OK, every check a :class:`~agentsdk.checks.BlockCheck`, the
 command watchdog not watching position mode. Anything else runs tick by tick, as without it.
+
+On by default: :func:`agentsdk.connect` starts a runner of 256 ticks for every lockstep robot whose
+backend has a ``block_stepper`` (MuJoCo); realtime robots and the other backends run every tick on its
+own. ``connect(..., block_lockstep=False)`` (``agentsdk run --no-block-lockstep``) opts out.
+:meth:`agentsdk.Robot.block_lockstep` returns the runner (or one of another capacity in its place),
+:attr:`agentsdk.Robot.block_runner` reads it, :meth:`BlockLockstep.close` turns it off, and closing the
+robot closes it (it has no task or thread of its own: the control loop calls :meth:`BlockLockstep.run`).
 """
 
 from __future__ import annotations
@@ -65,12 +72,40 @@ class BlockObserver(Protocol):
         """The same for K ticks at once."""
 
 
+def check_capacity(capacity: int) -> None:
+    """``capacity`` is a block size :class:`BlockLockstep` takes (at least 2 ticks), else :class:`InvalidValueError`."""
+    if capacity < 2:
+        raise InvalidValueError(f"capacity must be at least 2 ticks, got {capacity}")
+
+
+def available(loop: ControlLoop) -> bool:
+    """Block lockstep can run on ``loop``: a lockstep clock and a backend with a ``block_stepper`` (MuJoCo)."""
+    return isinstance(loop.clock, LockstepClock) and callable(getattr(loop.backend, "block_stepper", None))
+
+
+def lockstep_runner(loop: ControlLoop, safety: SafetyBlock, planner: BlockPlanner | None,
+                    current: BlockLockstep | None, capacity: int) -> BlockLockstep:
+    """``current`` if it is on at ``capacity`` ticks, else a new runner of that size in its place.
+
+    What :meth:`agentsdk.Robot.block_lockstep` does (a bad ``capacity`` raises before ``current`` goes off).
+    """
+    check_capacity(capacity)
+    if current is not None and current.active:
+        if current.capacity == capacity:
+            return current
+        current.close()
+    return BlockLockstep(loop, safety, planner, capacity)
+
+
 class BlockStepperLike(Protocol):
     """What a backend's ``block_stepper(capacity)`` returns (MuJoCo: ``backends.mujoco.block.BlockStepper``)."""
 
     fault: SimulationDiverged | None
     #: writing the same setpoint again changes nothing: a hold's block writes it at its first tick only
     write_once: bool
+
+    def ready(self) -> bool:
+        """A block may run now (False: e.g. the backend's step was replaced, which a block would bypass)."""
 
     def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray) -> int:
         """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done."""
@@ -103,8 +138,7 @@ class BlockLockstep:
         clock = loop.clock
         if not isinstance(clock, LockstepClock):
             raise ConfigurationError("block lockstep needs a lockstep robot (realtime=False)")
-        if capacity < 2:
-            raise InvalidValueError(f"capacity must be at least 2 ticks, got {capacity}")
+        check_capacity(capacity)
         make = getattr(loop.backend, "block_stepper", None)
         if make is None:
             raise ConfigurationError(f"backend {loop.backend.name!r} cannot run a block of ticks (no block_stepper)")
@@ -129,34 +163,41 @@ class BlockLockstep:
         self.block_ticks = 0
         self.motion_ticks = 0
         self.rollbacks = 0
-        #: the OBSERVE hooks as last seen and what :meth:`_observers` found for them (``isinstance``
-        #: against the runtime-checkable :class:`BlockObserver` costs ~10 µs: once per change of the hooks)
-        self._observe_hooks: tuple[object, ...] | None = None
-        self._observe_found: list[BlockObserver] | None = None
+        #: the OBSERVE hooks last looked at and :meth:`_observers`' answer for them (the loop builds a new
+        #: tuple whenever its hooks change: the scan and its list are not redone, nor allocated, per tick)
+        self._observe_fns: tuple[Callable[..., object], ...] | None = None
+        self._observe_ok: list[BlockObserver] | None = None
         loop.block_runner = self.run
 
+    @property
+    def active(self) -> bool:
+        """The loop runs its blocks through this runner (not closed, not replaced)."""
+        return self._loop.block_runner == self.run
+
     def close(self) -> None:
-        """Turn block lockstep off (ticks run one by one again)."""
+        """Turn block lockstep off (ticks run one by one again). Idempotent."""
         if self._loop.block_runner == self.run:
             self._loop.block_runner = None
 
     def _observers(self) -> list[BlockObserver] | None:
         """The OBSERVE hooks besides the watchdogs if each takes blocks (None: one does not, or no watchdogs)."""
         fns = self._loop.hook_functions(Phase.OBSERVE)
-        if fns is self._observe_hooks:
-            return self._observe_found
-        out: list[BlockObserver] | None = []
+        if fns is not self._observe_fns:  # (held here: a tuple seen before cannot be another one now)
+            self._observe_fns = fns
+            self._observe_ok = self._scan(fns)
+        return self._observe_ok
+
+    def _scan(self, fns: tuple[Callable[..., object], ...]) -> list[BlockObserver] | None:
+        out: list[BlockObserver] = []
         seen = False
         for fn in fns:
             if self._safety.is_watchdog_hook(fn):
                 seen = True
-            elif isinstance(fn, BlockObserver) and out is not None:
+            elif isinstance(fn, BlockObserver):
                 out.append(fn)
             else:
-                out = None
-        self._observe_hooks = fns
-        self._observe_found = out if seen else None
-        return self._observe_found
+                return None
+        return out if seen else None
 
     def run(self) -> tuple[int, bool]:
         """One block if one can run now: ``(ticks committed, whether the last woke a sleeper)``, else ``(0, False)``."""
@@ -164,21 +205,36 @@ class BlockLockstep:
             self._skip -= 1
             return _NONE
         loop, clock, safety = self._loop, self._clock, self._safety
-        if loop.torque_off or loop.fault is not None or not safety.ready(loop.hook_functions(Phase.LIMIT)):
-            return _NONE
+        # the tests a tick that cannot be blocked fails most often come first: an OBSERVE hook without a
+        # block form (a recorder), a task that wakes at the next tick (a behavior commanding every tick)
         observers = self._observers()
         if observers is None:
             return _NONE
-        hooks = loop.hook_functions(Phase.COMMAND)
-        if hooks and self._planner is None:
-            return _NONE
         K = clock.ticks_until_wake(self.capacity)
         if K < 2:
+            return _NONE
+        if loop.torque_off or loop.fault is not None or not safety.ready(loop.hook_functions(Phase.LIMIT)):
+            return _NONE
+        hooks = loop.hook_functions(Phase.COMMAND)
+        if hooks and self._planner is None:
             return _NONE
         tick0, period = clock.ticks, clock.period
         stamp = loop.stamp
         if stamp != tick0 * period:
             return _NONE  # (the COMMAND phases' times below are the clock's products)
+        return self._block(K, hooks, observers, tick0, period, stamp)
+
+    def _block(self, K: int, hooks: tuple[Callable[..., object], ...], observers: list[BlockObserver],
+               tick0: int, period: float, stamp: float) -> tuple[int, bool]:
+        """Try a block of up to ``K`` ticks from tick ``tick0`` (:meth:`run`'s checks passed).
+
+        Apart from :meth:`run`: its closures' cells are made on every call, and :meth:`run` runs
+        before every lockstep tick, most of them without a block (nothing allocated there).
+        """
+        stepper = self._stepper
+        if not stepper.ready():
+            return self._cut_short()
+        loop, clock, safety = self._loop, self._clock, self._safety
         sp = loop.setpoint_buffer
         before = sp.block.copy()
         sp.acceleration.fill(0.0)  # as each tick does first (only a motion writes it again)
@@ -211,7 +267,6 @@ class BlockLockstep:
             sp.block[...] = before
             return self._cut_short()
         backend, spv, latched, spb = loop.backend, sp.view, safety.latched, sp.block
-        stepper = self._stepper
         # a hold's rows are all the same: where the backend's controls depend on the setpoint alone,
         # the controls written at tick 0 stand for the whole block
         every_tick = bool(plans) or not stepper.write_once

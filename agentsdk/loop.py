@@ -291,9 +291,9 @@ class ControlLoop:
         #: the reading being gated (NaN: none): a backend's reading ages without another clock read
         self._origin: float | None = getattr(self.clock, "origin", None)
         self._read_t = math.nan
-        #: block lockstep (opt-in, :mod:`agentsdk.block`; None: off): asked before each lockstep tick, it
-        #: runs as many ticks as it can prove uneventful at once and returns how many (0: the tick runs as
-        #: usual) and whether the last one woke a sleeper
+        #: block lockstep (:mod:`agentsdk.block`, connect's default in MuJoCo lockstep; None: off): asked
+        #: before each lockstep tick, it runs as many ticks as it can prove uneventful at once and returns
+        #: how many (0: the tick runs as usual) and whether the last one woke a sleeper
         self.block_runner: Callable[[], tuple[int, bool]] | None = None
 
     # ------------------------------------------------------------ views
@@ -425,6 +425,7 @@ class ControlLoop:
                 await asyncio.shield(asyncio.gather(task, return_exceptions=True))
             except asyncio.CancelledError:
                 cancelled = True
+        self.block_runner = None  # block lockstep ends with the loop (its runner has no task of its own)
         self.clock.fail(RobotClosedError(f"robot on backend {self.backend.name!r} is closed"), final=True)
         if isinstance(self.clock, RealtimeClock):
             self.clock.release()  # its timerfd (after fail: the pending sleepers got the reason)

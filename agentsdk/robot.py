@@ -25,7 +25,7 @@ from .backend import Backend, Capabilities, SetpointView
 from .clock import Clock
 from .config import Gains
 from .description import apply_overrides, resolve_robot
-from .errors import AgentSDKError, BackendStartError
+from .errors import AgentSDKError, BackendStartError, ConfigurationError
 from .limits import PositionBounds
 from .loop import ControlLoop, HookHandle, Phase
 from .registry import load_backend
@@ -69,6 +69,8 @@ class Robot:
         #: the robot's sensors: names, types, frames and latest readings (:mod:`agentsdk.sensors`)
         self.sensors: Sensors = sensors
         self._motions = motions
+        #: block lockstep's runner (:meth:`block_lockstep`): connect turns it on where it can run
+        self._block: BlockLockstep | None = None
         self._kinematics: Kinematics | None = None
         self._kinematics_error: Exception | None = None
         motions.kinematics_source = lambda: self.kinematics  # link poses in motion feedback
@@ -270,13 +272,23 @@ class Robot:
 
     # -------------------------------------------------------------- direct
     def block_lockstep(self, capacity: int = 256) -> BlockLockstep:
-        """Run this lockstep robot's uneventful ticks as blocks, bit for bit tick by tick (experimental, MuJoCo).
+        """This lockstep robot's block runner of ``capacity`` ticks: the one on, or a new one in its place.
 
-        See :mod:`agentsdk.block` (``close()`` on the returned object turns it off again).
+        Block lockstep (:mod:`agentsdk.block`: uneventful ticks as blocks, bit for bit tick by tick) is
+        on from :func:`connect` (256 ticks) unless ``block_lockstep=False``; ``close()`` on the runner
+        turns it off. A realtime robot, or a backend without blocks, raises :class:`ConfigurationError`.
         """
-        from .block import BlockLockstep
+        from .block import lockstep_runner
 
-        return BlockLockstep(self._loop, self.safety.block_seam, self._motions.block_planner, capacity)
+        self._loop.check_open()
+        seam, planner = self.safety.block_seam, self._motions.block_planner
+        self._block = lockstep_runner(self._loop, seam, planner, self._block, capacity)
+        return self._block
+
+    @property
+    def block_runner(self) -> BlockLockstep | None:
+        """The block lockstep runner that is on (:meth:`block_lockstep`), or None: every tick on its own."""
+        return self._block if self._block is not None and self._block.active else None
 
     async def read(self) -> JointState:
         """The latest measured joint state (position, velocity, effort, stamp)."""
@@ -480,8 +492,12 @@ async def _open_robot(
     strict: bool | None = None,
     trusted: bool | None = None,
     update_rate: float | None = None,
+    block_lockstep: bool = True,
 ) -> Robot:
     from .motion import MotionManager
+
+    if not isinstance(block_lockstep, bool):
+        raise ConfigurationError(f"block_lockstep must be True or False, got {block_lockstep!r}")
 
     def prepare() -> tuple[Backend, SafetyConfig, PositionBounds, Kinematics | Exception]:
         # blocking work (importing the simulator, xacro, parsing, meshes): in a worker thread,
@@ -526,6 +542,10 @@ async def _open_robot(
 
     robot_obj = Robot(loop, layer, motions, connect_sensors(loop, layer))
     robot_obj._adopt_kinematics(kin)
+    from .block import available
+
+    if block_lockstep and available(loop):
+        robot_obj.block_lockstep()  # (cannot fail: a lockstep loop, a block stepper, no runner yet)
     return robot_obj
 
 
@@ -576,6 +596,7 @@ def connect(
     strict: bool | None = None,
     trusted: bool | None = None,
     update_rate: float | None = None,
+    block_lockstep: bool = True,
     **options: Any,
 ) -> _Connection:
     """Connect to ``robot`` on ``backend``.
@@ -591,10 +612,11 @@ def connect(
     allowed (by default a robot file is data, see README "Bring your own robot").
     ``safety`` overrides fields of the robot.yaml ``safety`` section;
     ``update_rate`` (Hz) overrides robot.yaml's control rate (like ros2_control's
-    ``controller_manager.update_rate`` set at launch); other keyword options go to the backend (they override robot.yaml
-    ``backends.<name>``). Use as ``async with connect(...) as robot`` or
-    ``robot = await connect(...)`` (then ``await robot.close()``).
+    ``controller_manager.update_rate`` set at launch); ``block_lockstep=False`` runs every lockstep
+    tick on its own, never as blocks (:meth:`Robot.block_lockstep`; the same results); other keyword
+    options go to the backend (they override robot.yaml ``backends.<name>``). Use as
+    ``async with connect(...) as robot`` or ``robot = await connect(...)`` (then ``await robot.close()``).
     """
-    return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted, update_rate))
+    return _Connection((backend, robot, realtime, safety, dict(options), strict, trusted, update_rate, block_lockstep))
 
 

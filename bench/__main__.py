@@ -524,7 +524,7 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
         "recording cost: arm3 lockstep recorded vs unrecorded, MB per robot-minute, read-back memory", _recording
     ),
     "sensors": ("MuJoCo camera sensor per frame vs mujoco.Renderer; sensors' cost per tick", _sensors),
-    "block": ("block lockstep (opt-in): hold and track, block vs tick-by-tick vs the raw loop", _block),
+    "block": ("block lockstep (the default) vs tick-by-tick (opted out) vs the raw loop: hold and track", _block),
 }
 ALIASES = {
     "ros2": "ros2_serve",

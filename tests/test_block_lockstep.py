@@ -30,6 +30,7 @@ import pytest
 
 import agentsdk
 from agentsdk import JointCommand, Phase, Tolerances, Trajectory, TrajectoryPoint
+from agentsdk.block import BlockLockstep
 from agentsdk.registry import load_backend
 
 SAFETY = {"stall_timeout": 30.0}
@@ -90,7 +91,7 @@ def _result(m: Any) -> tuple[Any, ...]:
 
 
 async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], dict[str, int]]:
-    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY, block_lockstep=block) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=128) if block else None
@@ -210,7 +211,7 @@ async def test_block_lockstep_is_tick_by_tick_bit_for_bit(robot_name: str) -> No
 
 
 async def _diverge(block: bool) -> tuple[str, int, str, str]:
-    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, block_lockstep=block) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=64) if block else None
@@ -233,7 +234,7 @@ async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
 async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
     import threading
 
-    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, block_lockstep=block) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=64) if block else None
@@ -289,16 +290,26 @@ async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> 
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
         with pytest.raises(agentsdk.errors.InvalidValueError, match="capacity"):
             robot.block_lockstep(capacity=1)
-        runner = robot.block_lockstep()
+        runner = robot.block_lockstep()  # on since connect: the same runner
+        assert runner is robot.block_runner and runner.capacity == 256
+        assert robot.block_lockstep() is runner
         with pytest.raises(agentsdk.errors.ConfigurationError, match="already on"):
-            robot.block_lockstep()
+            BlockLockstep(robot._loop, robot.safety.block_seam, None)  # one runner per loop
         await robot.clock.sleep(0.2)
         assert runner.block_ticks > 0
         runner.close()
+        assert robot.block_runner is None and not runner.active
         ran = runner.block_ticks
         await robot.clock.sleep(0.2)
         assert runner.block_ticks == ran  # off: every tick runs on its own
-        robot.block_lockstep().close()  # and it can be turned on again
+        again = robot.block_lockstep(capacity=32)  # and it can be turned on again, of another size
+        assert again is not runner and again.capacity == 32 and robot.block_runner is again
+        await robot.clock.sleep(0.2)
+        assert 0 < again.block_ticks and again.blocks * 32 >= again.block_ticks
+        assert robot.block_lockstep(capacity=64) is not again and not again.active  # replaced
+    assert robot.block_runner is None  # closing the robot turns it off
+    with pytest.raises(agentsdk.errors.RobotClosedError):
+        robot.block_lockstep()
     try:
         load_backend("pybullet")
     except agentsdk.errors.BackendUnavailableError:

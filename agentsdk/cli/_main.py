@@ -33,6 +33,9 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--option", "-o", action="append", metavar="KEY=VALUE", help="backend option")
     r.add_argument("--update-rate", type=float, metavar="HZ",
                    help="control rate (default: robot.yaml update_rate), e.g. lower for an emulated bus in a VM")
+    r.add_argument("--no-block-lockstep", dest="block_lockstep", action="store_false",
+                   help="in lockstep, run every tick on its own: no blocks of uneventful ticks (the same results, "
+                   "bit for bit; blocks are the default where they can run: MuJoCo)")
     r.add_argument("--quiet", "-q", action="store_true", help="no summary, no progress bar")
     r.add_argument("--debug", action="store_true", help="show tracebacks")
     r.add_argument("--record", metavar="RUN.mcap", help="record joint states, commands, safety events and "

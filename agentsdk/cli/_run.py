@@ -203,6 +203,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     options = parse_options(args.option)
     if args.update_rate is not None:
         options["update_rate"] = args.update_rate
+    if not args.block_lockstep:
+        options["block_lockstep"] = False  # (a connect option, like update_rate)
     _check_output(args.record, "recording")
     _check_output(args.plot, "plot")
     video_size = _video_args(args)

@@ -29,22 +29,24 @@ class SafetyBlock:
         self._filter = command_filter
         self._watchdogs = watchdogs
         self._filter_tick = command_filter.tick
+        #: the LIMIT hooks a block allows (built once: ready() runs before every lockstep tick and allocates nothing)
+        self._filter_only = (self._filter_tick,)
         self._wd_tick = watchdogs.tick
         #: True once an e-stop latch is set (any thread)
         self.latched: Callable[[], bool] = core._latched.is_set
-        #: the watchdogs' checks as last seen, and the same as block checks if each is one (else None):
-        #: ``isinstance`` against a runtime-checkable protocol costs ~10 µs, so once per change of the list
-        self._checks_seen: tuple[object, ...] = ()
-        self._block_checks: tuple[BlockCheck, ...] | None = ()
+        #: the checks' version (``Watchdogs.checks_version``) the block forms were last looked up at, and
+        #: the checks then if each had one (else None): a Protocol isinstance costs microseconds and
+        #: allocates, so once per change of the list, not per tick
+        self._checks_seen = -1
+        self._block_checks: tuple[BlockCheck, ...] | None = None
 
     def _checks(self) -> tuple[BlockCheck, ...] | None:
         """The watchdogs' checks if every one has a block form (:class:`BlockCheck`), else None."""
-        checks = self._watchdogs._checks
-        seen = self._checks_seen
-        if len(checks) != len(seen) or any(a is not b for a, b in zip(checks, seen, strict=True)):
-            self._checks_seen = tuple(checks)
-            ok = all(isinstance(c, BlockCheck) for c in checks)
-            self._block_checks = tuple(c for c in checks if isinstance(c, BlockCheck)) if ok else None
+        wd = self._watchdogs
+        if wd.checks_version != self._checks_seen:
+            self._checks_seen = wd.checks_version
+            checks = tuple(wd._checks)
+            self._block_checks = checks if all(isinstance(c, BlockCheck) for c in checks) else None  # type: ignore[assignment]
         return self._block_checks
 
     def ready(self, limit_hooks: tuple[Callable[..., object], ...]) -> bool:
@@ -54,7 +56,7 @@ class SafetyBlock:
         (:meth:`~agentsdk.checks.BlockCheck.block_ready`) and the command watchdog not watching
         position mode (its per-tick test would then have to run).
         """
-        if limit_hooks != (self._filter_tick,):
+        if limit_hooks != self._filter_only:
             return False
         if self._core._state is not SafetyState.OK or self.latched():
             return False
@@ -65,7 +67,12 @@ class SafetyBlock:
         if wd._watch_position:
             return False
         checks = self._checks()
-        return checks is not None and all(c.block_ready() for c in checks)
+        if checks is None:
+            return False
+        for c in checks:  # (a loop, not all() of a generator: nothing allocated per tick)
+            if not c.block_ready():
+                return False
+        return True
 
     def is_watchdog_hook(self, fn: Callable[..., object]) -> bool:
         """True for the safety watchdogs' OBSERVE hook (its block form is :meth:`observe_quiet`)."""

@@ -47,6 +47,8 @@ class Watchdogs:
         self._track_measured = command_filter.track_measured
         self._begin_stop = stops.begin_stop
         self._checks: list[SafetyCheck] = []
+        #: bumped whenever a check is added or removed (block lockstep caches what it learnt of them)
+        self.checks_version = 0
         n = len(loop.joints)
         #: watched[mode code] -> True if the command watchdog applies to that mode
         self._watched = np.array([m in config.watchdog_modes for m in MODES], dtype=bool)
@@ -74,8 +76,15 @@ class Watchdogs:
         if not callable(check):
             raise InvalidValueError(f"a safety check must be callable, got {check!r}")
         self._checks.append(check)
+        self.checks_version += 1
         checks = self._checks
-        return HookHandle(lambda: checks.remove(check) if check in checks else None, lambda: check in checks)
+
+        def remove() -> None:
+            if check in checks:
+                checks.remove(check)
+                self.checks_version += 1
+
+        return HookHandle(remove, lambda: check in checks)
 
     # ------------------------------------------------------ command watchdog
     def feed(self, idx: np.ndarray) -> None:

@@ -83,6 +83,12 @@ class BlockStepper:
         self._ctrls = np.empty((capacity, m.nu))
         self._ctrl_tmp = np.empty((capacity, len(backend.joints)))
         self._ctrl_ff = np.empty((capacity, len(backend.joints)))
+        from agentsdk.backend import Backend
+
+        from . import MujocoBackend
+
+        #: the step and write a block reproduces: the backend's own (see :meth:`ready`)
+        self._stock = (Backend.step, MujocoBackend._step, Backend.write, MujocoBackend._write)
 
     def controls(self, rows: np.ndarray, setpoint: SetpointView) -> Callable[[int], None] | None:
         """The controls :meth:`~agentsdk.Backend.write` computes from each of K setpoints, all before the block.
@@ -134,6 +140,19 @@ class BlockStepper:
             ctrl[...] = ctrls[j]
 
         return put
+
+    def ready(self) -> bool:
+        """The backend's ``step``/``_step``/``write``/``_write`` are MuJoCo's own, the calls a block makes in their place.
+
+        A subclass or an instance (a test's fault injection) that replaces them would be bypassed by
+        a block (a motion block writes its precomputed controls, :meth:`controls`): then no block runs,
+        every tick goes through the backend's step and write as without blocks.
+        """
+        b = self._b
+        cls = type(b)
+        own = getattr(b, "__dict__", None) or {}
+        return ((cls.step, cls._step, cls.write, cls._write) == self._stock
+                and "step" not in own and "_step" not in own and "write" not in own and "_write" not in own)
 
     def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
         """Run ticks ``0 .. count - 1``: ``write(k)``, step one control period, read into ``readings[k]`` (3, n).

@@ -142,7 +142,7 @@ class BlockStepper:
         return put
 
     def ready(self) -> bool:
-        """The backend's ``step``/``_step``/``write``/``_write`` are MuJoCo's own, the calls a block makes in their place.
+        """The backend's ``step``/``_step``/``write``/``_write`` are MuJoCo's own: a block makes those calls itself.
 
         A subclass or an instance (a test's fault injection) that replaces them would be bypassed by
         a block (a motion block writes its precomputed controls, :meth:`controls`): then no block runs,

@@ -61,7 +61,7 @@ import tempfile
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -97,6 +97,9 @@ from agentsdk.types import MODES
 from .floating import FloatingStep
 from .friction import friction_torque
 from .sensors import SERVED, PybulletSensors
+
+if TYPE_CHECKING:
+    from .block import BlockStepper
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletBackend", "PybulletController", "PybulletOptions"]
 
@@ -638,6 +641,12 @@ class PybulletBackend(Backend):
         v = np.array(lin) + np.cross(omega, link.position - inertial.position)
         return BaseState(link, v, omega)
 
+    def block_stepper(self, capacity: int) -> BlockStepper:
+        """A :class:`~.block.BlockStepper` of this backend: up to ``capacity`` ticks per call (block lockstep)."""
+        from .block import BlockStepper
+
+        return BlockStepper(self, capacity)
+
     # ------------------------------------------------------------ servo
     def _write(self, sp: SetpointView) -> None:
         # (a[...] = b: np.copyto's Python-level wrapper costs more than the copy of a few joints)
@@ -662,6 +671,14 @@ class PybulletBackend(Backend):
         self._en[...] = sp.enabled
 
     async def _step(self, dt: float) -> None:
+        self.substeps()
+
+    def substeps(self) -> None:
+        """One control period's physics substeps, each with the servo law of the last write (synchronous).
+
+        What :meth:`_step` runs (it never awaits); block lockstep (:mod:`.block`) and the benchmarks'
+        raw loop call it directly. Raises :class:`SimulationDiverged` after the substep that diverged.
+        """
         # Allocation-free per substep: preallocated arrays, ufuncs with out= (ufunc dispatch is
         # the cost on arrays this small), joint states gathered from PyBullet's tuples once.
         cid, body, dofs = self._cid, self._body, self._dofs

@@ -67,6 +67,8 @@ class BlockStepper:
         self.fault: SimulationDiverged | None = None
         #: PyBullet stands where the last run left it (no restore since)
         self._at_end = True
+        #: the last run's readings where they hold each tick's end state (every dof commanded, in order)
+        self._readings: np.ndarray | None = None
         #: the write depends on the setpoint alone when no g(q) of the measured position is added
         #: (a hold's controls written at its first tick stand for the whole block)
         self.write_once = not backend._gc_on
@@ -100,7 +102,7 @@ class BlockStepper:
         Returns the ticks done: ``count``, or fewer when a substep diverged (:attr:`fault`, PyBullet
         left as the diverged substep left it, as tick by tick), ``write(k)`` returned False (it wrote
         nothing: the block ends before tick ``k``), or a tick left a contact point (the block ends
-        after it).
+        after it). :meth:`restore` reads tick starts from ``readings``: leave it as it is until then.
         """
         if not 0 <= count <= self.capacity:
             raise InvalidValueError(f"count must be within 0..{self.capacity}, got {count}")
@@ -114,11 +116,19 @@ class BlockStepper:
         q_all, v_all, tau = b._q_all, b._v_all, b._tau
         qs, vs, taus, times = self._q, self._v, self._tau, self._time
         rq, rv, re = readings[:, 0], readings[:, 1], readings[:, 2]  # (one view per row kind, not per tick)
+        # every dof commanded, in command order: tick k's start state is tick k - 1's reading (kept by
+        # the caller until the restore), so only tick 0's is copied
+        self._readings = readings if b._sel_all else None
+        keep = self._readings is None
+        qs[0] = q_all
+        vs[0] = v_all
+        taus[0] = tau
         done = count
         for k in range(count):
-            qs[k] = q_all
-            vs[k] = v_all
-            taus[k] = tau
+            if keep and k:
+                qs[k] = q_all
+                vs[k] = v_all
+                taus[k] = tau
             times[k] = b._time
             if write(k) is False:
                 done = k
@@ -153,12 +163,16 @@ class BlockStepper:
             return  # the state as it stands
         self._at_end = False
         b = self._b
-        q, v = self._q[k], self._v[k]
+        prev = self._readings
+        if k and prev is not None:
+            q, v, tau = prev[k - 1]
+        else:
+            q, v, tau = self._q[k], self._v[k], self._tau[k]
         p.resetJointStatesMultiDof(b._body, b._dofs, q[:, None].tolist(), v[:, None].tolist(),
                                    physicsClientId=b._cid)
         b._q_all[...] = q
         b._v_all[...] = v
         b._ql = q.tolist()
         b._vl = v.tolist()
-        b._tau[...] = self._tau[k]
+        b._tau[...] = tau
         b._time = float(self._time[k])

@@ -270,16 +270,20 @@ async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
     assert await _diverge(True) == await _diverge(False)
 
 
-async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
+async def _thread_estop(block: bool, at: int, what: str, backend: str = "mujoco") -> tuple[Any, ...]:
     import threading
 
-    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, block_lockstep=block) as robot:
+    async with agentsdk.connect(backend, robot="arm3", safety=SAFETY, block_lockstep=block) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=64) if block else None
         b = robot.backend
         step = mujoco.mj_step
         fired = False
+        if backend == "pybullet":
+            import pybullet
+
+            pb_step = pybullet.stepSimulation
 
         def stop_at(t: float) -> None:
             nonlocal fired
@@ -293,10 +297,18 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
             stop_at(d.time)  # it lands between the write of tick ``at`` and its step
             step(m, d, nstep=nstep)
 
+        def stop_and_step_pybullet(**kw: Any) -> None:
+            stop_at(b._time)  # between two substeps (of tick ``at`` or the one before): the next one sees it
+            pb_step(**kw)
+
         # a hold's block writes at its first tick only, a motion's puts each tick's controls computed
-        # before the block: either way the e-stop comes between a tick's controls and its step
+        # before the block: either way the e-stop comes between a tick's controls and its step (PyBullet:
+        # its write every tick, then between the substeps, which read the enabled joints each)
         try:
-            mujoco.mj_step = stop_and_step
+            if backend == "pybullet":
+                pybullet.stepSimulation = stop_and_step_pybullet
+            else:
+                mujoco.mj_step = stop_and_step
             if what == "move":
                 q = (await robot.read()).position
                 goal = [float(x) + 0.3 for x in q]
@@ -305,9 +317,12 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
             await robot.clock.sleep(0.5)
         finally:
             mujoco.mj_step = step
+            if backend == "pybullet":
+                pybullet.stepSimulation = pb_step
         loop = robot._loop
         assert fired and loop.torque_off and robot.safety.state.name == "ESTOP"
-        assert not loop.setpoint.enabled.any() and not b.data.ctrl.any()
+        assert not loop.setpoint.enabled.any()
+        assert not (b._en.any() if backend == "pybullet" else b.data.ctrl.any())
         if runner is not None:
             assert 0 < runner.block_ticks < robot.clock.ticks
             assert what == "hold" or runner.motion_ticks > 0
@@ -318,8 +333,13 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
 
 @pytest.mark.parametrize("what", ["hold", "move"])
 @pytest.mark.parametrize("at", [10, 45, 77])
-async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(at: int, what: str) -> None:
-    assert await _thread_estop(True, at, what) == await _thread_estop(False, at, what)
+@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(
+    at: int, what: str, backend: str,
+) -> None:
+    if backend == "pybullet":
+        pytest.importorskip("pybullet")
+    assert await _thread_estop(True, at, what, backend) == await _thread_estop(False, at, what, backend)
 
 
 async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> None:

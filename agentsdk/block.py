@@ -1,9 +1,9 @@
-"""Block lockstep (issue 28 item 1, on by default in MuJoCo lockstep): uneventful lockstep ticks run as one block.
+"""Block lockstep (issue 28 items 1, 4; on by default in lockstep): uneventful lockstep ticks run as one block.
 
 In lockstep the control loop ticks while every other task waits. When nothing can happen for a
 while (no task wakes, no check fires, the setpoints are known in advance), the ticks' phases are
 bookkeeping around the physics: :class:`BlockLockstep` runs such a stretch as one *block*, the
-backend's steps back to back (``block_stepper``, MuJoCo's ``BlockStepper``) with each tick's
+backend's steps back to back (``block_stepper``: MuJoCo's or PyBullet's ``BlockStepper``) with each tick's
 setpoint computed before the block, then judges all of its states at once with the vectorized
 forms of the tick's rules (the safety filter's, the plausibility gate's, every check's and the
 motion's path tolerance: :class:`agentsdk.safety._block.SafetyBlock`,
@@ -22,7 +22,8 @@ as the only OBSERVE hooks, safety state OK, every check a :class:`~agentsdk.chec
 command watchdog not watching position mode. Anything else runs tick by tick, as without it.
 
 On by default: :func:`agentsdk.connect` starts a runner of 256 ticks for every lockstep robot whose
-backend has a ``block_stepper`` (MuJoCo); realtime robots and the other backends run every tick on its
+backend has a ``block_stepper`` (MuJoCo, PyBullet; a stepper may still refuse a block, e.g. PyBullet's
+for a floating base or while in contact); realtime robots and the other backends run every tick on its
 own. ``connect(..., block_lockstep=False)`` (``agentsdk run --no-block-lockstep``) opts out.
 :meth:`agentsdk.Robot.block_lockstep` returns the runner (or one of another capacity in its place),
 :attr:`agentsdk.Robot.block_runner` reads it, :meth:`BlockLockstep.close` turns it off, and closing the
@@ -79,7 +80,7 @@ def check_capacity(capacity: int) -> None:
 
 
 def available(loop: ControlLoop) -> bool:
-    """Block lockstep can run on ``loop``: a lockstep clock and a backend with a ``block_stepper`` (MuJoCo)."""
+    """Block lockstep can run on ``loop``: a lockstep clock and a backend with a ``block_stepper``."""
     return isinstance(loop.clock, LockstepClock) and callable(getattr(loop.backend, "block_stepper", None))
 
 
@@ -98,7 +99,7 @@ def lockstep_runner(loop: ControlLoop, safety: SafetyBlock, planner: BlockPlanne
 
 
 class BlockStepperLike(Protocol):
-    """What a backend's ``block_stepper(capacity)`` returns (MuJoCo: ``backends.mujoco.block.BlockStepper``)."""
+    """What a backend's ``block_stepper(capacity)`` returns (``backends.mujoco.block``/``backends.pybullet.block``)."""
 
     fault: SimulationDiverged | None
     #: writing the same setpoint again changes nothing: a hold's block writes it at its first tick only

@@ -152,8 +152,8 @@ class DynamicsModel:
         bias forces are, in the model's dof order (see :meth:`dofs`).
         """
         m, d = self.model, self._data
-        np.copyto(d.qpos, qpos)
-        np.copyto(d.qvel, qvel)
+        d.qpos[...] = qpos  # (np.copyto's Python wrapper costs more than these copies; per physics substep)
+        d.qvel[...] = qvel
         mujoco.mj_kinematics(m, d)
         mujoco.mj_comPos(m, d)
         mujoco.mj_crb(m, d)

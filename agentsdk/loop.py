@@ -291,7 +291,7 @@ class ControlLoop:
         #: the reading being gated (NaN: none): a backend's reading ages without another clock read
         self._origin: float | None = getattr(self.clock, "origin", None)
         self._read_t = math.nan
-        #: block lockstep (:mod:`agentsdk.block`, connect's default in MuJoCo lockstep; None: off): asked
+        #: block lockstep (:mod:`agentsdk.block`, connect's default in MuJoCo/PyBullet lockstep; None: off): asked
         #: before each lockstep tick, it runs as many ticks as it can prove uneventful at once and returns
         #: how many (0: the tick runs as usual) and whether the last one woke a sleeper
         self.block_runner: Callable[[], tuple[int, bool]] | None = None

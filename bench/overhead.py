@@ -870,9 +870,9 @@ def run_rtf(quick: bool = False) -> Section:
         "them) written every cycle."
     )
     sec.notes.append(
-        "SDK rows run as a plain connect does: on MuJoCo in lockstep with block lockstep on (the default; "
-        "uneventful ticks as blocks, bit for bit tick by tick), on PyBullet tick by tick; `--only block` "
-        "compares blocks with tick by tick."
+        "SDK rows run as a plain connect does: in lockstep with block lockstep on (the default on MuJoCo and "
+        "PyBullet; uneventful ticks as blocks, bit for bit tick by tick); `--only block` compares blocks with "
+        "tick by tick."
     )
     _note_stalls(sec, n_stalls)
     return sec

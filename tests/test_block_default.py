@@ -1,4 +1,4 @@
-"""Block lockstep is on by default (issue 28 item 1): a plain ``connect`` in MuJoCo lockstep runs blocks.
+"""Block lockstep is on by default (issue 28 item 1): a plain ``connect`` in lockstep runs blocks (MuJoCo, PyBullet).
 
 ``connect(..., block_lockstep=False)`` (``agentsdk run --no-block-lockstep``) turns it off: no runner,
 every tick on its own. Both ways the same short program (a hold, a move, a cancelled move, a hold)
@@ -44,8 +44,9 @@ class _Hasher:
         self.ticks += 1
 
 
-async def _run(robot_name: str, **kwargs: Any) -> tuple[tuple[Any, ...], dict[str, int] | None]:
-    async with agentsdk.connect("mujoco", robot=robot_name, **kwargs) as robot:
+async def _run(robot_name: str, backend: str = "mujoco",
+               **kwargs: Any) -> tuple[tuple[Any, ...], dict[str, int] | None]:
+    async with agentsdk.connect(backend, robot=robot_name, **kwargs) as robot:
         runner = robot.block_runner
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
@@ -79,9 +80,12 @@ async def _run(robot_name: str, **kwargs: Any) -> tuple[tuple[Any, ...], dict[st
 
 
 @pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
-async def test_a_plain_connect_runs_blocks_and_the_opt_out_does_not_bit_for_bit(robot_name: str) -> None:
-    on, stats = await _run(robot_name)
-    off, none = await _run(robot_name, block_lockstep=False)
+@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+async def test_a_plain_connect_runs_blocks_and_the_opt_out_does_not_bit_for_bit(robot_name: str, backend: str) -> None:
+    if backend == "pybullet":
+        pytest.importorskip("pybullet")
+    on, stats = await _run(robot_name, backend)
+    off, none = await _run(robot_name, backend, block_lockstep=False)
     assert none is None  # opted out: no runner
     assert stats is not None and stats["held"] > 0 and stats["motion_ticks"] > 0 and stats["blocks"] > 1, stats
     assert on == off

@@ -1,12 +1,13 @@
 """Block lockstep in the loop (issue 28 item 1, agentsdk.block): random runs hash tick for tick as without it.
 
-Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo, lockstep), then a
+Each case is a segment of a seeded random program on arm3 or humanoid (MuJoCo or PyBullet, lockstep), then a
 sleep of random length (what blocks run): a move of random length and goal (``follow``, with a path
 tolerance or none, on every joint or some, consecutive or not: several moves run at once; now or
 scheduled later), a cancel of the running move (its stop ramp runs in blocks too), a speed scaling
 factor, a feedback stream of the running move at a random rate, with a link's pose or not (hashed:
 what it read), a direct position command (the filter's ramp: per tick, then blocks; refused while a
-move drives the joints), an external push (``qfrc_applied``, strong enough at random to trip the
+move drives the joints), an external push (MuJoCo's ``qfrc_applied``, on PyBullet a change of
+gravity the servo's ``g(q)`` does not know; strong enough at random to trip the
 path tolerance, the following-error or the measured-position check, or the plausibility gate, in the
 middle of a block: a rollback), its release, or an e-stop of a random category (then mostly reset
 and enable).
@@ -36,6 +37,7 @@ from agentsdk.registry import load_backend
 SAFETY = {"stall_timeout": 30.0}
 #: seeds per robot and segments per seed: 2 x 13 x 40 = 1,040 cases
 SEEDS, SEGMENTS = 13, 40
+SEEDS_PYBULLET = 6
 TRACE = False
 
 
@@ -90,16 +92,46 @@ def _result(m: Any) -> tuple[Any, ...]:
     return (r.code.name, r.message, r.time, sorted(r.error.items()))
 
 
-async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], dict[str, int]]:
-    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY, block_lockstep=block) as robot:
+class _Push:
+    """An external push: MuJoCo's ``qfrc_applied`` on some joints; on PyBullet a change of gravity (the
+    servo law's ``g(q)`` still compensates the configured one), which PyBullet keeps until it changes."""
+
+    def __init__(self, robot: Any) -> None:
+        self.b = robot.backend
+        self.mujoco = robot.backend.name == "mujoco"
+        if self.mujoco:
+            m = self.b.model
+            self.dofs = np.array([m.jnt_dofadr[m.joint(name).id] for name in robot.joint_names])
+        else:
+            import pybullet
+
+            self.p = pybullet
+            self.g = np.array(self.b.options.gravity)
+
+    def push(self, rng: np.random.Generator, j: np.ndarray, scale: float, effort: np.ndarray) -> None:
+        if self.mujoco:
+            self.b.data.qfrc_applied[self.dofs[j]] = rng.uniform(-scale, scale, len(j)) * effort[j]
+        else:
+            g = self.g + rng.uniform(-scale, scale, 3) * 9.81 * 2.0
+            self.p.setGravity(*g.tolist(), physicsClientId=self.b._cid)
+
+    def release(self) -> None:
+        if self.mujoco:
+            self.b.data.qfrc_applied[:] = 0.0
+        else:
+            self.p.setGravity(*self.g.tolist(), physicsClientId=self.b._cid)
+
+
+async def _program(robot_name: str, seed: int, block: bool,
+                   backend: str = "mujoco") -> tuple[list[str], dict[str, int]]:
+    async with agentsdk.connect(backend, robot=robot_name, safety=SAFETY, block_lockstep=block) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=128) if block else None
-        b = robot.backend
         rng = np.random.default_rng(seed)
         names = list(robot.joint_names)
         n = len(names)
-        dofs = np.array([b.model.jnt_dofadr[b.model.joint(name).id] for name in names])
+        pusher = _Push(robot)
         lo = np.array([j.lower if np.isfinite(j.lower) else -1.0 for j in robot.joints])
         hi = np.array([j.upper if np.isfinite(j.upper) else 1.0 for j in robot.joints])
         effort = np.array([j.max_effort if 0 < j.max_effort < np.inf else 10.0 for j in robot.joints])
@@ -154,16 +186,16 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
                 # error, a limit hit or a reading the plausibility gate refuses, often in the middle of a block
                 j = rng.choice(n, size=int(rng.integers(1, n + 1)), replace=False)
                 scale = float(rng.choice([0.3, 0.8, 1.1, 1.6]))
-                b.data.qfrc_applied[dofs[j]] = rng.uniform(-scale, scale, len(j)) * effort[j]
+                pusher.push(rng, j, scale, effort)
             elif what == "release":
-                b.data.qfrc_applied[:] = 0.0
+                pusher.release()
             elif what == "estop":
                 await robot.estop(int(rng.integers(0, 3)))
             await robot.clock.sleep(float(rng.choice([0.002, rng.uniform(0.0, 0.05), rng.uniform(0.05, 0.4)])))
             if rng.random() < 0.5:
-                b.data.qfrc_applied[:] = 0.0  # most pushes last one segment
+                pusher.release()  # most pushes last one segment
             if robot.safety.state.name not in ("OK", "HOLD") and rng.random() < 0.85:
-                b.data.qfrc_applied[:] = 0.0
+                pusher.release()
                 await robot.safety.wait_stopped()
                 await robot.reset()
                 await robot.enable()
@@ -191,13 +223,20 @@ async def _program(robot_name: str, seed: int, block: bool) -> tuple[list[str], 
 
 @pytest.mark.timeout(900)
 @pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
-async def test_block_lockstep_is_tick_by_tick_bit_for_bit(robot_name: str) -> None:
+@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+async def test_block_lockstep_is_tick_by_tick_bit_for_bit(robot_name: str, backend: str) -> None:
+    if backend == "pybullet":
+        try:
+            load_backend("pybullet")
+        except agentsdk.errors.BackendUnavailableError:
+            pytest.skip("pybullet is not installed")
     blocks = block_ticks = rollbacks = ticks = motion_ticks = 0
-    for seed in range(SEEDS):
-        want, base = await _program(robot_name, seed, block=False)
-        got, stats = await _program(robot_name, seed, block=True)
+    # (PyBullet's ticks cost ~10x MuJoCo's: fewer seeds, 2 x 6 x 40 = 480 cases)
+    for seed in range(SEEDS if backend == "mujoco" else SEEDS_PYBULLET):
+        want, base = await _program(robot_name, seed, block=False, backend=backend)
+        got, stats = await _program(robot_name, seed, block=True, backend=backend)
         for seg, (a, c) in enumerate(zip(want, got, strict=True)):
-            assert a == c, f"{robot_name} seed {seed}: segment {seg} differs with block lockstep"
+            assert a == c, f"{robot_name} on {backend} seed {seed}: segment {seg} differs with block lockstep"
         assert stats["ticks"] == base["ticks"]
         blocks += stats["blocks"]
         block_ticks += stats["block_ticks"]
@@ -231,16 +270,20 @@ async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
     assert await _diverge(True) == await _diverge(False)
 
 
-async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
+async def _thread_estop(block: bool, at: int, what: str, backend: str = "mujoco") -> tuple[Any, ...]:
     import threading
 
-    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, block_lockstep=block) as robot:
+    async with agentsdk.connect(backend, robot="arm3", safety=SAFETY, block_lockstep=block) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
         runner = robot.block_lockstep(capacity=64) if block else None
         b = robot.backend
         step = mujoco.mj_step
         fired = False
+        if backend == "pybullet":
+            import pybullet
+
+            pb_step = pybullet.stepSimulation
 
         def stop_at(t: float) -> None:
             nonlocal fired
@@ -254,10 +297,18 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
             stop_at(d.time)  # it lands between the write of tick ``at`` and its step
             step(m, d, nstep=nstep)
 
+        def stop_and_step_pybullet(**kw: Any) -> None:
+            stop_at(b._time)  # between two substeps (of tick ``at`` or the one before): the next one sees it
+            pb_step(**kw)
+
         # a hold's block writes at its first tick only, a motion's puts each tick's controls computed
-        # before the block: either way the e-stop comes between a tick's controls and its step
+        # before the block: either way the e-stop comes between a tick's controls and its step (PyBullet:
+        # its write every tick, then between the substeps, which read the enabled joints each)
         try:
-            mujoco.mj_step = stop_and_step
+            if backend == "pybullet":
+                pybullet.stepSimulation = stop_and_step_pybullet
+            else:
+                mujoco.mj_step = stop_and_step
             if what == "move":
                 q = (await robot.read()).position
                 goal = [float(x) + 0.3 for x in q]
@@ -266,9 +317,12 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
             await robot.clock.sleep(0.5)
         finally:
             mujoco.mj_step = step
+            if backend == "pybullet":
+                pybullet.stepSimulation = pb_step
         loop = robot._loop
         assert fired and loop.torque_off and robot.safety.state.name == "ESTOP"
-        assert not loop.setpoint.enabled.any() and not b.data.ctrl.any()
+        assert not loop.setpoint.enabled.any()
+        assert not (b._en.any() if backend == "pybullet" else b.data.ctrl.any())
         if runner is not None:
             assert 0 < runner.block_ticks < robot.clock.ticks
             assert what == "hold" or runner.motion_ticks > 0
@@ -279,8 +333,13 @@ async def _thread_estop(block: bool, at: int, what: str) -> tuple[Any, ...]:
 
 @pytest.mark.parametrize("what", ["hold", "move"])
 @pytest.mark.parametrize("at", [10, 45, 77])
-async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(at: int, what: str) -> None:
-    assert await _thread_estop(True, at, what) == await _thread_estop(False, at, what)
+@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+async def test_an_emergency_stop_from_another_thread_during_a_block_lands_as_tick_by_tick(
+    at: int, what: str, backend: str,
+) -> None:
+    if backend == "pybullet":
+        pytest.importorskip("pybullet")
+    assert await _thread_estop(True, at, what, backend) == await _thread_estop(False, at, what, backend)
 
 
 async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> None:
@@ -315,5 +374,7 @@ async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> 
     except agentsdk.errors.BackendUnavailableError:
         return
     async with agentsdk.connect("pybullet", robot="arm3", safety=SAFETY) as robot:
-        with pytest.raises(agentsdk.errors.ConfigurationError, match="block_stepper"):
-            robot.block_lockstep()
+        runner = robot.block_runner  # PyBullet's block stepper (backends/pybullet/block.py): on by default
+        assert runner is not None and runner.capacity == 256
+        await robot.clock.sleep(0.2)
+        assert runner.block_ticks > 0

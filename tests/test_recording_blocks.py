@@ -2,8 +2,8 @@
 
 The same behavior (a hold, a follow of a multi-point trajectory, a direct command, a cancelled
 follow and its stop ramp, an e-stop during a follow, then reset, enable and a hold) is recorded on
-MuJoCo arm3 and humanoid with block lockstep off and on; the two files must be equal byte for
-byte, and the block run must actually have run blocks (the recorder's hook takes them:
+MuJoCo arm3 and humanoid (and on PyBullet, two of the cases) with block lockstep off and on; the two
+files must be equal byte for byte, and the block run must actually have run blocks (the recorder's hook takes them:
 :class:`agentsdk.block.BlockObserver`). The recorder's blocks are small (100 rows), so that its
 hand-offs fall inside lockstep blocks; the wall-clock flush is either never due (hand-offs where
 blocks fill only) or always due (a hand-off every 16th row, where the per-tick hook checks it),
@@ -62,8 +62,9 @@ async def _behavior(robot: Any) -> None:
     await robot.clock.sleep(0.3)  # a hold again
 
 
-async def _record(robot_name: str, path: Path, block: bool, rate: float | None) -> dict[str, Any]:
-    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY) as robot:
+async def _record(robot_name: str, path: Path, block: bool, rate: float | None,
+                  backend: str = "mujoco") -> dict[str, Any]:
+    async with agentsdk.connect(backend, robot=robot_name, safety=SAFETY) as robot:
         rec = Recorder(robot, path, rate=rate, block_ticks=ROWS, metadata={"created": "fixed"})
         runner = robot.block_lockstep(capacity=128) if block else None
         await _behavior(robot)
@@ -81,19 +82,22 @@ async def _record(robot_name: str, path: Path, block: bool, rate: float | None) 
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize(("robot_name", "rate", "flush"), [
-    ("arm3", None, "never"), ("arm3", 50.0, "every 16 rows"),
-    ("humanoid", None, "every 16 rows"), ("humanoid", 50.0, "never"),
+@pytest.mark.parametrize(("robot_name", "rate", "flush", "backend"), [
+    ("arm3", None, "never", "mujoco"), ("arm3", 50.0, "every 16 rows", "mujoco"),
+    ("humanoid", None, "every 16 rows", "mujoco"), ("humanoid", 50.0, "never", "mujoco"),
+    ("arm3", 50.0, "never", "pybullet"), ("humanoid", None, "every 16 rows", "pybullet"),
 ])
 async def test_a_recording_with_blocks_is_byte_equal_to_the_tick_by_tick_one(
-    robot_name: str, rate: float | None, flush: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    robot_name: str, rate: float | None, flush: str, backend: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    if backend == "pybullet":
+        pytest.importorskip("pybullet")
     monkeypatch.setattr(recorder_module, "FLUSH_INTERVAL", 1e9 if flush == "never" else -1.0)
     (tmp_path / "ticks").mkdir()
     (tmp_path / "blocks").mkdir()
     a, b = tmp_path / "ticks" / "run.mcap", tmp_path / "blocks" / "run.mcap"  # (the name is in the file)
-    plain = await _record(robot_name, a, block=False, rate=rate)
-    blocked = await _record(robot_name, b, block=True, rate=rate)
+    plain = await _record(robot_name, a, block=False, rate=rate, backend=backend)
+    blocked = await _record(robot_name, b, block=True, rate=rate, backend=backend)
     # the block run ran blocks (the recorder did not force it tick by tick), and recorded every tick
     assert blocked["block_hook"]
     assert blocked["blocks"] > 10 and blocked["block_ticks"] > blocked["ticks"] // 2, blocked
@@ -107,7 +111,8 @@ async def test_a_recording_with_blocks_is_byte_equal_to_the_tick_by_tick_one(
     x, y = a.read_bytes(), b.read_bytes()
     if x != y:
         where = next(i for i, (p, q) in enumerate(zip(x, y, strict=False)) if p != q) if len(x) == len(y) else -1
-        pytest.fail(f"{robot_name}: the recordings differ ({len(x)} vs {len(y)} bytes, first difference at {where})")
+        pytest.fail(f"{robot_name} on {backend}: the recordings differ ({len(x)} vs {len(y)} bytes, "
+                    f"first difference at {where})")
 
 
 async def test_a_recorder_of_sensors_keeps_the_per_tick_hook(tmp_path: Path) -> None:

@@ -61,7 +61,7 @@ import tempfile
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -97,6 +97,9 @@ from agentsdk.types import MODES
 from .floating import FloatingStep
 from .friction import friction_torque
 from .sensors import SERVED, PybulletSensors
+
+if TYPE_CHECKING:
+    from .block import BlockStepper
 
 __all__ = ["MAX_SPEED", "SPEED_CAP", "PybulletBackend", "PybulletController", "PybulletOptions"]
 
@@ -543,6 +546,16 @@ class PybulletBackend(Backend):
         arm = self._model.model.dof_armature
         self._armature = np.asarray(arm[self._perm], dtype=float)
         self._armature_any = bool(self._armature.any())
+        # PyBullet's dofs in the model's own order (a fixed base of hinges and slides, as a rule): the
+        # terms need no gathering, and the positions go in as one slice (the same values, fewer calls)
+        self._same_order = nd == nv and bool(np.array_equal(self._perm, np.arange(nv)))
+        qadr = self._qadr
+        self._q_span = (slice(int(qadr[0]), int(qadr[0]) + nd)
+                        if nd and np.array_equal(qadr, np.arange(qadr[0], qadr[0] + nd)) else None)
+        #: the diagonal of the implicit step's matrix, as a view (a[i, i] += h d_i, no index arrays)
+        self._a_diag = self._a.reshape(-1)[:: nd + 1]
+        self._hd_sub = np.zeros(nd)
+        self._rhs_sub = np.zeros(nd)
         self._rigid_mass = np.zeros((nd, nd))
 
     def _setup_floating_step(self, label: str, friction: list[float]) -> None:
@@ -587,13 +600,21 @@ class PybulletBackend(Backend):
 
         PyBullet's own ``calculateInverseDynamics`` is wrong with fixed joints (module docstring).
         """
-        perm = self._perm
-        self._mq[self._qadr] = self._q_all
+        perm, span = self._perm, self._q_span
+        if span is not None:
+            self._mq[span] = self._q_all
+        else:
+            self._mq[self._qadr] = self._q_all
+        if self._same_order:  # (the gathers below would be copies)
+            self._mv[...] = self._v_all
+            self._model.terms(self._mq, self._mv, self._m_full, self._m_bias)
+            return self._m_full, self._m_bias
         self._mv[perm] = self._v_all
         self._model.terms(self._mq, self._mv, self._m_full, self._m_bias)
-        np.take(self._m_full, perm, axis=0, out=self._m_rows)
-        np.take(self._m_rows, perm, axis=1, out=self._mass)
-        np.take(self._m_bias, perm, out=self._bias)
+        # (ndarray.take: np.take's Python wrapper costs more than the gather of a few rows)
+        self._m_full.take(perm, axis=0, out=self._m_rows)
+        self._m_rows.take(perm, axis=1, out=self._mass)
+        self._m_bias.take(perm, out=self._bias)
         return self._mass, self._bias
 
     def _implicit_step(self, f_all: np.ndarray, d_all: np.ndarray, h: float) -> np.ndarray:
@@ -607,16 +628,16 @@ class PybulletBackend(Backend):
         """
         mass, bias = self._implicit_terms()
         a = self._a
-        np.copyto(a, mass)
-        a[self._diag] += h * d_all
-        rhs = f_all - bias
+        a[...] = mass
+        self._a_diag += np.multiply(d_all, h, out=self._hd_sub)
+        rhs = np.subtract(f_all, bias, out=self._rhs_sub)
         qacc = np.linalg.solve(a, rhs)
         if self._friction_any:  # the joints that can stop this step stop, the others slide (coupled)
             rhs += friction_torque(a, rhs, self._v_all, h, self._friction)
             qacc = np.linalg.solve(a, rhs)
         if self._armature_any:
             rigid = self._rigid_mass
-            np.copyto(rigid, mass)
+            rigid[...] = mass
             rigid[self._diag] -= self._armature
             mass = rigid
         np.matmul(mass, qacc, out=f_all)
@@ -637,6 +658,12 @@ class PybulletBackend(Backend):
         # PyBullet's linear velocity is the inertial frame's (centre of mass): move it to the link origin
         v = np.array(lin) + np.cross(omega, link.position - inertial.position)
         return BaseState(link, v, omega)
+
+    def block_stepper(self, capacity: int) -> BlockStepper:
+        """A :class:`~.block.BlockStepper` of this backend: up to ``capacity`` ticks per call (block lockstep)."""
+        from .block import BlockStepper
+
+        return BlockStepper(self, capacity)
 
     # ------------------------------------------------------------ servo
     def _write(self, sp: SetpointView) -> None:
@@ -662,6 +689,14 @@ class PybulletBackend(Backend):
         self._en[...] = sp.enabled
 
     async def _step(self, dt: float) -> None:
+        self.substeps()
+
+    def substeps(self) -> None:
+        """One control period's physics substeps, each with the servo law of the last write (synchronous).
+
+        What :meth:`_step` runs (it never awaits); block lockstep (:mod:`.block`) and the benchmarks'
+        raw loop call it directly. Raises :class:`SimulationDiverged` after the substep that diverged.
+        """
         # Allocation-free per substep: preallocated arrays, ufuncs with out= (ufunc dispatch is
         # the cost on arrays this small), joint states gathered from PyBullet's tuples once.
         cid, body, dofs = self._cid, self._body, self._dofs

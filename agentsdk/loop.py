@@ -262,6 +262,11 @@ class ControlLoop:
         self.gain_p = _readonly([g.p for g in gains])
         self.gain_d = _readonly([g.d for g in gains])
         self.gain_v = _readonly([g.d if g.v is None else g.v for g in gains])
+        #: :meth:`apply_position_all`'s setpoint block: zero velocity, effort and acceleration rows, the
+        #: default gains; the position and target rows are written per command
+        self._pos_all = np.zeros((7, n))
+        self._pos_all[3] = self.gain_p
+        self._pos_all[4] = self.gain_d
         self.clock: Clock = RealtimeClock() if self.realtime else LockstepClock(self.period)
         self._hooks = {phase: _HookList() for phase in Phase}
         self._command = self._hooks[Phase.COMMAND]
@@ -775,6 +780,20 @@ class ControlLoop:
             sp.effort[idx] = values
             sp.kp[idx] = 0.0
             sp.kd[idx] = 0.0
+
+    def apply_position_all(self, values: np.ndarray, position_now: np.ndarray) -> None:
+        """:meth:`apply` of a position command to every joint in order, without feed-forward.
+
+        The same setpoint as ``apply("position", every joint, values, position_now=position_now)``
+        (zero velocity, effort and acceleration, the default gains, torque on, position mode),
+        written as one copy of the whole setpoint block instead of a row write per field.
+        """
+        sp, block = self._sp, self._pos_all
+        block[0] = position_now
+        block[5] = values
+        sp.block[...] = block
+        sp.mode[...] = _POS
+        sp.enabled[...] = True
 
     def snapshot(self) -> JointState:
         """The latest measured state as an immutable :class:`JointState` (private copies)."""

@@ -74,6 +74,9 @@ class SafetyLayer:
         self._ramp_start = command_filter.ramp_start
         self._start_ramp = command_filter.start_ramp
         self._feed = watchdogs.feed
+        self._full = shapes.full
+        #: where a position ramp starts (the filter's last written position: read-only, live)
+        self._origin = command_filter.origin()
         self._handles = [
             loop.add_hook(Phase.LIMIT, command_filter.tick),
             loop.add_hook(Phase.OBSERVE, watchdogs.tick, order=SAFETY_OBSERVE_ORDER),
@@ -265,7 +268,12 @@ class SafetyLayer:
         values = self._limit_command(mode, idx, values)
         if vel is not None or eff is not None:
             vel, eff = self._limit_feedforward(idx, vel, eff)
-        loop.apply(mode, idx, values, vel, eff, position_now=self._ramp_start(mode, idx))
+        if idx is self._full and vel is None and eff is None and mode == "position":
+            # every joint, no feed-forward (a behavior streaming whole poses): one block write; the
+            # setpoint starts at the ramp's position, the filter's origin (copied into the setpoint)
+            loop.apply_position_all(values, self._origin)
+        else:
+            loop.apply(mode, idx, values, vel, eff, position_now=self._ramp_start(mode, idx))
         self._feed(idx)
         self._start_ramp(mode, idx, values)
         return AppliedCommand(

@@ -255,7 +255,9 @@ class SafetyLayer:
         """
         loop = self.loop
         backend = loop.backend
-        self._check_motion_allowed()
+        core = self._core
+        if core._state is not SafetyState.OK or core._latched.is_set():
+            self._check_motion_allowed()  # (OK without a latch: nothing to check)
         idx, names, values, vel, eff = self._resolve(cmd, backend.capabilities.modes, backend.name)
         assert isinstance(cmd, JointCommand)  # resolve checked it
         owner = self._motions.owner_of(idx)

@@ -229,8 +229,9 @@ class CommandFilter:
         """Where a direct position command's setpoint starts this tick (the ramp's current position)."""
         return self._written[idx] if mode == "position" else None
 
-    def start_ramp(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> None:
-        """A command was applied to joints ``idx``: a position command starts their ramps, another ends them.
+    def start_ramp(self, mode: CommandMode, idx: np.ndarray | slice, values: np.ndarray) -> None:
+        """A command was applied to joints ``idx`` (indices or a slice): a position command starts their ramps,
+        another ends them.
 
         A direct position command becomes the *goal* of a ramp limited to
         ``max_position_step`` per cycle; the setpoint keeps showing where the

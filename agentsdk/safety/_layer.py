@@ -30,6 +30,10 @@ if TYPE_CHECKING:
     from ..following import FollowingErrorCheck
 
 
+#: every joint, as an index (what a full-length command's index array selects)
+_EVERY = slice(None)
+
+
 class SafetyLayer:
     """Wraps one control loop. Created by :func:`agentsdk.connect`; reach it as ``robot.safety``.
 
@@ -276,8 +280,10 @@ class SafetyLayer:
             loop.apply_position_all(values, self._origin)
         else:
             loop.apply(mode, idx, values, vel, eff, position_now=self._ramp_start(mode, idx))
-        self._feed(idx)
-        self._start_ramp(mode, idx, values)
+        # every joint: the same elements by basic indexing (a slice: no index array walked per write)
+        sel = _EVERY if idx is self._full else idx
+        self._feed(sel)
+        self._start_ramp(mode, sel, values)
         return AppliedCommand(
             mode,
             MappingProxyType(dict(zip(names, values.tolist(), strict=True))),

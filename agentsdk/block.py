@@ -206,8 +206,11 @@ class BlockLockstep:
             self._skip -= 1
             return _NONE
         loop, clock, safety = self._loop, self._clock, self._safety
-        # the tests a tick that cannot be blocked fails most often come first: an OBSERVE hook without a
-        # block form (a recorder), a task that wakes at the next tick (a behavior commanding every tick)
+        # the tests a tick that cannot be blocked fails most often come first: a task that wakes at the
+        # next tick (a behavior commanding every tick: one clock call), an OBSERVE hook without a block
+        # form (a recorder)
+        if clock.wakes_next_tick():
+            return _NONE
         observers = self._observers()
         if observers is None:
             return _NONE

@@ -311,6 +311,15 @@ class LockstepClock(Clock):
             heapq.heappop(heap)
         return heap[0][0] if heap else None
 
+    def wakes_next_tick(self) -> bool:
+        """The next :meth:`advance` wakes a sleeper (``ticks_until_wake(limit) == 1`` for any ``limit >= 1``).
+
+        Block lockstep's first refusal (a behavior sleeping one period per tick), with
+        :meth:`advance`'s own comparison.
+        """
+        deadline = self.next_deadline()
+        return deadline is not None and deadline <= (self._tick + 1) * self.period + 1e-12
+
     def ticks_until_wake(self, limit: int) -> int:
         """How many ticks (at most ``limit``) :meth:`advance` can run before one wakes a sleeper, that one included.
 

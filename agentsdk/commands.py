@@ -141,7 +141,7 @@ class CommandShapes:
     ) -> tuple[np.ndarray, tuple[str, ...], FloatArray]:
         """:func:`map_values` with the indices (and names) of a known shape taken from the cache."""
         names = self._names
-        if isinstance(values, Mapping):
+        if type(values) is not tuple and isinstance(values, Mapping):  # (a tuple first: no ABC check)
             keys = tuple(values)
             hit = self._by_keys.get(keys)
             if hit is None:

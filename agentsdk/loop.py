@@ -31,7 +31,8 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+import types
+from collections.abc import Callable, Generator
 from typing import Any
 
 import numpy as np
@@ -262,6 +263,11 @@ class ControlLoop:
         self.gain_p = _readonly([g.p for g in gains])
         self.gain_d = _readonly([g.d for g in gains])
         self.gain_v = _readonly([g.d if g.v is None else g.v for g in gains])
+        #: :meth:`apply_position_all`'s setpoint block: zero velocity, effort and acceleration rows, the
+        #: default gains; the position and target rows are written per command
+        self._pos_all = np.zeros((7, n))
+        self._pos_all[3] = self.gain_p
+        self._pos_all[4] = self.gain_d
         self.clock: Clock = RealtimeClock() if self.realtime else LockstepClock(self.period)
         self._hooks = {phase: _HookList() for phase in Phase}
         self._command = self._hooks[Phase.COMMAND]
@@ -374,8 +380,13 @@ class ControlLoop:
         cannot explain never reaches the state buffer (see :mod:`agentsdk.plausibility`).
         """
         st = self._state
+        backend = self.backend
+        # a backend that keeps Backend.reading_age (no override, none on the instance) reads the present:
+        # the gate asks for no ages (two calls per tick fewer)
+        current = type(backend).reading_age is Backend.reading_age and "reading_age" not in getattr(
+            backend, "__dict__", ())
         gate = SensorGate(self.joints, st.position, st.velocity, st.effort, margin=margin, floor=floor,
-                          tolerance=tolerance, period=self.period, age=self._reading_age,
+                          tolerance=tolerance, period=self.period, age=None if current else self._reading_age,
                           changing=self.backend.frame_changing, changes=self.backend.frame_changes,
                           driven=self._driven)
         self.sensor_gate = gate
@@ -581,7 +592,7 @@ class ControlLoop:
         perf_counter = time.perf_counter
         try:
             while True:
-                await _settle(loop)
+                await _settle(loop, ready)
                 idle_after = clock.next_deadline() is None
                 if idle_after and not command.fns:
                     clock.wakeup.clear()
@@ -776,10 +787,23 @@ class ControlLoop:
             sp.kp[idx] = 0.0
             sp.kd[idx] = 0.0
 
+    def apply_position_all(self, values: np.ndarray, position_now: np.ndarray) -> None:
+        """:meth:`apply` of a position command to every joint in order, without feed-forward.
+
+        The same setpoint as ``apply("position", every joint, values, position_now=position_now)``
+        (zero velocity, effort and acceleration, the default gains, torque on, position mode),
+        written as one copy of the whole setpoint block instead of a row write per field.
+        """
+        sp, block = self._sp, self._pos_all
+        block[0] = position_now
+        block[5] = values
+        sp.block[...] = block
+        sp.mode[...] = _POS
+        sp.enabled[...] = True
+
     def snapshot(self) -> JointState:
         """The latest measured state as an immutable :class:`JointState` (private copies)."""
-        st = self._state
-        return JointState.from_arrays(self.names, st.position.copy(), st.velocity.copy(), st.effort.copy(), self.stamp)
+        return JointState.from_block(self.names, self._state.block.copy(), self.stamp)
 
 
 def _readonly(values: Any) -> FloatArray:
@@ -803,7 +827,17 @@ def _ready_queue(loop: asyncio.AbstractEventLoop) -> Any:
 _settling: dict[asyncio.AbstractEventLoop, int] = {}
 
 
-async def _settle(loop: asyncio.AbstractEventLoop) -> None:
+#: :func:`_settle`'s default ``ready``: look the queue up
+_UNKNOWN: Any = object()
+
+
+@types.coroutine
+def _yield() -> Generator[None, None, None]:
+    """Let every other ready callback run once: what ``asyncio.sleep(0)`` does, without its own coroutine."""
+    yield
+
+
+async def _settle(loop: asyncio.AbstractEventLoop, ready: Any = _UNKNOWN) -> None:
     """Yield until no other task on the event loop is ready to run.
 
     Lockstep time may only advance when every task is waiting, and asyncio has no
@@ -820,15 +854,16 @@ async def _settle(loop: asyncio.AbstractEventLoop) -> None:
     """
     _settling[loop] = _settling.get(loop, 0) + 1
     try:
-        await asyncio.sleep(0)
-        ready = _ready_queue(loop)
+        await _yield()
+        if ready is _UNKNOWN:
+            ready = _ready_queue(loop)
         if ready is None:
             for _ in range(64):
                 await asyncio.sleep(0)
             return
         spins = 0
         while len(ready) > _settling[loop] - 1 and spins < 100_000:
-            await asyncio.sleep(0)
+            await _yield()
             spins += 1
     finally:
         n = _settling[loop] - 1

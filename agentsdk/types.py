@@ -96,6 +96,23 @@ class JointState:
         setattr_(self, "stamp", stamp)
         return self
 
+    @classmethod
+    def from_block(cls, names: tuple[str, ...], block: FloatArray, stamp: float) -> JointState:
+        """Build from a ``(3, n)`` float64 array the caller hands over (rows position, velocity, effort).
+
+        :meth:`from_arrays` of the rows, with one copy and one flag change for the three: the
+        block becomes read-only, so its rows are read-only views that cannot be made writable.
+        """
+        self = object.__new__(cls)
+        setattr_ = object.__setattr__
+        block.setflags(write=False)
+        setattr_(self, "position", block[0])
+        setattr_(self, "velocity", block[1])
+        setattr_(self, "effort", block[2])
+        setattr_(self, "names", names)
+        setattr_(self, "stamp", stamp)
+        return self
+
     def index(self, name: str) -> int:
         """Index of joint ``name`` in ``names``."""
         return self.names.index(name)
@@ -192,8 +209,8 @@ class JointCommand:
             raise InvalidValueError("velocity/effort feed-forward terms are only valid in position mode")
         object.__setattr__(self, "mode", mode)
         object.__setattr__(self, "values", _freeze_values(values, "values"))
-        object.__setattr__(self, "velocity", _freeze_values(velocity, "velocity"))
-        object.__setattr__(self, "effort", _freeze_values(effort, "effort"))
+        object.__setattr__(self, "velocity", None if velocity is None else _freeze_values(velocity, "velocity"))
+        object.__setattr__(self, "effort", None if effort is None else _freeze_values(effort, "effort"))
 
     def __repr__(self) -> str:
         vals = dict(self.values) if isinstance(self.values, Mapping) else list(self.values)

@@ -108,7 +108,7 @@ async def test_ticks_until_wake_is_the_tick_that_wakes_the_sleeper() -> None:
     async with agentsdk.connect("mock", robot="arm3") as robot:
         clock = robot.clock
         loop = robot._loop
-        for dt in (0.0005, 0.001, 0.00123, 0.01, 0.037, 0.5, 1.0 / 3.0):
+        for dt in (0.0005, 0.001, 0.00123, 0.01, 0.037, 0.5, 1.0 / 3.0, loop.period, 2 * loop.period):
             woken: list[int] = []
 
             async def sleeper(dt: float = dt, woken: list[int] = woken) -> None:
@@ -122,6 +122,7 @@ async def test_ticks_until_wake_is_the_tick_that_wakes_the_sleeper() -> None:
                 await asyncio.sleep(0)
                 predicted = clock.ticks_until_wake(1 << 20)
                 assert clock.ticks_until_wake(2) == min(2, predicted)
+                assert clock.wakes_next_tick() == (predicted == 1)
             assert woken == [start + predicted], (dt, loop.period)
 
 

@@ -64,6 +64,24 @@ async def test_package_mesh_robot_loads_and_simulates(monkeypatch: pytest.Monkey
         assert abs(st.position[0] - 0.3) < 0.02
 
 
+async def test_a_read_state_is_read_only_and_keeps_what_it_read() -> None:
+    """A state the user holds never changes under them: read-only arrays of its own, not the loop's."""
+    async with agentsdk.connect("mujoco", robot="arm3") as robot:
+        held = await robot.read()
+        copies = [held.position.copy(), held.velocity.copy(), held.effort.copy()]
+        for arr in (held.position, held.velocity, held.effort):
+            with pytest.raises(ValueError, match="read-only"):
+                arr[0] = 1.0
+            with pytest.raises(ValueError):
+                arr.flags.writeable = True  # not even on purpose
+        await robot.command(JointCommand("position", {robot.joints[0].name: 0.3}))
+        await robot.clock.sleep(0.2)
+        now = await robot.read()
+        assert now.stamp > held.stamp and not np.array_equal(now.position, held.position)
+        for arr, before in zip((held.position, held.velocity, held.effort), copies, strict=True):
+            assert arr.tobytes() == before.tobytes()
+
+
 @pytest.mark.parametrize("name", ["humanoid", "mit_leg"])
 async def test_robot_holds_pose_in_mujoco(name: str) -> None:
     async with agentsdk.connect("mujoco", robot=name) as robot:

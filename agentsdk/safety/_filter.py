@@ -45,6 +45,9 @@ class CommandFilter:
         self.limiter = limiter
         self._lo, self._hi = limiter.lo, limiter.hi
         self._step = limiter.step
+        #: the step window around an origin holds the origin itself (every step >= 0, none NaN): a
+        #: position equal to its origin passes the step clamp unchanged
+        self._window_holds_origin = limiter.step is None or bool(np.all(limiter.step >= 0.0))
         self._vmax, self._emax = limiter.vmax, limiter.emax
         #: the limiter's origin: the position setpoint written last tick (always updated in place)
         self._written = loop.state.position.copy()
@@ -226,8 +229,9 @@ class CommandFilter:
         """Where a direct position command's setpoint starts this tick (the ramp's current position)."""
         return self._written[idx] if mode == "position" else None
 
-    def start_ramp(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> None:
-        """A command was applied to joints ``idx``: a position command starts their ramps, another ends them.
+    def start_ramp(self, mode: CommandMode, idx: np.ndarray | slice, values: np.ndarray) -> None:
+        """A command was applied to joints ``idx`` (indices or a slice): a position command starts their ramps,
+        another ends them.
 
         A direct position command becomes the *goal* of a ramp limited to
         ``max_position_step`` per cycle; the setpoint keeps showing where the
@@ -275,6 +279,11 @@ class CommandFilter:
             pos, written = sp.position, self._written
             if no_ramp:
                 limiter.clamp_rows(rows)
+                if self._window_holds_origin and pos.tobytes() == written.tobytes():
+                    # a hold: clip(q, q - step, q + step) is q, bit for bit (q - step <= q <= q + step for
+                    # any step >= 0, inf included; a NaN q is np.maximum's and np.minimum's first operand,
+                    # returned as it is), and the origin already holds q
+                    return
                 if limiter.step is not None:
                     limiter.clamp_step(pos, written, pos)
                 written[...] = pos

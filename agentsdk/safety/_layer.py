@@ -30,6 +30,10 @@ if TYPE_CHECKING:
     from ..following import FollowingErrorCheck
 
 
+#: every joint, as an index (what a full-length command's index array selects)
+_EVERY = slice(None)
+
+
 class SafetyLayer:
     """Wraps one control loop. Created by :func:`agentsdk.connect`; reach it as ``robot.safety``.
 
@@ -74,6 +78,9 @@ class SafetyLayer:
         self._ramp_start = command_filter.ramp_start
         self._start_ramp = command_filter.start_ramp
         self._feed = watchdogs.feed
+        self._full = shapes.full
+        #: where a position ramp starts (the filter's last written position: read-only, live)
+        self._origin = command_filter.origin()
         self._handles = [
             loop.add_hook(Phase.LIMIT, command_filter.tick),
             loop.add_hook(Phase.OBSERVE, watchdogs.tick, order=SAFETY_OBSERVE_ORDER),
@@ -252,7 +259,9 @@ class SafetyLayer:
         """
         loop = self.loop
         backend = loop.backend
-        self._check_motion_allowed()
+        core = self._core
+        if core._state is not SafetyState.OK or core._latched.is_set():
+            self._check_motion_allowed()  # (OK without a latch: nothing to check)
         idx, names, values, vel, eff = self._resolve(cmd, backend.capabilities.modes, backend.name)
         assert isinstance(cmd, JointCommand)  # resolve checked it
         owner = self._motions.owner_of(idx)
@@ -265,9 +274,16 @@ class SafetyLayer:
         values = self._limit_command(mode, idx, values)
         if vel is not None or eff is not None:
             vel, eff = self._limit_feedforward(idx, vel, eff)
-        loop.apply(mode, idx, values, vel, eff, position_now=self._ramp_start(mode, idx))
-        self._feed(idx)
-        self._start_ramp(mode, idx, values)
+        if idx is self._full and vel is None and eff is None and mode == "position":
+            # every joint, no feed-forward (a behavior streaming whole poses): one block write; the
+            # setpoint starts at the ramp's position, the filter's origin (copied into the setpoint)
+            loop.apply_position_all(values, self._origin)
+        else:
+            loop.apply(mode, idx, values, vel, eff, position_now=self._ramp_start(mode, idx))
+        # every joint: the same elements by basic indexing (a slice: no index array walked per write)
+        sel = _EVERY if idx is self._full else idx
+        self._feed(sel)
+        self._start_ramp(mode, sel, values)
         return AppliedCommand(
             mode,
             MappingProxyType(dict(zip(names, values.tolist(), strict=True))),

@@ -87,8 +87,8 @@ class Watchdogs:
         return HookHandle(remove, lambda: check in checks)
 
     # ------------------------------------------------------ command watchdog
-    def feed(self, idx: np.ndarray) -> None:
-        """A command was applied to joints ``idx``: they are watched from now; a HOLD ends."""
+    def feed(self, idx: np.ndarray | slice) -> None:
+        """A command was applied to joints ``idx`` (indices or a slice): they are watched from now; a HOLD ends."""
         self._fed[idx] = self._loop.stamp
         self._held[idx] = False
         core = self._core

@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -98,3 +99,28 @@ def test_verdict_against_the_peers_of_the_same_frame_skip() -> None:
     assert "no peer row measured there" in lone.figure and lone.baseline is None
     lines = anchors.comparability(rows)
     assert any(ln.startswith("frame skip 5:") and "humanoid-walk (not measured)" in ln for ln in lines), lines
+
+
+def test_a_plain_quick_run_leaves_the_anchors_out(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """``agentsdk bench --quick`` (the test suite runs it) must not reach for pip; ``--only anchors`` may."""
+    import json
+
+    from agentsdk.bench import __main__ as cli
+
+    calls: list[tuple[bool, bool]] = []
+
+    def fake_anchors(quick: bool, setup: bool = False) -> list[Any]:
+        calls.append((quick, setup))
+        return []
+
+    monkeypatch.setattr(cli, "BENCHMARKS", {"anchors": ("the anchors", fake_anchors)})
+    monkeypatch.setattr(cli, "SETS_UP_WHEN_NAMED", {"anchors": fake_anchors})
+    out = tmp_path / "quick.json"
+    assert cli.main(["--quick", "--json", str(out)]) == 0
+    assert calls == []
+    (sec,) = json.loads(out.read_text())["sections"]
+    assert sec["status"] == "skipped" and "--only anchors" in sec["notes"][0]
+    assert cli.main(["--quick", "--only", "anchors", "--json", str(out)]) == 0
+    assert calls == [(True, True)]  # named: it runs, and may set up its environment
+    assert cli.main(["--json", str(out)]) == 0
+    assert calls[-1] == (False, False)  # a full run: only an environment that already exists

@@ -94,8 +94,9 @@ def test_verdict_against_the_peers_of_the_same_frame_skip() -> None:
     lone = v["agentsdk arm3 333 Hz hold"]
     assert "frame skip: yes (worst peer ratio 2.50x: Reacher-v5)" in hold.figure
     assert hold.baseline == pytest.approx(2.5) and hold.sdk == pytest.approx(2.0) and hold.target_met
-    assert "frame skip: no (worst peer ratio 1.60x: Pusher-v5 (its default))" in track.figure
+    assert "frame skip: no (worst peer ratio 1.60x: Pusher-v5 (its default); 1 peer" in track.figure
     assert not track.target_met and "not measured: dm_control humanoid-walk" in track.note
+    assert track.figure.endswith("; 1 peer row(s) not measured)")
     assert "no peer row measured there" in lone.figure and lone.baseline is None
     lines = anchors.comparability(rows)
     assert any(ln.startswith("frame skip 5:") and "humanoid-walk (not measured)" in ln for ln in lines), lines

@@ -476,8 +476,8 @@ async def _sdk_track(backend: str, robot: str, traj: Any, tail: float) -> tuple[
         return sim, wall, res, (await r.read()).position.copy()
 
 
-#: the SDK runs, for the other benchmarks that time them the same way (bench/anchors.py)
-run_sdk, sdk_hold, sdk_track = _run_sdk, _sdk_hold, _sdk_track
+#: the SDK runs and their stall check, for the other benchmarks that time them the same way (bench/anchors.py)
+run_sdk, sdk_hold, sdk_track, check_stall = _run_sdk, _sdk_hold, _sdk_track, _check_stall
 
 
 def waypoints(rb: _Robot, target_duration: float, seed: int = 1) -> tuple[np.ndarray, Any]:

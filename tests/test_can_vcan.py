@@ -205,6 +205,19 @@ class Recorder:
         with self._lock:
             return list(self._frames)
 
+    def frames_until(self, t_wall: float, timeout: float = 10.0) -> list[can.Message]:
+        """The frames the kernel stamped at or before ``t_wall`` (``time.time()``), once this thread has
+        taken one stamped after it: a starved thread may still be draining its socket when asked."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            frames = self.frames()
+            if frames and frames[-1].timestamp > t_wall:
+                break
+            time.sleep(0.01)
+        else:
+            raise AssertionError(f"no frame stamped after {t_wall:.3f} reached the recorder in {timeout} s")
+        return [m for m in frames if m.timestamp <= t_wall]
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5)
@@ -422,12 +435,14 @@ def test_kill_9_of_the_host_leaves_the_motors_limp_by_their_own_timeout(tmp_path
             os.kill(host.popen.pid, signal.SIGKILL)
             t_kill = time.monotonic()
             assert host.popen.wait(10) == -signal.SIGKILL
+            # the host is dead from here on: on the kernel's clock, which stamps each frame as it is sent (the
+            # recorder thread may still be draining frames sent before the kill, so a count taken now is not it)
+            t_dead = time.time()
         finally:
             host.stop()
-        n_frames = len(rec.frames())
         time.sleep(max(0.0, t_kill + 2.4 * MOTOR_TIMEOUT - time.monotonic()))  # > 2x the firmware timeout
         t_probe = time.monotonic() - t_kill
-        after = rec.frames()[n_frames:]
+        after = [m for m in rec.frames() if m.timestamp > t_dead]
         limp = _probe(probe_bus, profile, ranges)
         time.sleep(1.0)
         stopped = _probe(probe_bus, profile, ranges)

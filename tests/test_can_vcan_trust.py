@@ -237,8 +237,9 @@ async def test_a_second_connect_to_vcan0_and_the_same_ids_raises(leg: str) -> No
                     pass
             await robot.clock.sleep(0.3)
             assert robot.safety.state is SafetyState.OK, robot.safety.events
-            sent = len(rec.frames())
-    enables = [m for m in rec.frames()[:sent] if is_special(m.data) in ("enable", "disable")]
+            t_sent = time.time()
+        sent = rec.frames_until(t_sent)  # the first robot's closing frames come after t_sent
+    enables = [m for m in sent if is_special(m.data) in ("enable", "disable")]
     assert len(enables) == 3, enables  # the first robot's three enables; the refused one sent nothing
 
 

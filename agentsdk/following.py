@@ -27,6 +27,12 @@ The defaults (0.25..0.5 rad or m, 0.1 s) are loose enough for every corpus robot
 tracking with its default gains (a hand's finger on PyBullet lags up to 0.19 rad during a
 fast move and still reaches its goal) and catch a joint that sags, swings or is stuck.
 
+A joint moved by a trajectory controller that runs the whole goal itself (an offloaded
+``FollowJointTrajectory`` goal, :mod:`agentsdk.offload`) is also following when it is inside its
+window of the controller's own desired position (its feedback): that controller runs the goal on
+its own clock, which may lag the local sample by the link's delays or a stall of its host. A joint
+near neither is a following error as anywhere else.
+
 The error must stay outside the window for ``following_error_time`` seconds of robot time
 (a transient, e.g. a collision bump, is not a fault); then the check returns a violation
 naming the joint, its error and window, and the safety layer latches a stop of category
@@ -210,6 +216,25 @@ class FollowingErrorCheck:
             self._all_watched = mask.tobytes() == self._all
             self._mask_key = (sp.mode.tobytes(), sp.enabled.tobytes(), gain.tobytes())
 
+    def _judge_by_controller(self, position: FloatArray, err: FloatArray, outside: np.ndarray) -> None:
+        """Joints outside their window of the setpoint but inside it of the position their trajectory controller
+        reports it is tracking (an offloaded goal, :attr:`ControlLoop.controller_desired`) are following: that
+        controller runs the goal on its own clock (it started later, or its host stalled). Their error is the
+        smaller one. Only on a tick some joint is outside (allocates).
+        """
+        desired = self._loop.controller_desired
+        if np.isnan(desired).all():
+            return
+        e = np.subtract(position, desired)
+        if self._any_continuous:
+            wrapped = np.remainder(e + math.pi, 2.0 * math.pi) - math.pi
+            np.copyto(e, wrapped, where=self._continuous)
+        np.abs(e, out=e)
+        follows = outside & (e <= self.windows)  # (NaN: no controller's desired, not following it)
+        if follows.any():
+            err[follows] = e[follows]
+            outside &= ~follows
+
     def __call__(self, t: float, state: StateView) -> SafetyViolation | None:
         """Return a violation naming the joint whose error stayed outside its window longest, else None."""
         sp = self._loop.setpoint
@@ -230,9 +255,11 @@ class FollowingErrorCheck:
         self._update_mask(sp)
         if not self._all_watched:  # (times 1.0 everywhere would change no bit: skipped)
             np.multiply(err, self._maskf, out=err)  # unwatched joints: no error
-        np.fmax(self.peak, err, out=self.peak)  # (NaN: not an error figure)
         outside = self._tmp
         np.greater(err, self.windows, out=outside)
+        if outside.tobytes() != self._none:
+            self._judge_by_controller(state.position, err, outside)
+        np.fmax(self.peak, err, out=self.peak)  # (NaN: not an error figure)
         gap = t - self._last_t > 1.5 * self._period  # the check did not run meanwhile (stopped, disabled)
         self._last_t = t
         if outside.tobytes() == self._none:

@@ -293,6 +293,10 @@ class ControlLoop:
         #: the plausibility gate every reading passes before it becomes the state (None: readings
         #: are taken as they are); see :meth:`install_sensor_gate`
         self.sensor_gate: SensorGate | None = None
+        #: per joint, the position a trajectory controller running an offloaded goal (:mod:`agentsdk.offload`)
+        #: last reported as its desired state (NaN: none): that controller owns the goal's timing, so the
+        #: following-error check also accepts a joint within its window of this (written by the motion layer)
+        self.controller_desired = np.full(n, np.nan)
         #: the realtime clock's time.monotonic() at robot time 0 (None in lockstep), and the robot time of
         #: the reading being gated (NaN: none): a backend's reading ages without another clock read
         self._origin: float | None = getattr(self.clock, "origin", None)

@@ -419,8 +419,10 @@ class _Executor:
             snap.actual_q, snap.actual_v = w.act, w.actual_v
             remote = ex.remote
             if remote is not None and remote.desired_into(ex.remote_q, ex.remote_v):
-                # an offloaded goal: the desired state is the controller's, from its feedback
+                # an offloaded goal: the desired state is the controller's, from its feedback (and what the
+                # following-error check may judge these joints by: the controller runs the goal on its own clock)
                 snap.q, snap.v = ex.remote_q, ex.remote_v
+                self.loop.controller_desired[ex.idx] = ex.remote_q
                 np.subtract(ex.remote_q, w.act, out=err)
                 if ex.wrap is not None:
                     _wrap_into(err, ex.wrap, w.tmp)
@@ -449,6 +451,7 @@ class _Executor:
         if remote is None:
             return
         ex.remote, ex.s, ex.sdot = remote, 1.0, 0.0
+        self.loop.controller_desired[ex.idx] = np.nan  # until this goal's controller reports its own
         ex.remote_q, ex.remote_v = np.zeros(len(ex.idx)), np.zeros(len(ex.idx))
 
     def preempt_offloaded(self) -> None:

@@ -132,6 +132,7 @@ class _Ownership:
         remote, ex.remote = ex.remote, None
         if remote is not None:
             remote.release()  # cancels the goal if it still runs; the backend streams again
+            self.loop.controller_desired[ex.idx] = np.nan  # its controller no longer stands for their command
         owner, mask, pending = self.table.owner, self.table.owned_mask, self.table.pending
         for j in ex.idx.tolist():
             if owner[j] is ex:

@@ -34,7 +34,10 @@ from agentsdk import Trajectory, TrajectoryPoint
 async def main(robot):
     traj = Trajectory(["joint1", "joint2"], [TrajectoryPoint(2.0, [1.2, 0.9])])
     motion = robot.follow(traj)
-    await robot.clock.sleep(0.6)   # well into the 2 s move (near its top speed), in robot time
+    # well into the 2 s move, by the arm's own speed (a starved realtime loop advances the trajectory by at
+    # most one period a tick, so robot time alone does not say how fast the arm is)
+    while max(abs(v) for v in (await robot.read()).velocity) < 0.5:
+        await robot.clock.sleep(0.01)
     print("MOVING", flush=True)
     result = await motion          # the README's own pattern: await the motion
     print("RESULT", result.code.name, flush=True)

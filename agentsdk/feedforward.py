@@ -83,9 +83,11 @@ class InverseDynamicsTerm:
         m = self.model = copy.copy(model)
         off = mujoco.mjtDisableBit
         m.opt.disableflags |= int(off.mjDSBL_GRAVITY) | int(off.mjDSBL_SPRING)
-        if friction == "mujoco":
+        if friction == "mujoco" and (m.dof_frictionloss.any() or m.tendon_frictionloss.any()):
             m.opt.disableflags |= int(off.mjDSBL_CONTACT) | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_EQUALITY)
         else:
+            # no constraint can remain (without frictionloss, MuJoCo's friction mode keeps none either: no
+            # constraint row, qfrc_constraint 0): the constraint stages are skipped, qfrc_inverse the same bits
             m.opt.disableflags |= int(off.mjDSBL_CONSTRAINT)
         m.dof_damping[np.flatnonzero(s.any(axis=1))] += extra_damping
         d = self._data = mujoco.MjData(m)

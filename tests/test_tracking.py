@@ -11,6 +11,7 @@ PyBullet; the corpus arms follow a 1 s joint-space trajectory with a peak tracki
 from __future__ import annotations
 
 import asyncio
+import copy
 import importlib.metadata
 from pathlib import Path
 from typing import Any
@@ -355,6 +356,43 @@ def test_compute_block_is_compute_per_reference_bit_for_bit(kind: str) -> None:
                 put_one(qpos, positions[j])
                 tick.compute(qpos, velocity[j], acceleration[j], one, mode, moving=True)
                 assert out[j].tobytes() == one.tobytes(), (j, out[j], one)
+
+
+@pytest.mark.parametrize("name", ["arm3", "humanoid", "panda", "chain"])
+async def test_without_frictionloss_the_constraint_stages_are_skipped_bit_for_bit(name: str) -> None:
+    """MuJoCo's friction mode on a model without frictionloss disables the constraints: the same ``qfrc_inverse``.
+
+    Compared with the term's model as it was before (contacts, limits and equality constraints off one
+    by one) over random positions, velocities and accelerations, signed zeros included.
+    """
+    if name == "chain":
+        model, names = _chain(damping=0.4, armature=0.02, mimic=True), ["a", "b"]
+    else:
+        robot = str(CORPUS / ARMS["panda"][0]) if name == "panda" else name
+        async with agentsdk.connect("mujoco", robot=robot, safety=SAFETY) as r:
+            model, names = r.backend.model, list(r.backend.names)
+    term = InverseDynamicsTerm(model, names, friction="mujoco")
+    off = mujoco.mjtDisableBit
+    assert term.model.opt.disableflags & int(off.mjDSBL_CONSTRAINT)
+    before = copy.copy(model)
+    before.opt.disableflags |= (int(off.mjDSBL_GRAVITY) | int(off.mjDSBL_SPRING) | int(off.mjDSBL_CONTACT)
+                                | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_EQUALITY))
+    d0, d1 = mujoco.MjData(before), term._data
+    rng = np.random.default_rng(17)
+    lo = np.where(model.jnt_limited, model.jnt_range[:, 0], -3.0)
+    hi = np.where(model.jnt_limited, model.jnt_range[:, 1], 3.0)
+    for _ in range(500):
+        q = d0.qpos.copy()
+        for j in range(model.njnt):
+            if model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+                q[model.jnt_qposadr[j]] = rng.uniform(lo[j], hi[j])
+        v, a = _adversarial(rng, (model.nv,), 1e3), _adversarial(rng, (model.nv,), 1e3)
+        for d, m in ((d0, before), (d1, term.model)):
+            d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
+            mujoco.mj_inverse(m, d)
+        assert d1.qfrc_inverse.tobytes() == d0.qfrc_inverse.tobytes()
+    rough = _chain(friction=0.3)  # with frictionloss the constraint stays (MuJoCo's soft dry friction)
+    assert not InverseDynamicsTerm(rough, ["a"], friction="mujoco").model.opt.disableflags & int(off.mjDSBL_CONSTRAINT)
 
 
 # --------------------------------------------------------------------------- the corpus arms

@@ -83,9 +83,11 @@ class InverseDynamicsTerm:
         m = self.model = copy.copy(model)
         off = mujoco.mjtDisableBit
         m.opt.disableflags |= int(off.mjDSBL_GRAVITY) | int(off.mjDSBL_SPRING)
-        if friction == "mujoco":
+        if friction == "mujoco" and (m.dof_frictionloss.any() or m.tendon_frictionloss.any()):
             m.opt.disableflags |= int(off.mjDSBL_CONTACT) | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_EQUALITY)
         else:
+            # no constraint can remain (without frictionloss, MuJoCo's friction mode keeps none either: no
+            # constraint row, qfrc_constraint 0): the constraint stages are skipped, qfrc_inverse the same bits
             m.opt.disableflags |= int(off.mjDSBL_CONSTRAINT)
         m.dof_damping[np.flatnonzero(s.any(axis=1))] += extra_damping
         d = self._data = mujoco.MjData(m)
@@ -104,8 +106,13 @@ class InverseDynamicsTerm:
         self._zero = np.zeros(len(joints)).tobytes()
         self._acc = np.zeros(len(joints))
         self._acc_rounded = np.zeros(len(joints), dtype=ACCELERATION_DTYPE)
+        #: the commanded joints' dofs where ``S`` only selects them (see :func:`_selection`): then
+        #: compute_block gathers and scatters instead of a matrix product per reference
+        self._dofs = _selection(s)
         #: compute_block's work arrays: the rounded accelerations (float64, float32)
         self._blk: tuple[np.ndarray, np.ndarray] | None = None
+        #: compute_block's per-reference inputs and results: qpos (K, nq), qvel, qacc, qfrc_inverse (K, nv)
+        self._rows: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def moving(self, velocity: np.ndarray, acceleration: np.ndarray) -> bool:
         """True unless ``velocity`` and ``acceleration`` are all zero (then the term is 0). Allocation-free."""
@@ -177,48 +184,70 @@ class InverseDynamicsTerm:
         positions: np.ndarray,
         velocity: np.ndarray,
         acceleration: np.ndarray,
-        rows: Sequence[int],
+        rows: np.ndarray,
         out: np.ndarray,
         mode: np.ndarray | None = None,
     ) -> np.ndarray:
         """:meth:`compute` for the references ``rows`` of a block at once, into ``out[rows]`` (bit for bit).
 
-        ``positions``, ``velocity``, ``acceleration`` and ``out`` are (K, n); ``qpos`` is the
-        model's full position vector around the references (what stays put: a floating base's
-        pose) and ``put(qpos, positions[j])`` writes reference ``j``'s joints (and mimic followers)
-        into it, as the caller does per tick before :meth:`compute`. Every element operation is
-        the per-call one: the acceleration's rounding and the effort-mode mask run on all rows at
-        once, the matrix products and ``mj_inverse`` per row (block lockstep, issue 28: the
-        feed-forward of a pre-planned motion computed before its block). With the Coulomb
-        friction term each row runs :meth:`compute` itself. The other rows of ``out`` are left as
-        they are.
+        ``positions``, ``velocity``, ``acceleration`` and ``out`` are (K, n); ``rows`` the indices
+        (ascending) of the references to compute; ``qpos`` is the model's full position vector
+        around the references (what stays put: a floating base's pose) and ``put(qpos_rows,
+        positions_rows)`` writes the references' joints (and mimic followers) into rows of it, (R,
+        nq) and (R, n), with the element operations the caller uses per tick before
+        :meth:`compute`. Every element operation is the per-call one: the acceleration's rounding,
+        the effort-mode mask and, where ``S`` only selects the joints' dofs (no mimic follower:
+        arm3, the humanoid), its products (gathers, see :func:`_selection`) run on all rows at
+        once; only the copies into MuJoCo's arrays and ``mj_inverse`` run per row (block lockstep,
+        issue 28: the feed-forward of a pre-planned motion computed before its block). With mimic
+        followers the matrix products run per row; with the Coulomb friction term each row runs
+        :meth:`compute` itself. The other rows of ``out`` are left as they are.
         """
-        K = len(velocity)
-        if not rows:
+        R = len(rows)
+        if not R:
             return out
+        K = len(velocity)
+        m, d = self.model, self._data
+        nq, nv, n = m.nq, m.nv, len(self._acc)
+        work = self._rows
+        if work is None or len(work[0]) < K:
+            # the dofs no joint drives stay 0 in the velocity and acceleration rows (as S v leaves them)
+            work = self._rows = (np.empty((K, nq)), np.zeros((K, nv)), np.zeros((K, nv)), np.empty((K, nv)))
+        qs = work[0][:R]
+        qs[...] = qpos
+        put(qs, positions[rows])
         if self._friction is not None:
-            own = qpos.copy()
-            for j in rows:
-                put(own, positions[j])
-                self.compute(own, velocity[j], acceleration[j], out[j], mode, moving=True)
+            for j, q in zip(rows, qs, strict=True):
+                self.compute(q, velocity[j], acceleration[j], out[j], mode, moving=True)
             return out
         blk = self._blk
         if blk is None or len(blk[0]) < K:
-            blk = self._blk = (np.empty((K, len(self._acc))), np.empty((K, len(self._acc)), dtype=ACCELERATION_DTYPE))
+            blk = self._blk = (np.empty((K, n)), np.empty((K, n), dtype=ACCELERATION_DTYPE))
         acc, rounded = blk[0][:K], blk[1][:K]
         np.copyto(rounded, acceleration, casting="same_kind")  # see ACCELERATION_DTYPE
         np.copyto(acc, rounded)
-        m, d = self.model, self._data
-        s, st, qvel, qacc, full = self._s, self._st, self._qvel, self._qacc, self._qfrc
-        own_q = self._qpos
-        own_q[...] = qpos
-        inverse, dot = mujoco.mj_inverse, np.dot
-        for j in rows:
-            put(own_q, positions[j])
-            dot(s, velocity[j], out=qvel)
-            dot(s, acc[j], out=qacc)
-            inverse(m, d)
-            dot(st, full, out=out[j])
+        qpos_, qvel, qacc, full = self._qpos, self._qvel, self._qacc, self._qfrc
+        inverse = mujoco.mj_inverse
+        dofs = self._dofs
+        if dofs is not None:
+            vs, accs, fs = work[1][:R], work[2][:R], work[3][:R]
+            vs[:, dofs] = velocity[rows] + 0.0  # S v (see _selection)
+            accs[:, dofs] = acc[rows] + 0.0
+            for q, v, a, f in zip(qs, vs, accs, fs, strict=True):
+                qpos_[...] = q
+                qvel[...] = v
+                qacc[...] = a
+                inverse(m, d)
+                f[...] = full
+            out[rows] = fs[:, dofs] + 0.0  # S.T qfrc_inverse
+        else:
+            s, st, dot = self._s, self._st, np.dot
+            for j, q in zip(rows, qs, strict=True):
+                qpos_[...] = q
+                dot(s, velocity[j], out=qvel)
+                dot(s, acc[j], out=qacc)
+                inverse(m, d)
+                dot(st, full, out=out[j])
         if mode is not None:
             effort = self._effort
             np.equal(mode, _EFFORT, out=effort)
@@ -226,3 +255,21 @@ class InverseDynamicsTerm:
                 for j in rows:
                     out[j][effort] = 0.0
         return out
+
+
+def _selection(s: np.ndarray) -> np.ndarray | None:
+    """Joint ``k``'s dof where the coupling ``S`` (nv, n) only selects the joints' dofs (else None).
+
+    That is: every column holds one 1.0 and every row at most one nonzero (no mimic follower
+    moves with a joint). Then ``S v`` is ``v + 0.0`` at the joints' dofs and 0.0 elsewhere, and
+    ``S.T f`` is ``f[dofs] + 0.0``: the matrix-vector product adds, to its initial 0.0, one product
+    ``1.0 x`` (exact) and zeros, which leave ``x`` as it is except a -0.0, which becomes 0.0
+    (``tests/test_tracking.py`` checks it bit for bit against ``np.dot``).
+    """
+    nonzero = s != 0.0
+    if (nonzero.sum(axis=0) != 1).any() or (nonzero.sum(axis=1) > 1).any():
+        return None
+    dofs = nonzero.argmax(axis=0)
+    if not (s[dofs, np.arange(s.shape[1])] == 1.0).all():
+        return None
+    return np.ascontiguousarray(dofs, dtype=np.intp)

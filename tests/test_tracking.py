@@ -11,6 +11,7 @@ PyBullet; the corpus arms follow a 1 s joint-space trajectory with a peak tracki
 from __future__ import annotations
 
 import asyncio
+import copy
 import importlib.metadata
 from pathlib import Path
 from typing import Any
@@ -278,6 +279,119 @@ def test_mujoco_mode_gives_the_acceleration_mujoco_simulates() -> None:
         d.qfrc_applied[:] = term.compute(q, v, a, out) + gravity.compute(q, g)
         mujoco.mj_forward(m, d)
         assert np.allclose(d.qacc, a, rtol=1e-6, atol=1e-6), (d.qacc, a)
+
+
+def _adversarial(rng: np.random.Generator, shape: tuple[int, ...], huge: float = 1e150) -> np.ndarray:
+    """Values a bit-for-bit claim has to hold for: signed zeros, tiny and huge magnitudes among ordinary ones."""
+    x = rng.normal(size=shape) * rng.choice([1.0, 1.0, 1e-170, huge, 0.0], size=shape)
+    x[rng.random(shape) < 0.4] *= -1.0  # (0.0 * -1.0: -0.0)
+    return x
+
+
+def test_a_coupling_that_only_selects_dofs_is_gathered_bit_for_bit_as_the_matrix_product() -> None:
+    """``_selection``: ``S v`` is ``v + 0.0`` at the joints' dofs, ``S.T f`` is ``f[dofs] + 0.0``, as ``np.dot`` gives.
+
+    compute_block gathers instead of a matrix product per reference; the tick's :meth:`compute`
+    keeps ``np.dot``: a block's feed-forward is bit for bit the tick's only if the two agree on
+    every value, the zeros' signs included.
+    """
+    from agentsdk.dynamics import coupling_matrix
+    from agentsdk.feedforward import _selection
+
+    assert _selection(coupling_matrix(_chain(mimic=True), ["a", "b"])) is None  # c follows b: a product
+    rng = np.random.default_rng(3)
+    m = _chain()
+    for names in (["a", "b", "c"], ["c", "a"], ["b"]):
+        s = np.ascontiguousarray(coupling_matrix(m, names))
+        st = np.ascontiguousarray(s.T)
+        dofs = _selection(s)
+        assert dofs is not None and [m.joint(int(m.dof_jntid[i])).name for i in dofs] == names
+        qvel, out = np.empty(m.nv), np.empty(len(names))
+        for _ in range(3000):
+            v, f = _adversarial(rng, (len(names),)), _adversarial(rng, (m.nv,))
+            gathered = np.zeros(m.nv)
+            gathered[dofs] = v + 0.0
+            assert np.dot(s, v, out=qvel).tobytes() == gathered.tobytes(), v
+            assert np.dot(st, f, out=out).tobytes() == (f[dofs] + 0.0).tobytes(), f
+    assert _selection(np.array([[1.0, 0.0], [0.0, 2.0]])) is None  # a multiplier is not a selection
+    assert _selection(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])) is not None  # a dof of no joint (a base's)
+
+
+@pytest.mark.parametrize("kind", ["mujoco", "mimic", "coulomb"])
+def test_compute_block_is_compute_per_reference_bit_for_bit(kind: str) -> None:
+    """The block form (gathers, or matrix products with a mimic follower, or Coulomb friction's per-row path)."""
+    m = _chain(damping=0.7, armature=0.05, friction=0.3 if kind == "coulomb" else 0.0, mimic=kind == "mimic")
+    names = ["a", "b"] if kind == "mimic" else ["a", "b", "c"]
+    term = InverseDynamicsTerm(m, names, friction="coulomb" if kind == "coulomb" else "mujoco")
+    tick = InverseDynamicsTerm(m, names, friction="coulomb" if kind == "coulomb" else "mujoco")
+    n, K = len(names), 40
+    rng = np.random.default_rng(5)
+
+    def put_one(qpos: np.ndarray, q: np.ndarray) -> None:
+        qpos[:n] = q
+        if kind == "mimic":
+            qpos[2] = 0.5 * q[1]
+
+    def put(qpos: np.ndarray, q: np.ndarray) -> None:
+        qpos[:, :n] = q
+        if kind == "mimic":
+            qpos[:, 2] = 0.5 * q[:, 1]
+
+    for mode in (None, np.array([ModeCode.POSITION, ModeCode.EFFORT, ModeCode.VELOCITY][:n], dtype=np.int8)):
+        for _ in range(20):
+            positions = rng.uniform(-1.0, 1.0, (K, n))
+            # (accelerations within float32, see ACCELERATION_DTYPE)
+            velocity, acceleration = _adversarial(rng, (K, n), 1e100), _adversarial(rng, (K, n), 1e30)
+            velocity[:4] = acceleration[:4] = -0.0  # (a reference at rest: the products' zeros' signs show)
+            velocity[4:6] = 0.0
+            rows = np.sort(rng.choice(K, size=int(rng.integers(1, K)), replace=False))
+            out = np.full((K, n), np.nan)
+            term.compute_block(np.zeros(m.nq), put, positions, velocity, acceleration, rows, out, mode)
+            qpos, one = np.zeros(m.nq), np.empty(n)
+            for j in range(K):
+                if j not in rows:
+                    assert np.isnan(out[j]).all()  # the other rows are left as they are
+                    continue
+                put_one(qpos, positions[j])
+                tick.compute(qpos, velocity[j], acceleration[j], one, mode, moving=True)
+                assert out[j].tobytes() == one.tobytes(), (j, out[j], one)
+
+
+@pytest.mark.parametrize("name", ["arm3", "humanoid", "panda", "chain"])
+async def test_without_frictionloss_the_constraint_stages_are_skipped_bit_for_bit(name: str) -> None:
+    """MuJoCo's friction mode on a model without frictionloss disables the constraints: the same ``qfrc_inverse``.
+
+    Compared with the term's model as it was before (contacts, limits and equality constraints off one
+    by one) over random positions, velocities and accelerations, signed zeros included.
+    """
+    if name == "chain":
+        model, names = _chain(damping=0.4, armature=0.02, mimic=True), ["a", "b"]
+    else:
+        robot = str(CORPUS / ARMS["panda"][0]) if name == "panda" else name
+        async with agentsdk.connect("mujoco", robot=robot, safety=SAFETY) as r:
+            model, names = r.backend.model, list(r.backend.names)
+    term = InverseDynamicsTerm(model, names, friction="mujoco")
+    off = mujoco.mjtDisableBit
+    assert term.model.opt.disableflags & int(off.mjDSBL_CONSTRAINT)
+    before = copy.copy(model)
+    before.opt.disableflags |= (int(off.mjDSBL_GRAVITY) | int(off.mjDSBL_SPRING) | int(off.mjDSBL_CONTACT)
+                                | int(off.mjDSBL_LIMIT) | int(off.mjDSBL_EQUALITY))
+    d0, d1 = mujoco.MjData(before), term._data
+    rng = np.random.default_rng(17)
+    lo = np.where(model.jnt_limited, model.jnt_range[:, 0], -3.0)
+    hi = np.where(model.jnt_limited, model.jnt_range[:, 1], 3.0)
+    for _ in range(500):
+        q = d0.qpos.copy()
+        for j in range(model.njnt):
+            if model.jnt_type[j] in (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE):
+                q[model.jnt_qposadr[j]] = rng.uniform(lo[j], hi[j])
+        v, a = _adversarial(rng, (model.nv,), 1e3), _adversarial(rng, (model.nv,), 1e3)
+        for d, m in ((d0, before), (d1, term.model)):
+            d.qpos[:], d.qvel[:], d.qacc[:] = q, v, a
+            mujoco.mj_inverse(m, d)
+        assert d1.qfrc_inverse.tobytes() == d0.qfrc_inverse.tobytes()
+    rough = _chain(friction=0.3)  # with frictionloss the constraint stays (MuJoCo's soft dry friction)
+    assert not InverseDynamicsTerm(rough, ["a"], friction="mujoco").model.opt.disableflags & int(off.mjDSBL_CONSTRAINT)
 
 
 # --------------------------------------------------------------------------- the corpus arms

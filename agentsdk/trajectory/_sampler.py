@@ -130,6 +130,7 @@ class TrajectorySampler:
         "_has_start",
         "_knots",
         "_knots_arr",
+        "_knots_block",
         "_n",
         "_peaks",
         "_segs",
@@ -283,6 +284,8 @@ class TrajectorySampler:
         self._knots_arr = np.array(knots, dtype=np.float64)
         #: sample_block's stacked bases (K, 3, 6), constant entries written once; grown on demand
         self._Bblock = np.zeros((0, 3, 6))
+        #: sample_block's knot of each sample's segment (K,), grown with it
+        self._knots_block = np.zeros(0)
         self._T = np.concatenate(([pts.points[0].time_from_start], T)) if has_start else T
         self._has_start = has_start
         self._B = np.zeros((3, 6))
@@ -390,15 +393,36 @@ class TrajectorySampler:
         i0 = min(bisect_right(knots, float(ts[0])) - 1, n_seg)
         i1 = min(bisect_right(knots, float(ts[-1])) - 1, n_seg)
         cuts = np.searchsorted(ts, self._knots_arr[i0 + 1 : i1 + 1], side="left").tolist() if i1 > i0 else []
-        B = self._Bblock
-        if len(B) < K and i1 >= 0 and i0 < n_seg:
-            B = self._Bblock = np.zeros((max(K, 2 * len(B)), 3, 6))
-            B[:, 0, 0] = B[:, 1, 1] = 1.0  # the constant entries, written once
-            B[:, 2, 2] = 2.0
         n = self._n
+        chunks = list(zip(range(i0, i1 + 1), [*cuts, K], strict=True))
+        B = self._Bblock
+        if i1 >= 0 and i0 < n_seg:  # a sample inside the segments: the bases of all K at once
+            if len(B) < K:
+                B = self._Bblock = np.zeros((max(K, 2 * len(B)), 3, 6))
+                B[:, 0, 0] = B[:, 1, 1] = 1.0  # the constant entries, written once
+                B[:, 2, 2] = 2.0
+                self._knots_block = np.zeros(len(B))
+            kn = self._knots_block[:K]  # each sample's segment start (0.0 outside the segments: not used)
+            a = 0
+            for i, b in chunks:
+                kn[a:b] = knots[i] if 0 <= i < n_seg else 0.0
+                a = b
+            # B = [[1, tau, t2, t3, t3 tau, t3 t2], [0, 1, 2 tau, 3 t2, 4 t3, 5 t3 tau], [0, 0, 2, 6 tau,
+            # 12 t2, 20 t3]]: the entries sample_into writes, from the same float operations (element by
+            # element: each row the same whatever the other rows are)
+            Bk = B[:K]
+            x = Bk[:, 0, 1:4]  # tau, t2, t3
+            np.subtract(ts, kn, out=x[:, 0])
+            np.multiply(x[:, 0], x[:, 0], out=x[:, 1])
+            np.multiply(x[:, 1], x[:, 0], out=x[:, 2])
+            np.multiply(x[:, 2:3], x[:, 0:2], out=Bk[:, 0, 4:6])  # t3 tau, t3 t2
+            np.multiply(x, _ROW1, out=Bk[:, 1, 2:5])  # 2 tau, 3 t2, 4 t3
+            np.multiply(x[:, 2], 5.0, out=Bk[:, 1, 5])
+            np.multiply(Bk[:, 1, 5], x[:, 0], out=Bk[:, 1, 5])  # (5 t3) tau
+            np.multiply(x, _ROW2, out=Bk[:, 2, 3:6])  # 6 tau, 12 t2, 20 t3
         flat_out = out.flags.c_contiguous
         a = 0
-        for i, b in zip(range(i0, i1 + 1), [*cuts, K], strict=True):
+        for i, b in chunks:
             if a == b:
                 continue  # a segment no tick falls in
             if regions is not None:
@@ -407,23 +431,10 @@ class TrajectorySampler:
                 out[a:b] = self._end_state
             elif i < 0:
                 out[a:b] = self._start_state
+            elif flat_out:  # one matrix product per segment, the stacked bases its rows
+                np.dot(B[a:b].reshape(-1, 6), self._segs[i], out=out[a:b].reshape(-1, n))
             else:
-                # B = [[1, tau, t2, t3, t3 tau, t3 t2], [0, 1, 2 tau, 3 t2, 4 t3, 5 t3 tau], [0, 0, 2, 6 tau,
-                # 12 t2, 20 t3]]: the entries sample_into writes, from the same float operations
-                Bk = B[: b - a]
-                x = Bk[:, 0, 1:4]  # tau, t2, t3
-                np.subtract(ts[a:b], knots[i], out=x[:, 0])
-                np.multiply(x[:, 0], x[:, 0], out=x[:, 1])
-                np.multiply(x[:, 1], x[:, 0], out=x[:, 2])
-                np.multiply(x[:, 2:3], x[:, 0:2], out=Bk[:, 0, 4:6])  # t3 tau, t3 t2
-                np.multiply(x, _ROW1, out=Bk[:, 1, 2:5])  # 2 tau, 3 t2, 4 t3
-                np.multiply(x[:, 2], 5.0, out=Bk[:, 1, 5])
-                np.multiply(Bk[:, 1, 5], x[:, 0], out=Bk[:, 1, 5])  # (5 t3) tau
-                np.multiply(x, _ROW2, out=Bk[:, 2, 3:6])  # 6 tau, 12 t2, 20 t3
-                if flat_out:
-                    np.dot(Bk.reshape(-1, 6), self._segs[i], out=out[a:b].reshape(-1, n))
-                else:
-                    out[a:b] = np.dot(Bk.reshape(-1, 6), self._segs[i]).reshape(b - a, 3, n)
+                out[a:b] = np.dot(B[a:b].reshape(-1, 6), self._segs[i]).reshape(b - a, 3, n)
             a = b
         self.region = i1
         return out

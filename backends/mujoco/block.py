@@ -124,14 +124,14 @@ class BlockStepper:
             moving |= np.not_equal(tmp, 0.0).any(axis=1)
             qadr, followers = b._qadr, b._qdes_followers
 
-            def put_q(qpos: np.ndarray, q: np.ndarray) -> None:  # the desired position, as the write puts it
-                np.put(qpos, qadr, q)
+            def put_q(qpos: np.ndarray, q: np.ndarray) -> None:  # the desired positions, as the write puts each
+                qpos[:, qadr] = q
                 for adr, leader, c1, c0 in followers:
-                    qpos[adr] = c0 + c1 * q[leader]
+                    qpos[:, adr] = c0 + c1 * q[:, leader]
 
             idx = np.flatnonzero(moving)
             if len(idx):
-                ff = inverse.compute_block(b._qdes, put_q, rows[:, 0], rows[:, 1], rows[:, 6], idx.tolist(),
+                ff = inverse.compute_block(b._qdes, put_q, rows[:, 0], rows[:, 1], rows[:, 6], idx,
                                            self._ctrl_ff[:K], setpoint.mode)
                 ctrls[idx] += ff[idx]
         ctrl = b._ctrl

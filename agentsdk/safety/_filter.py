@@ -262,10 +262,11 @@ class CommandFilter:
         no_ramp = ramping.tobytes() == self._all_false
         if not no_ramp:
             owned = self.motions.owned_mask
-            np.greater(ramping, owned, out=ramping)  # ramping &= ~owned
             # a direct command ramping with no motion running (a behavior commanding every tick) takes
             # the short path below as well; a motion's joints take the long one (its clip report)
             ramp_only = owned.tobytes() == self._all_false
+            if not ramp_only:  # (no joint owned: ramping &= ~owned changes nothing)
+                np.greater(ramping, owned, out=ramping)  # ramping &= ~owned
         else:
             ramp_only = True
         if ramp_only and self.all_position_on(sp.mode, sp.enabled):
@@ -299,9 +300,16 @@ class CommandFilter:
             target[...] = pos
             limiter.clamp_step(target, written, pos)
             # a ramp ends where the step no longer clips it: ramping &= pos != target
-            unreached = self._unreached
-            np.not_equal(pos, target, out=unreached)
-            np.logical_and(ramping, unreached, out=ramping)
+            if pos.tobytes() == target.tobytes():
+                # every ramp reached its goal this tick (the common case: a goal inside the step window).
+                # Equal bytes are equal values except NaN, and no ramping joint's target is NaN: its goal
+                # is an admitted command (finite), clipped to bounds that are never NaN. A joint not
+                # ramping stays so. So ramping &= pos != target clears every flag.
+                ramping.fill(False)
+            else:
+                unreached = self._unreached
+                np.not_equal(pos, target, out=unreached)
+                np.logical_and(ramping, unreached, out=ramping)
             written[...] = pos
             return
         pos_mode = (sp.mode == _POS) & sp.enabled

@@ -66,6 +66,8 @@ class CommandFilter:
         #: views of the loop's setpoint rows (made once per setpoint object, not per tick)
         self._rows_of: object = None
         self._rows: np.ndarray | None = None
+        #: the bytes the last bounds clip of those rows left (a clip's result is its own fixed point)
+        self._rows_clipped = b""
         #: deceleration available to stop a velocity stream before a position limit
         self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
@@ -279,7 +281,15 @@ class CommandFilter:
             limiter = self.limiter
             pos, written = sp.position, self._written
             if no_ramp:
-                limiter.clamp_rows(rows)
+                # the bounds clip is idempotent bit for bit: a y it produced is either the bits of hi (then
+                # max(hi, lo) then min(., hi) gives hi again, for hi above, equal to or below lo), or
+                # strictly below hi and then the bits of lo or an x strictly between (kept by both); a NaN
+                # stays the same NaN; signed zeros only meet in ties, which return a bound's bits both
+                # times. So rows holding the bytes the last clip left (a hold: nobody wrote them since)
+                # are skipped
+                if rows.tobytes() != self._rows_clipped:
+                    limiter.clamp_rows(rows)
+                    self._rows_clipped = rows.tobytes()
                 if self._window_holds_origin and pos.tobytes() == written.tobytes():
                     # a hold: clip(q, q - step, q + step) is q, bit for bit (q - step <= q <= q + step for
                     # any step >= 0, inf included; a NaN q is np.maximum's and np.minimum's first operand,

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import agentsdk
-from agentsdk import JointCommand, ResultCode, Trajectory, TrajectoryPoint
+from agentsdk import JointCommand, Phase, ResultCode, Trajectory, TrajectoryPoint
+from agentsdk.backend import SetpointView
+from agentsdk.loop import Setpoint
 
 
 async def test_a_motion_takes_over_a_joint_still_ramping_to_a_direct_command() -> None:
@@ -35,3 +37,46 @@ async def test_a_ramp_ends_on_the_tick_it_reaches_its_goal() -> None:
         await robot.command(JointCommand("position", {"joint1": float(q[0]) + 0.5}))  # beyond the window
         await robot.clock.sleep(robot.control_period)
         assert ramping.tolist() == [True, False, False]
+
+
+async def test_a_hold_still_clips_what_a_hook_writes_into_its_rows() -> None:
+    """A hold skips the bounds clip of rows that hold the bytes the last clip left; a COMMAND hook that
+    writes an effort beyond the limit (the position row unchanged) is still clipped that very tick."""
+    async with agentsdk.connect("mock", robot="arm3") as robot:
+        emax = robot.joints[0].max_effort
+        seen: list[float] = []
+
+        def push(t: float, st: object, sp: Setpoint) -> None:
+            if robot.clock.ticks == 20:
+                sp.effort[0] = 10.0 * emax
+
+        def watch(t: float, st: object, sp: SetpointView) -> None:
+            seen.append(float(sp.effort[0]))
+
+        robot.add_tick_hook(Phase.COMMAND, push)
+        robot.add_tick_hook(Phase.OBSERVE, watch)
+        await robot.clock.sleep(40 * robot.control_period)
+        assert max(seen) == emax and seen.count(emax) >= 20
+
+
+async def test_the_mujoco_servo_law_is_skipped_only_when_nothing_it_reads_changed() -> None:
+    """MuJoCo's write of a hold keeps ctrl when the setpoint rows and ctrl hold last write's bytes; a new
+    gain, a new feed-forward or ctrl written by someone else (the block stepper, an e-stop) recompute it."""
+    async with agentsdk.connect("mujoco", robot="arm3") as robot:
+        backend = robot._loop.backend
+        sp = robot._loop._sp
+        ctrl = backend.data.ctrl
+
+        def law() -> list[float]:
+            return (sp.kp * sp.position + sp.kd * sp.velocity + sp.effort).tolist()
+
+        for change in ("kp", "effort", "ctrl", "kd"):
+            backend.write(sp.view)
+            backend.write(sp.view)  # the memo is set: a hold
+            assert ctrl.tolist() == law()
+            if change == "ctrl":
+                ctrl[:] = 123.0
+            else:
+                getattr(sp, change)[0] += 1.0
+            backend.write(sp.view)
+            assert ctrl.tolist() == law(), change

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import math
+
+import numpy as np
+import pytest
+
 import agentsdk
 from agentsdk import JointCommand, Phase, ResultCode, Trajectory, TrajectoryPoint
 from agentsdk.backend import SetpointView
@@ -80,3 +85,21 @@ async def test_the_mujoco_servo_law_is_skipped_only_when_nothing_it_reads_change
                 getattr(sp, change)[0] += 1.0
             backend.write(sp.view)
             assert ctrl.tolist() == law(), change
+
+
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("where", [0, -1])
+async def test_the_mujoco_step_finds_one_non_finite_acceleration(bad: float, where: int) -> None:
+    """The divergence check after each step (a sum of the accelerations, the elements if it is not
+    finite) finds a single non-finite element wherever it is; finite values that overflow the sum are
+    no divergence."""
+    async with agentsdk.connect("mujoco", robot="arm3") as robot:
+        backend = robot._loop.backend
+        qacc = backend._qacc
+        backend._qacc = np.array([1e308, 1e308, 1e308])  # (not MuJoCo's array: the step leaves it)
+        await backend.step(robot.control_period)
+        backend._qacc = fake = np.zeros(len(qacc))
+        fake[where] = bad
+        with pytest.raises(agentsdk.SimulationDiverged):
+            await backend.step(robot.control_period)
+        backend._qacc = qacc

@@ -549,10 +549,10 @@ class MujocoBackend(Backend):
         view = self._warn_view
         if view is None or view.tobytes() != self._warn_bytes:
             self._check_warnings(t0)
-        # |x|^2 is NaN or inf as soon as one element is (one BLAS call instead of isfinite + all)
-        qacc, acc2 = self._qacc, self._acc2
-        np.dot(qacc, qacc, out=acc2)
-        if not math.isfinite(acc2.item()) and not np.isfinite(qacc).all():
+        # a float sum is NaN or inf as soon as one element is (no ufunc, no BLAS call); a non-finite
+        # sum of finite values (an overflow) asks the elements
+        qacc = self._qacc
+        if not math.isfinite(sum(qacc.tolist())) and not np.isfinite(qacc).all():
             raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
 
     def block_stepper(self, capacity: int) -> BlockStepper:

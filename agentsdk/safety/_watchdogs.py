@@ -33,7 +33,7 @@ class FusedChecks:
     return None: the measured check changes nothing, the following check only takes its peak and the time
     (:meth:`FollowingErrorCheck.fused_pass`). Anything else (a NaN, a joint outside, an unarmed joint)
     answers False, and the checks run one by one as before, producing the same events. The rows are
-    copies and constants, so the pass costs two ufuncs fewer than the checks' own (four against seven).
+    copies and constants, so the pass costs three ufuncs fewer than the checks' own (four against seven).
     """
 
     def __init__(self, measured: MeasuredPositionCheck, following: FollowingErrorCheck, n: int) -> None:

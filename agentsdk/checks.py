@@ -92,6 +92,13 @@ class MeasuredPositionCheck:
         """:class:`BlockCheck`: every joint is armed."""
         return self._all_armed
 
+    def fused_bounds(self) -> tuple[FloatArray, FloatArray]:
+        """``(lo, hi)`` with the tolerance: the rule as ``lo <= q`` and ``q <= hi`` (the safety layer's fused
+        tick; the same comparisons, NaN fails both). Only while every joint is armed (:meth:`block_ready`)
+        does a pass of both mean that :meth:`__call__` would return None and change nothing.
+        """
+        return self._bounds[0], -self._bounds[1]
+
     def block_quiet(self, ts: FloatArray, states: FloatArray, setpoints: FloatArray) -> int:
         """:class:`BlockCheck`: leading ticks with every joint measured inside (0 until every joint is armed)."""
         if not self._all_armed:

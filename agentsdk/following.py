@@ -164,6 +164,20 @@ class FollowingErrorCheck:
             np.multiply(err, self._maskf, out=err)
         return err
 
+    def fused_ready(self, all_position: bytes, all_on: bytes) -> bool:
+        """The safety layer's fused tick may stand in for :meth:`__call__`: no joint is outside its window
+        (no persistence timer runs), no continuous joint, and the watched mask was last computed for every
+        joint in position mode (``all_position``: the mode row's bytes) with torque on and ``kp > 0``
+        (``all_on``: an all-True row's bytes). If the setpoint still says so and every error is within its
+        window, :meth:`__call__` would only take the peak and the time: :meth:`fused_pass`.
+        """
+        return not self._tracking and not self._any_continuous and self._mask_key == (all_position, all_on, all_on)
+
+    def fused_pass(self, t: float, err: FloatArray) -> None:
+        """What :meth:`__call__` leaves when every watched joint's error ``err`` (``|q - q_ref|``) is inside."""
+        np.fmax(self.peak, err, out=self.peak)
+        self._last_t = t
+
     def block_ready(self) -> bool:
         """:class:`~agentsdk.checks.BlockCheck`: no joint is outside its window (no persistence timer runs)."""
         return not self._tracking

@@ -226,9 +226,13 @@ class SensorGate:
             np.add(reach, self._floor, out=reach)
         ok, fin_v, fin_e, all_ok = self._ok, self._fin_v, self._fin_e, self._all_ok
         np.less_equal(d, reach, out=ok)
-        np.isfinite(v, out=fin_v)
-        np.isfinite(e, out=fin_e)
-        if ok.tobytes() == all_ok and fin_v.tobytes() == all_ok and fin_e.tobytes() == all_ok:
+        # every velocity and effort finite: a finite sum of them says so without a ufunc (NaN and the
+        # infinities propagate through the sum); a non-finite sum (one of them, or an overflow) asks
+        # the elements as before
+        if ok.tobytes() == all_ok and (
+            math.isfinite(sum(v.tolist()) + sum(e.tolist()))
+            or (np.isfinite(v, out=fin_v).tobytes() == all_ok and np.isfinite(e, out=fin_e).tobytes() == all_ok)
+        ):
             self._position[...] = q
             self._velocity[...] = v
             self._effort[...] = e

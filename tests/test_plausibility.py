@@ -221,3 +221,16 @@ def test_after_a_loop_stall_a_reading_far_past_the_limits_is_a_fault_and_one_ins
     read(g, 1.0, -0.6, 1.5)  # joint b: 0.4 rad past its upper limit 1.0 (+ 0.1) after another stall
     (r,) = g.take_new()
     assert r.index == 1 and "outside the limits" in r.reason and st[0, 1] == 0.0
+
+
+def test_huge_finite_velocities_and_efforts_take_the_fast_path() -> None:
+    """The fast path learns 'every velocity and effort is finite' from their sum; a sum that overflows
+    (finite values, an infinite sum) asks the elements: the reading is taken as on any fast tick."""
+    g, st = gate()
+    read(g, PERIOD, 0.01)
+    calls: list[float] = []
+    full = g._full
+    g._full = lambda *a: calls.append(a[3]) or full(*a)  # type: ignore[method-assign]
+    g.accept(np.array([0.02, 0.0]), np.array([1e308, 1e308]), np.array([1e308, -1e308]), 2 * PERIOD)
+    assert not calls and not g.pending
+    assert st[1].tolist() == [1e308, 1e308] and st[2].tolist() == [1e308, -1e308]

@@ -66,6 +66,8 @@ class CommandFilter:
         #: views of the loop's setpoint rows (made once per setpoint object, not per tick)
         self._rows_of: object = None
         self._rows: np.ndarray | None = None
+        #: the bytes the last bounds clip of those rows left (a clip's result is its own fixed point)
+        self._rows_clipped = b""
         #: deceleration available to stop a velocity stream before a position limit
         self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
@@ -262,10 +264,11 @@ class CommandFilter:
         no_ramp = ramping.tobytes() == self._all_false
         if not no_ramp:
             owned = self.motions.owned_mask
-            np.greater(ramping, owned, out=ramping)  # ramping &= ~owned
             # a direct command ramping with no motion running (a behavior commanding every tick) takes
             # the short path below as well; a motion's joints take the long one (its clip report)
             ramp_only = owned.tobytes() == self._all_false
+            if not ramp_only:  # (no joint owned: ramping &= ~owned changes nothing)
+                np.greater(ramping, owned, out=ramping)  # ramping &= ~owned
         else:
             ramp_only = True
         if ramp_only and self.all_position_on(sp.mode, sp.enabled):
@@ -278,7 +281,15 @@ class CommandFilter:
             limiter = self.limiter
             pos, written = sp.position, self._written
             if no_ramp:
-                limiter.clamp_rows(rows)
+                # the bounds clip is idempotent bit for bit: a y it produced is either the bits of hi (then
+                # max(hi, lo) then min(., hi) gives hi again, for hi above, equal to or below lo), or
+                # strictly below hi and then the bits of lo or an x strictly between (kept by both); a NaN
+                # stays the same NaN; signed zeros only meet in ties, which return a bound's bits both
+                # times. So rows holding the bytes the last clip left (a hold: nobody wrote them since)
+                # are skipped
+                if rows.tobytes() != self._rows_clipped:
+                    limiter.clamp_rows(rows)
+                    self._rows_clipped = rows.tobytes()
                 if self._window_holds_origin and pos.tobytes() == written.tobytes():
                     # a hold: clip(q, q - step, q + step) is q, bit for bit (q - step <= q <= q + step for
                     # any step >= 0, inf included; a NaN q is np.maximum's and np.minimum's first operand,
@@ -299,9 +310,16 @@ class CommandFilter:
             target[...] = pos
             limiter.clamp_step(target, written, pos)
             # a ramp ends where the step no longer clips it: ramping &= pos != target
-            unreached = self._unreached
-            np.not_equal(pos, target, out=unreached)
-            np.logical_and(ramping, unreached, out=ramping)
+            if pos.tobytes() == target.tobytes():
+                # every ramp reached its goal this tick (the common case: a goal inside the step window).
+                # Equal bytes are equal values except NaN, and no ramping joint's target is NaN: its goal
+                # is an admitted command (finite), clipped to bounds that are never NaN. A joint not
+                # ramping stays so. So ramping &= pos != target clears every flag.
+                ramping.fill(False)
+            else:
+                unreached = self._unreached
+                np.not_equal(pos, target, out=unreached)
+                np.logical_and(ramping, unreached, out=ramping)
             written[...] = pos
             return
         pos_mode = (sp.mode == _POS) & sp.enabled

@@ -280,6 +280,10 @@ class MujocoBackend(Backend):
         #: the warning counters' bytes at the last check (compared per step: no array per step)
         self._warn_bytes = b""
         self._all_enabled = np.ones(n, dtype=bool).tobytes()
+        #: what the last servo-law write read and left (see _write): the position row, the other rows, ctrl
+        self._servo_pos = b""
+        self._servo_memo: tuple[bytes, bytes, bytes, bytes] | None = None
+        self._servo_ctrl = b""
         #: kp and kd bytes the bias terms were last set from (empty: set them at the next write)
         self._gains: tuple[bytes, bytes] = (b"", b"")
         #: per-step scratch: |qacc|^2 (np.dot into a 0-d array: no numpy scalar per step)
@@ -486,26 +490,43 @@ class MujocoBackend(Backend):
             await run_blocking(self._sensors.close, name="agentsdk-mujoco-gl-free")
 
     def _write(self, sp: SetpointView) -> None:
-        # ctrl = kp*q_des + kd*v_des + ff, computed in place in MuJoCo's ctrl (no temporaries)
         ctrl, tmp = self._ctrl, self._tmp
-        np.multiply(sp.kp, sp.position, out=ctrl)
-        np.multiply(sp.kd, sp.velocity, out=tmp)
-        ctrl += tmp
-        ctrl += sp.effort
+        en = sp.enabled
+        enabled = en.tobytes()
+        inverse = self._inverse
+        moving = inverse is not None and inverse.moving(sp.velocity, sp.acceleration)
+        # A hold writes the same setpoint every tick: when ctrl is a function of the setpoint alone (no
+        # host gravity term, no inverse dynamics, torque on everywhere) and the setpoint and ctrl hold the
+        # bytes of last tick's write, ctrl already holds what the servo law would compute (bit for bit).
+        # The position row is compared first (a moving setpoint differs there): one bytes compare per tick.
+        pos = sp.position.tobytes()
+        memo: tuple[bytes, bytes, bytes, bytes] | None = None
+        held = False
+        if pos == self._servo_pos and self._gravity is None and not moving and enabled == self._all_enabled:
+            memo = (sp.velocity.tobytes(), sp.effort.tobytes(), sp.kp.tobytes(), sp.kd.tobytes())
+            held = memo == self._servo_memo and ctrl.tobytes() == self._servo_ctrl
+        if not held:
+            # ctrl = kp*q_des + kd*v_des + ff, computed in place in MuJoCo's ctrl (no temporaries)
+            np.multiply(sp.kp, sp.position, out=ctrl)
+            np.multiply(sp.kd, sp.velocity, out=tmp)
+            ctrl += tmp
+            ctrl += sp.effort
+            if memo is not None:
+                self._servo_ctrl = ctrl.tobytes()
+        self._servo_pos = pos
+        self._servo_memo = memo
         if self._gravity is not None:  # tau_model: g(q) at the measured position, allocation-free
             tau = self._gravity.compute(self._qpos, self._tau_model)  # (views made once: no array per tick)
             if not self._gc_all:
                 tau *= self._gc_mask
             ctrl += tau
-        inverse = self._inverse
-        if inverse is not None and inverse.moving(sp.velocity, sp.acceleration):  # the motion's inverse dynamics
+        if moving:  # the motion's inverse dynamics
+            assert inverse is not None
             qdes = self._qdes  # at the desired state: a function of the setpoint stream alone
             np.put(qdes, self._qadr, sp.position)
             for adr, leader, c1, c0 in self._qdes_followers:
                 qdes[adr] = c0 + c1 * sp.position[leader]
             ctrl += inverse.compute(qdes, sp.velocity, sp.acceleration, self._tau_motion, sp.mode, moving=True)
-        en = sp.enabled
-        enabled = en.tobytes()
         step_gravity = self._step_gravity
         if step_gravity is not None:  # MuJoCo's g(q): off with the joint's torque (bytes compare when unchanged)
             step_gravity.set_enabled(en, enabled)
@@ -528,10 +549,10 @@ class MujocoBackend(Backend):
         view = self._warn_view
         if view is None or view.tobytes() != self._warn_bytes:
             self._check_warnings(t0)
-        # |x|^2 is NaN or inf as soon as one element is (one BLAS call instead of isfinite + all)
-        qacc, acc2 = self._qacc, self._acc2
-        np.dot(qacc, qacc, out=acc2)
-        if not math.isfinite(acc2.item()) and not np.isfinite(qacc).all():
+        # a float sum is NaN or inf as soon as one element is (no ufunc, no BLAS call); a non-finite
+        # sum of finite values (an overflow) asks the elements
+        qacc = self._qacc
+        if not math.isfinite(sum(qacc.tolist())) and not np.isfinite(qacc).all():
             raise SimulationDiverged(f"MuJoCo state became non-finite at t={d.time:.4f} s")
 
     def block_stepper(self, capacity: int) -> BlockStepper:

@@ -137,7 +137,7 @@ def _following(rng: np.random.Generator, n: int) -> tuple[FollowingErrorCheck, S
     for _ in range(2):
         sp = Setpoint(n)
         sp.kp[:], sp.mode[:], sp.enabled[:] = kp, mode, enabled
-        loop = SimpleNamespace(joints=joints, period=0.002, setpoint=sp.view)
+        loop = SimpleNamespace(joints=joints, period=0.002, setpoint=sp.view, controller_desired=np.full(n, np.nan))
         out += [FollowingErrorCheck(loop, windows, persist, 2), sp]  # type: ignore[arg-type]
     return out[0], out[1], out[2], out[3]
 

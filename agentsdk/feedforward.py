@@ -266,6 +266,8 @@ def _selection(s: np.ndarray) -> np.ndarray | None:
     ``1.0 x`` (exact) and zeros, which leave ``x`` as it is except a -0.0, which becomes 0.0
     (``tests/test_tracking.py`` checks it bit for bit against ``np.dot``).
     """
+    if s.shape[1] == 0:  # no joints (a fixed robot with no movable joint): nothing to select
+        return np.empty(0, dtype=np.intp)
     nonzero = s != 0.0
     if (nonzero.sum(axis=0) != 1).any() or (nonzero.sum(axis=1) > 1).any():
         return None

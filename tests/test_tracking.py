@@ -314,6 +314,8 @@ def test_a_coupling_that_only_selects_dofs_is_gathered_bit_for_bit_as_the_matrix
             assert np.dot(s, v, out=qvel).tobytes() == gathered.tobytes(), v
             assert np.dot(st, f, out=out).tobytes() == (f[dofs] + 0.0).tobytes(), f
     assert _selection(np.array([[1.0, 0.0], [0.0, 2.0]])) is None  # a multiplier is not a selection
+    for nv in (0, 6):  # no movable joint (fixed base, or a free body only): an empty selection, not an error
+        assert _selection(np.zeros((nv, 0))).shape == (0,)
     assert _selection(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])) is not None  # a dof of no joint (a base's)
 
 

@@ -150,28 +150,46 @@ def _prepare(cmd: str) -> list[str]:
 
 
 def _run_until_up(argv: list[str], cwd: Path, env: dict[str, str]) -> tuple[int, str, str]:
-    """A command that serves until Ctrl-C: SIGINT once it says so (or it ends by itself)."""
-    proc = subprocess.Popen([sys.executable, "-m", "agentsdk", *argv], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 180
+    """A command that serves until Ctrl-C: SIGINT once it says so (or it ends by itself).
+
+    Both pipes are drained by threads of their own until EOF and nothing else reads them: a
+    ``communicate()`` here would read (and close) stderr under the reader thread, which then fails
+    with "I/O operation on closed file" when the machine is slow enough to lose that race.
+    """
     import threading
 
+    proc = subprocess.Popen([sys.executable, "-m", "agentsdk", *argv], cwd=cwd, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None and proc.stderr is not None
+    deadline = time.monotonic() + 180
+    out: list[str] = []
     err: list[str] = []
-    reader = threading.Thread(target=lambda: err.extend(iter(proc.stderr.readline, "")), daemon=True)  # type: ignore[union-attr]
-    reader.start()
-    while proc.poll() is None and time.monotonic() < deadline and not any("Ctrl-C" in x for x in err):
-        time.sleep(0.1)
-    if proc.poll() is None:
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGINT)
+    readers = [threading.Thread(target=lambda f=f, into=into: into.extend(iter(f.readline, "")), daemon=True)
+               for f, into in ((proc.stdout, out), (proc.stderr, err))]
+    for reader in readers:
+        reader.start()
     try:
-        out, _ = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, _ = proc.communicate()
-    reader.join(timeout=10)
+        while proc.poll() is None and time.monotonic() < deadline and not any("Ctrl-C" in x for x in err):
+            time.sleep(0.1)
+        if proc.poll() is None:
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        for reader in readers:  # EOF follows the exit, unless a child of the command still holds the pipe
+            reader.join(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if not any(r.is_alive() for r in readers):  # never close a pipe under a thread still reading it
+            proc.stdout.close()
+            proc.stderr.close()
     code = proc.returncode
-    return (0 if code == 130 else code), out, "".join(err)
+    return (0 if code == 130 else code), "".join(out), "".join(err)
 
 
 @pytest.mark.timeout(900)

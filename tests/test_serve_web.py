@@ -77,8 +77,9 @@ def test_serve_web_serves_the_page_on_loopback_only() -> None:
             proc.kill()
             code = proc.wait()
         reader.join(timeout=10)
-        for stream in (proc.stdout, proc.stderr):
-            if stream is not None:
-                stream.close()
+        if not reader.is_alive():  # never close a pipe under a thread still reading it
+            for stream in (proc.stdout, proc.stderr):
+                if stream is not None:
+                    stream.close()
     assert code == 130, "".join(err)
     assert not any("Traceback" in x for x in err), "".join(err)

@@ -51,6 +51,8 @@ def _stop(proc: subprocess.Popen[str], readers: list[threading.Thread]) -> None:
             proc.wait()
     for r in readers:
         r.join(timeout=10)
+    if any(r.is_alive() for r in readers):  # never close a pipe under a thread still reading it
+        return
     for stream in (proc.stdout, proc.stderr):
         if stream is not None:
             stream.close()

@@ -12,6 +12,7 @@ in lockstep (deterministic).
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -155,3 +156,31 @@ async def test_a_joint_near_neither_the_sample_nor_its_controllers_desired_is_a_
     assert robot.safety.state is SafetyState.ESTOP  # following_error_stop: category 2
     events = [str(e) for e in robot.safety.events]
     assert any("following error: joint 'joint1'" in e and f"window {window:.4g}" in e for e in events), events
+
+
+@pytest.mark.parametrize("category", [1, 2])
+async def test_an_estop_stops_an_offloaded_goal_through_its_controller_and_never_pulls_back(
+        late: Any, category: int) -> None:
+    """The controller runs the goal 0.4 s behind the local sample: a stop ramp planned here, from the sample
+    or the measurement, would not be where the controller stops. The goal is cancelled; the setpoint then
+    follows the joint where the controller left it, and the robot never moves back."""
+    robot, backend = late
+    j = robot.joint_names.index("joint1")
+    motion = asyncio.create_task(robot.move_to({"joint1": 1.2}, duration=1.0))
+    trace: list[float] = []
+    while (q := float((await robot.read()).position[j])) < 0.3:
+        trace.append(q)
+        await robot.clock.sleep(robot.control_period)
+    await robot.estop(category)
+    assert (await motion).code is ResultCode.ABORTED
+    assert backend.goal is not None and backend.goal.ended == (int(ResultCode.CANCELED), "canceled")
+    for _ in range(200):
+        trace.append(float((await robot.read()).position[j]))
+        await robot.clock.sleep(robot.control_period)
+    steps = np.diff(trace)
+    assert steps.min() >= -1e-9, f"moved back {-steps.min():.4g} rad"
+    assert trace[-1] == trace[-50] < 1.2  # at rest, short of the goal
+    assert robot.safety.state is SafetyState.ESTOP
+    await robot.reset()
+    await robot.enable()
+    assert (await robot.move_to({"joint1": 0.0}, duration=1.0)).ok

@@ -180,6 +180,43 @@ async def test_cancel_and_estop_cancel_the_goal_and_a_remote_rejection_is_invali
 
 
 @pytest.mark.asyncio
+@pytest.mark.parametrize("category", [1, 2])
+@pytest.mark.parametrize("latency", [0.0, 0.08])
+async def test_an_estop_during_a_goal_never_moves_the_served_robot_back(category: int, latency: float) -> None:
+    """Fault injection: the client sees joint_states ``latency`` s late (a slow link, a loaded host).
+
+    The controller that runs the goal stops it from its own state; the client stops nothing on
+    its own view, which lags by velocity x latency: once the goal has drained, the robot must not be
+    pulled back to where the client thought it was. It comes to rest moving forward only, and stays.
+    """
+    async with _served() as (served, face, robot):
+        backend: Any = robot.backend
+        if latency:
+            take, aloop = backend._take_state, asyncio.get_running_loop()
+            backend._take_state = lambda msg: aloop.call_later(latency, take, msg)
+        motion = robot.follow(Trajectory(["joint1"], [TrajectoryPoint(2.0, [0.6])]))
+        await _until(lambda: bool(face._goals) and served.latest_state().position[0] > 0.1)
+        trace = [float(served.latest_state().position[0])]
+        await robot.estop(category)
+        assert (await motion).code is ResultCode.ABORTED
+        goal = list(face._goals.values())[-1]
+        await _until(lambda: goal.result is not None)
+        assert goal.status == GOAL_CANCELED
+        for _ in range(40):  # 0.4 s after the goal's result
+            trace.append(float(served.latest_state().position[0]))
+            await asyncio.sleep(0.01)
+        steps = np.diff(trace)
+        assert steps.min() > -1e-4, f"moved back {-steps.min():.4f} rad after the e-stop: {trace}"
+        assert trace[-1] == pytest.approx(trace[-10], abs=1e-4)  # at rest, and staying there
+        assert trace[-1] < 0.6 - 0.02  # stopped short of the goal
+        state = robot.safety.state
+        assert state.name == "ESTOP", state
+        await robot.reset()
+        await robot.enable()
+        assert (await robot.move_to({"joint1": 0.0}, duration=1.0)).ok  # usable again
+
+
+@pytest.mark.asyncio
 async def test_remote_limits_tighter_than_the_clients_give_invalid_goal() -> None:
     """No ``robot=``: the client knows the URDF limits only; the served robot's robot.yaml is tighter."""
     did = _domain()

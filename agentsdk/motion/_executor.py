@@ -521,8 +521,11 @@ class _Executor:
         # still: the measured position stays within _REMOTE_STILL_SPEED * _REMOTE_STILL of where the window
         # began (a velocity is not needed: some controllers report none, and encoder noise stays well below)
         ref = ex.remote_q  # no feedback is published any more (the motion has its result): free buffers
-        if ex.remote_rest == t:
+        if ex.remote_rest == t:  # the goal has just ended: the setpoint is the measured position from now on
             ref[...] = qm
+            if self._guard is not None:
+                # the local sample was never sent (the controller ran the goal): no step to limit from it
+                self._guard.rebase(idx, qm)
         moved = float(np.abs(np.subtract(qm, ref, out=w.dev), out=w.dev).max(initial=0.0))
         zero = ex.remote_v
         zero.fill(0.0)

@@ -236,7 +236,10 @@ class MotionManager:
         ``from_reference`` (a sensor fault: the measurement is not to be trusted): every
         position-mode joint stops from its desired state, whatever the measurement says.
         ``damp_only`` (backends without position control): velocity mode at zero
-        velocity with gain ``damping`` until every joint is still.
+        velocity with gain ``damping`` until every joint is still. The joints of a goal
+        offloaded to the backend's controller (:mod:`agentsdk.offload`) are stopped by that
+        controller: the goal is cancelled, its motion ends ABORTED with the controller's outcome,
+        and their setpoint follows the measured position until they are still.
         """
         loop = self.loop
         done: asyncio.Future[None] = asyncio.get_running_loop().create_future()
@@ -253,18 +256,50 @@ class MotionManager:
 
             handle = loop.add_hook(Phase.COMMAND, _until_still)
         else:
+            # an offloaded goal's joints are stopped by the controller that runs it, from its own (current) state:
+            # a ramp planned here would start from a state one feedback latency old and, once streamed, pull the
+            # robot back to where this side thought it was. They stop as a cancel does (_update_remote): the goal
+            # is cancelled, the setpoint follows the measured position until still, then holds there.
+            remote = [ex for ex in self._records() if ex is not None and ex.remote is not None
+                      and ex.phase != MotionPhase.PENDING]
+            local = np.ones(len(idx), dtype=bool)
+            for ex in remote:
+                local[ex.idx] = False
+            idx = idx[local]
+            waiting: set[object] = set()
+
+            def _ended(key: object) -> Callable[[], None]:
+                def _cb() -> None:
+                    waiting.discard(key)
+                    if not waiting and not done.done():
+                        done.set_result(None)
+                return _cb
+
             q, v, a = self.desired(idx)
             if from_reference:
                 q0, v0, a0, meas = q, v, a, np.zeros(len(idx), dtype=bool)
             else:
                 q0, v0, a0, meas = self._stops.stop_start(idx, q, v, a, None)
-            for ex in self._records():
-                if ex is not None:
-                    self._ownership.finish(ex, ResultCode.ABORTED, "stopped by the safety layer")
+            for rec in self._records():
+                if rec is not None and not any(rec is r for r in remote):
+                    self._ownership.finish(rec, ResultCode.ABORTED, "stopped by the safety layer")
+            for ex in remote:
+                waiting.add(ex)
+                ex.on_done = _chain(ex.on_done, _ended(ex))
+                if ex.remote_rest >= 0.0:
+                    continue  # the goal has ended (its motion has its result): the joints come to rest
+                if ex.phase == MotionPhase.STOPPING:  # already cancelled: the stop decides the result
+                    ex.stop_code, ex.stop_msg = ResultCode.ABORTED, "stopped by the safety layer"
+                else:  # the goal still runs: cancelled, its motion ends ABORTED with the controller's outcome
+                    rq, rv, ra = self._ownership.desired_next(ex)
+                    self._stops.begin_stop(ex, ResultCode.ABORTED, "stopped by the safety layer", loop.stamp,
+                                           rq, rv, ra, measured=None)
             if meas.any() and self._guard is not None:
                 self._guard.rebase(idx[meas], q0[meas])
-            self._executor.start_ramp(idx, q0, v0, a0, None, "",
-                                      on_done=lambda: None if done.done() else done.set_result(None))
+            if len(idx) or not remote:
+                ramp = object()
+                waiting.add(ramp)
+                self._executor.start_ramp(idx, q0, v0, a0, None, "", on_done=_ended(ramp))
         try:
             await done
         finally:
@@ -317,3 +352,14 @@ class MotionManager:
     def _records(self) -> list[_Exec | None]:
         """Every record that drives joints (once each, None among them) and every scheduled one."""
         return [*set(self._table.owner), *self._table.pending]
+
+
+def _chain(first: Callable[[], None] | None, then: Callable[[], None]) -> Callable[[], None]:
+    """``first`` (if any), then ``then``."""
+    if first is None:
+        return then
+
+    def _both() -> None:
+        first()
+        then()
+    return _both

@@ -1,9 +1,11 @@
 """The event-loop stall watchdog: a heartbeat on the event loop and an OS thread that watches it.
 
 If the event loop stops beating for ``timeout`` seconds of wall time (a blocking call in a
-coroutine), the thread calls ``on_stall`` itself, from the watchdog thread, with the time of the
-last heartbeat and where the loop thread was; the safety layer removes torque and latches its
-e-stop there (:mod:`agentsdk.safety`). While ``idle()`` is true (torque off, robot closed) there
+coroutine), the watchdog thread reports the stall (``on_stall``, with the time of the last
+heartbeat and where the loop thread was: the safety layer latches its e-stop there,
+:mod:`agentsdk.safety`), then removes torque itself (``emergency_stop``), then logs. In that
+order, whoever sees the actuators stopped also sees the latch and the report, as with any
+other e-stop from another thread. While ``idle()`` is true (torque off, robot closed) there
 is nothing to protect and the thread only looks every ``timeout / 2``.
 
 The beats cost the loop as little as possible (every wake-up and clock read is a system call
@@ -34,9 +36,11 @@ log = logging.getLogger("agentsdk.safety")
 class StallWatchdog:
     """Heartbeat plus watcher thread of one robot's event loop (see the module documentation).
 
-    ``on_stall(last_beat, stopped_at, stack, where)`` runs in the watchdog thread: ``last_beat``
-    is the monotonic time of the last heartbeat, ``stack`` the loop thread's formatted stack and
-    ``where`` its innermost frame outside asyncio and the safety layer.
+    ``on_stall(last_beat, detected_at, stack, where)`` runs in the watchdog thread, just before
+    ``emergency_stop()``: ``last_beat`` and ``detected_at`` are ``time.monotonic`` times, ``stack``
+    the loop thread's stack (source lines not read yet: no file access before the stop) and
+    ``where`` its innermost frame outside asyncio and the safety layer. It must not block. What it
+    returns, if anything, is logged as an error with the stack once torque is off.
     """
 
     def __init__(
@@ -45,7 +49,7 @@ class StallWatchdog:
         name: str,
         idle: Callable[[], bool],
         emergency_stop: Callable[[], None],
-        on_stall: Callable[[float, float, str, str], None],
+        on_stall: Callable[[float, float, traceback.StackSummary, str], str | None],
     ) -> None:
         self.timeout = timeout
         self._name = name
@@ -143,21 +147,34 @@ class StallWatchdog:
                 # (at most 1 s: a huge stall_timeout would overflow the wait; a wake-up a second is free)
                 wait = min(max(last + timeout - now, 0.0) + 1e-4, 1.0)
                 continue
-            # the event loop is stuck: stop the actuators from this thread
+            # the event loop is stuck: report it (the latch), then stop the actuators from this thread
+            message: str | None = None
+            stack = traceback.StackSummary()
+            try:
+                stack = _stack_of(sys._current_frames().get(self._loop_thread_id))
+                message = self._on_stall(last, now, stack, _innermost_user_frame(stack))
+            except Exception:  # the stop below comes whatever the report did
+                log.exception("the stall report failed in the stall watchdog; stopping anyway")
             try:
                 self._emergency_stop()
             except Exception:
                 log.exception("emergency stop hook failed in the stall watchdog")
-            stopped = time.monotonic()
-            frame = sys._current_frames().get(self._loop_thread_id)
-            stack = "".join(traceback.format_stack(frame)) if frame is not None else "(loop thread not found)"
-            self._on_stall(last, stopped, stack, _innermost_user_frame(frame))
+            if message:
+                log.error("%s\n%s", message, "".join(stack.format()) or "(loop thread not found)")
 
 
-def _innermost_user_frame(frame: Any) -> str:
+def _stack_of(frame: Any) -> traceback.StackSummary:
+    """The stack of ``frame``, outermost first, without reading source files (looked up when formatted)."""
     if frame is None:
+        return traceback.StackSummary()
+    stack = traceback.StackSummary.extract(traceback.walk_stack(frame), lookup_lines=False)
+    stack.reverse()
+    return stack
+
+
+def _innermost_user_frame(summary: traceback.StackSummary) -> str:
+    if not summary:
         return "unknown"
-    summary = traceback.extract_stack(frame)
     ours = ("asyncio", "agentsdk/safety", "agentsdk/stall")
     for fs in reversed(summary):
         if not any(part in fs.filename for part in ours):

@@ -12,7 +12,8 @@ Not a test: prints distributions (p50 / p99 / max over N trials) as a table and 
 Both are observed through the public API only (``robot.torque_enabled`` is checked after each stop).
 
 (b) stall-detection latency from the watchdog thread's own view, ``stall_latency -
-    stall_timeout`` (``stall_latency`` = last heartbeat -> backend stopped), for a few
+    stall_timeout`` (``stall_latency`` = last heartbeat -> the watchdog fired; it stops the
+    backend right after), for a few
     ``stall_timeout`` values and two kinds of stall: ``sleep`` (the loop thread blocks in
     ``time.sleep``, GIL released) and ``busy`` (a pure-Python spin holding the GIL, so the
     watchdog thread waits for the interpreter's switch interval, ``sys.getswitchinterval()``).
@@ -122,7 +123,8 @@ def _block(robot: agentsdk.Robot, kind: str, prev: float | None, limit: float) -
 
 async def bench_stall(backend: str, stall_timeout: float, kind: str, trials: int) -> dict[str, float]:
     over: list[float] = []
-    async with agentsdk.connect(backend, robot="arm3", safety={"stall_timeout": stall_timeout}) as robot:
+    # realtime: in lockstep the stall watchdog is off (a simulated robot does not move while the loop stalls)
+    async with agentsdk.connect(backend, robot="arm3", realtime=True, safety={"stall_timeout": stall_timeout}) as robot:
         for _ in range(trials):
             await rearm(robot)
             await asyncio.sleep(0.01)  # let the heartbeat run normally first

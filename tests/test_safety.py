@@ -362,10 +362,13 @@ async def test_blocked_loop_is_stopped_by_the_watchdog_thread(backend: str, monk
         timeout = safety.config.stall_timeout
         assert timeout is not None
         calls: list[tuple[str, float]] = []
+        seen_at_stop: list[tuple[SafetyState, bool]] = []
         original = ctl._emergency_stop
 
         def spy(category: int) -> None:
             calls.append((threading.current_thread().name, time.monotonic()))
+            # what anyone who sees the actuators stop sees: the latch and the report are already there
+            seen_at_stop.append((safety.state, safety.stall_latency is not None))
             original(category)
 
         monkeypatch.setattr(ctl, "_emergency_stop", spy)
@@ -383,6 +386,7 @@ async def test_blocked_loop_is_stopped_by_the_watchdog_thread(backend: str, monk
         assert thread_name.startswith("agentsdk-stall-watchdog")
         assert t0 < t_stop < t1
         assert (not robot.torque_enabled)
+        assert seen_at_stop == [(SafetyState.ESTOP, True)]
         assert safety.state is SafetyState.ESTOP
         # latency from the last heartbeat to the stop, as the thread measured it
         assert safety.stall_latency is not None

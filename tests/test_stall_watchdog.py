@@ -87,3 +87,28 @@ async def test_a_realtime_robot_blocked_after_ticking_is_stopped_a_timeout_after
         assert t0 < safety.stall_detected_at < t1
         assert safety.stall_latency >= timeout
         assert not robot.torque_enabled
+
+
+@pytest.mark.parametrize("report_fails", [False, True])
+async def test_the_thread_reports_then_stops_and_a_failing_report_never_prevents_the_stop(report_fails: bool) -> None:
+    """The report (the safety layer's latch) comes before the stop, so whoever sees the actuators
+    stopped sees the e-stop too; a report that raises still ends in the stop."""
+    order: list[str] = []
+
+    def on_stall(last: float, detected: float, stack: Any, where: str) -> str:
+        order.append("report")
+        assert detected - last > 0.05
+        assert "test_stall_watchdog.py" in where  # the loop thread's own frame, found without reading files
+        if report_fails:
+            raise RuntimeError("a broken report")
+        return "stalled"
+
+    wd = StallWatchdog(0.05, "agentsdk-stall-watchdog-test", idle=lambda: "stop" in order,  # torque off: idle
+                       emergency_stop=lambda: order.append("stop"), on_stall=on_stall)
+    wd.start()
+    try:
+        await asyncio.sleep(0.01)
+        time.sleep(0.3)  # noqa: ASYNC251 - the stall under test
+    finally:
+        await wd.stop()
+    assert order == ["report", "stop"]

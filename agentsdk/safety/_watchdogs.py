@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import traceback
+
 import numpy as np
 
 from ..backend import SetpointView
@@ -115,8 +117,11 @@ class Watchdogs:
         self._age = np.zeros(n)
         #: the event-loop stall watchdog (None: not watched, see :attr:`stall_watchdog_active`)
         self._stall: StallWatchdog | None = None
-        #: stack of the event-loop thread when the stall watchdog fired (cleared by a reset)
-        self.stall_traceback: str | None = None
+        #: stack of the event-loop thread when the stall watchdog fired (cleared by a reset); its
+        #: source lines are read when :attr:`stall_traceback` is first asked for, never in the
+        #: watchdog thread before it stops the actuators
+        self._stall_stack: traceback.StackSummary | None = None
+        self._stall_traceback: str | None = None
         #: wall-clock time (time.monotonic) the stall watchdog fired, and how long after the last heartbeat
         self.stall_detected_at: float | None = None
         self.stall_latency: float | None = None
@@ -164,7 +169,7 @@ class Watchdogs:
 
     def rearm_after_reset(self) -> None:
         """The latch was cleared: forget the stall's stack and reported sensor faults, beat the heartbeat."""
-        self.stall_traceback = None
+        self._stall_stack = self._stall_traceback = None
         if self._sensor_gate is not None:
             self._sensor_gate.clear()  # a joint still reading nonsense is reported again
         if self._stall is not None:
@@ -281,18 +286,34 @@ class Watchdogs:
         if self._stall is not None:
             await self._stall.stop()
 
-    def _on_stall(self, last: float, stopped: float, stack: str, where: str) -> None:
-        """The stall watchdog's thread found the event loop stuck (torque is already off): latch and say where."""
+    @property
+    def stall_traceback(self) -> str | None:
+        """The event-loop thread's stack when the stall watchdog fired, formatted (None since the last reset)."""
+        stack = self._stall_stack
+        if stack is None:
+            return None
+        if self._stall_traceback is None:
+            self._stall_traceback = "".join(stack.format()) or "(loop thread not found)"
+        return self._stall_traceback
+
+    def _on_stall(self, last: float, detected: float, stack: traceback.StackSummary, where: str) -> str:
+        """The stall watchdog's thread found the event loop stuck; it removes torque right after this.
+
+        Latch and report first (no blocking, no file access), as :meth:`Stops.estop_threadsafe`
+        latches before it stops: whoever sees torque off sees the e-stop and the stall's report.
+        Returns the message the thread logs, with the stack, once torque is off.
+        """
         timeout = self._config.stall_timeout
         self._core.latch(0, handled=False)  # the loop side still has to abort motions
-        self.stall_latency = stopped - last
-        self.stall_detected_at = stopped
-        self.stall_traceback = stack
+        self._stall_traceback = None
+        self._stall_stack = stack
+        self.stall_latency = detected - last
+        self.stall_detected_at = detected
         detail = (
-            f"event loop stalled for more than {timeout:g} s (last heartbeat {stopped - last:.3f} s ago); "
+            f"event loop stalled for more than {timeout:g} s (last heartbeat {detected - last:.3f} s ago); "
             f"e-stop category 0 latched; loop was at {where}: a blocking call (time.sleep, blocking I/O, "
             "a long computation) in a coroutine; use `await robot.clock.sleep()`, or `asyncio.to_thread()`"
         )
         self._core.record("stall", detail)
-        log.error("%s\n%s", detail, stack)
+        return detail
 

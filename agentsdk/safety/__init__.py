@@ -21,9 +21,10 @@ the joints' deceleration limits (damps where position control is absent) and
 then removes torque; 2 decelerates and holds with torque on.
 
 A loop-stall watchdog runs in its own OS thread: if the event loop stops
-beating for ``stall_timeout`` seconds of wall time, the thread calls the
-backend's synchronous ``_emergency_stop(0)`` hook itself (for CAN: disable
-frames), latches the e-stop and records the loop thread's stack. It runs where
+beating for ``stall_timeout`` seconds of wall time, the thread latches the
+e-stop and records the loop thread's stack, then calls the backend's
+synchronous ``_emergency_stop(0)`` hook itself (for CAN: disable frames): whoever
+sees the actuators stopped sees the e-stop latched. It runs where
 wall time moves the robot: in real time (hardware, realtime simulation). In
 lockstep simulated time a stalled loop cannot advance the robot's clock, so the
 simulated robot cannot move while it stalls and there is nothing to protect:

@@ -28,7 +28,7 @@ import traceback
 from collections.abc import Callable
 from typing import Any
 
-__all__ = ["StallWatchdog"]
+__all__ = ["StallWatchdog", "format_stack"]
 
 log = logging.getLogger("agentsdk.safety")
 
@@ -160,7 +160,7 @@ class StallWatchdog:
             except Exception:
                 log.exception("emergency stop hook failed in the stall watchdog")
             if message:
-                log.error("%s\n%s", message, "".join(stack.format()) or "(loop thread not found)")
+                log.error("%s\n%s", message, format_stack(stack))
 
 
 def _stack_of(frame: Any) -> traceback.StackSummary:
@@ -170,6 +170,11 @@ def _stack_of(frame: Any) -> traceback.StackSummary:
     stack = traceback.StackSummary.extract(traceback.walk_stack(frame), lookup_lines=False)
     stack.reverse()
     return stack
+
+
+def format_stack(stack: traceback.StackSummary) -> str:
+    """``stack`` as ``traceback.format_stack`` prints it (source lines read now)."""
+    return "".join(stack.format()) or "(loop thread not found)"
 
 
 def _innermost_user_frame(summary: traceback.StackSummary) -> str:

@@ -94,11 +94,11 @@ async def test_the_thread_reports_then_stops_and_a_failing_report_never_prevents
     """The report (the safety layer's latch) comes before the stop, so whoever sees the actuators
     stopped sees the e-stop too; a report that raises still ends in the stop."""
     order: list[str] = []
+    reports: list[tuple[float, str]] = []
 
     def on_stall(last: float, detected: float, stack: Any, where: str) -> str:
         order.append("report")
-        assert detected - last > 0.05
-        assert "test_stall_watchdog.py" in where  # the loop thread's own frame, found without reading files
+        reports.append((detected - last, where))
         if report_fails:
             raise RuntimeError("a broken report")
         return "stalled"
@@ -112,3 +112,7 @@ async def test_the_thread_reports_then_stops_and_a_failing_report_never_prevents
     finally:
         await wd.stop()
     assert order == ["report", "stop"]
+    # (checked here: an assertion inside on_stall would be caught by the thread's guard)
+    ((age, where),) = reports
+    assert age > 0.05
+    assert "test_stall_watchdog.py" in where  # the loop thread's own frame, found without reading files

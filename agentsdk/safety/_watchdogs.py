@@ -16,7 +16,7 @@ from ..errors import (
 from ..following import FollowingErrorCheck
 from ..loop import ControlLoop, HookHandle, Phase, StateView
 from ..plausibility import SensorGate
-from ..stall import StallWatchdog
+from ..stall import StallWatchdog, format_stack
 from ..types import MODES
 from ._config import SafetyConfig
 from ._filter import CommandFilter
@@ -293,7 +293,7 @@ class Watchdogs:
         if stack is None:
             return None
         if self._stall_traceback is None:
-            self._stall_traceback = "".join(stack.format()) or "(loop thread not found)"
+            self._stall_traceback = format_stack(stack)
         return self._stall_traceback
 
     def _on_stall(self, last: float, detected: float, stack: traceback.StackSummary, where: str) -> str:

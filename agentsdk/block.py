@@ -12,7 +12,11 @@ first tick that would do anything (a check that fires, a reading the gate doubts
 filter would apply, the motion's end), puts the simulation back to where it stood before that
 tick and lets the loop run it tick by tick. Every result, event, feedback message, state and
 setpoint is bit for bit what tick-by-tick computes (``tests/test_block_lockstep.py`` compares
-per-tick hashes of random runs).
+per-tick hashes of random runs). On MuJoCo, a block whose ticks after the first write only
+precomputed controls (a motion) or nothing (a hold) is one ``mujoco.rollout`` call
+(``backends.mujoco.block``). An emergency stop or latch from another thread lands at a tick
+boundary either way: between two ticks of a block run step by step, and before the block's first
+tick when it lands during a rollout (the block is undone; another thread cannot tell the two apart).
 
 Blocked so far: a **hold** (no COMMAND hook) and **motions following their trajectories, settling
 at their goals, running stop ramps or waiting for their scheduled start** (every COMMAND hook an
@@ -108,8 +112,16 @@ class BlockStepperLike(Protocol):
     def ready(self) -> bool:
         """A block may run now (False: e.g. the backend's step was replaced, which a block would bypass)."""
 
-    def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray) -> int:
-        """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done."""
+    def run(self, write: Callable[[int], bool | None], count: int, readings: FloatArray,
+            stop: Callable[[], bool] | None = None, controls: Callable[[int], None] | None = None) -> int:
+        """Run up to ``count`` ticks: write, step, read into ``readings[k]``; the ticks done.
+
+        ``stop`` given: after tick 0, ``write(k)`` writes only ``controls(k)`` (this stepper's
+        :meth:`controls`), or with ``controls`` None nothing, and returns False exactly when
+        ``stop()`` is true; a stepper may then run the ticks after tick 0's write without calling
+        ``write`` again, asking ``stop()`` once after them (true: no tick done, the simulation back
+        before tick 0). A stepper may ignore both and call ``write`` every tick.
+        """
 
     def controls(self, rows: FloatArray, setpoint: SetpointView) -> Callable[[int], None] | None:
         """``put(j)``: writes the controls the backend's write of setpoint ``rows[j]`` leaves, computed at once.
@@ -298,12 +310,17 @@ class BlockLockstep:
                 backend.emergency_stop(0)  # it landed during write: enforce it again (as the tick does)
             return True
 
+        def stop() -> bool:
+            return loop.torque_off or latched()
+
         def rewrite(j: int) -> None:
             # a replayed tick (restore): the same write, whatever the torque state now (the next tick enforces it)
             spb[...] = rows[j]
             backend.write(spv)
 
-        done = stepper.run(write, k, self._readings)
+        # ticks 1.. write precomputed controls or nothing: the stepper may run them without write()
+        open_loop = put is not None or not every_tick
+        done = stepper.run(write, k, self._readings, stop if open_loop else None, put)
         fault = stepper.fault
         loop.stamp = stamp
         if done == 0:

@@ -91,9 +91,17 @@ def _backend_model(rb: _Robot) -> tuple[Any, Any, int]:
     ctl = load_backend("mujoco").create(rb.config, rb.description, rb.joints, realtime=False)
 
     async def build() -> tuple[Any, Any, int]:
+        import mujoco
+
         await ctl.open()
         try:
-            return ctl.model, ctl.data, round(rb.period / ctl.options.timestep)
+            m = ctl.model
+            if m.nsensor == len(rb.joints):
+                # the backend's only sensors are its per-joint effort sensors (what a block's rollout reads
+                # efforts from): a raw loop would not have them, so it does not compute them (no change
+                # to the physics)
+                m.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+            return m, ctl.data, round(rb.period / ctl.options.timestep)
         finally:
             await ctl.close()  # releases nothing MuJoCo owns: the model and data stay valid
 
@@ -129,7 +137,9 @@ class RawMujoco:
     self-collision model, the same options and servo actuators) and its ``MjData`` at
     the initial state: the backend is opened once to build them and closed again,
     then this loop steps that very model with ``mj_step`` (the final states of the
-    raw and the SDK loop agree bit for bit).
+    raw and the SDK loop agree bit for bit). Where the backend's per-joint effort
+    sensors are the model's only sensors, this loop does not compute sensors: they
+    are the SDK's, not part of a raw loop.
     """
 
     def __init__(self, rb: _Robot) -> None:

@@ -270,12 +270,16 @@ async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
     assert await _diverge(True) == await _diverge(False)
 
 
-async def _thread_estop(block: bool, at: int, what: str, backend: str = "mujoco") -> tuple[Any, ...]:
+async def _thread_estop(block: bool, at: int, what: str, backend: str = "mujoco",
+                        between_ticks: bool = False) -> tuple[Any, ...]:
+    """An e-stop from another thread between tick ``at``'s write and its step (``between_ticks``: before its write)."""
     import threading
 
     async with agentsdk.connect(backend, robot="arm3", safety=SAFETY, block_lockstep=block) as robot:
         hasher = _Hasher()
         robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        if between_ticks:  # the last OBSERVE hook of tick at - 1 (which runs at robot time at * period)
+            robot.add_tick_hook(Phase.OBSERVE, lambda t, st, sp: stop_at(t), order=(1 << 30) + 1)
         runner = robot.block_lockstep(capacity=64) if block else None
         b = robot.backend
         step = mujoco.mj_step
@@ -305,7 +309,9 @@ async def _thread_estop(block: bool, at: int, what: str, backend: str = "mujoco"
         # before the block: either way the e-stop comes between a tick's controls and its step (PyBullet:
         # its write every tick, then between the substeps, which read the enabled joints each)
         try:
-            if backend == "pybullet":
+            if between_ticks:
+                pass
+            elif backend == "pybullet":
                 pybullet.stepSimulation = stop_and_step_pybullet
             else:
                 mujoco.mj_step = stop_and_step
@@ -378,3 +384,72 @@ async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> 
         assert runner is not None and runner.capacity == 256
         await robot.clock.sleep(0.2)
         assert runner.block_ticks > 0
+
+
+async def _rollout_estop(at: int, what: str) -> tuple[Any, ...]:
+    """:func:`_thread_estop`'s run with the e-stop from another thread inside a block's rollout.
+
+    The e-stop comes from MuJoCo's control callback, which the rollout's steps call.
+
+    Returns what :func:`_thread_estop` returns and the tick the block that saw it started at.
+    """
+    import threading
+
+    from agentsdk.backends.mujoco import block as mujoco_block
+
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        hasher = _Hasher()
+        robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+        runner = robot.block_lockstep(capacity=64)
+        b = robot.backend
+        inside: list[int] = []  # the tick the running rollout's block started at
+        fired: list[int] = []
+        open_loop = mujoco_block.BlockStepper._run_open_loop
+
+        def spy(self: Any, *args: Any) -> Any:
+            inside.append(robot.clock.ticks)
+            try:
+                return open_loop(self, *args)
+            finally:
+                inside.pop()
+
+        def callback(m: Any, d: Any) -> None:
+            if inside and not fired and d.time >= (at - 0.5) * b.period:
+                fired.append(inside[-1])
+                th = threading.Thread(target=robot.safety.estop_threadsafe, args=(0,))
+                th.start()
+                th.join()
+
+        mujoco_block.BlockStepper._run_open_loop = spy  # type: ignore[method-assign]
+        mujoco.set_mjcb_control(callback)
+        try:
+            if what == "move":
+                q = (await robot.read()).position
+                goal = [float(x) + 0.3 for x in q]
+                robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]),
+                             stretch_to_limits=True)
+            await robot.clock.sleep(0.5)
+        finally:
+            mujoco.set_mjcb_control(None)
+            mujoco_block.BlockStepper._run_open_loop = open_loop  # type: ignore[method-assign]
+        loop = robot._loop
+        assert fired and fired[0] < at, (fired, at)  # it landed inside a rollout, after the block's start
+        assert loop.torque_off and robot.safety.state.name == "ESTOP"
+        assert not loop.setpoint.enabled.any()
+        assert not b.data.ctrl.any()
+        assert runner.block_ticks <= fired[0] < robot.clock.ticks  # (the rolled-back block is not counted)
+        runner.close()
+        events = [(e.kind, e.detail, e.time) for e in robot.safety.events]
+        return hasher.cut(), robot.clock.ticks, events, fired[0]
+
+
+@pytest.mark.parametrize("what", ["hold", "move"])
+@pytest.mark.parametrize("at", [45, 77])
+async def test_an_emergency_stop_during_a_rollout_lands_before_the_blocks_first_tick(at: int, what: str) -> None:
+    """An e-stop from another thread while a block runs as one rollout lands at the tick the block started from.
+
+    The rollout is undone (MuJoCo back to before that tick's write) and the run goes on as a
+    tick-by-tick run whose e-stop landed there: the same ticks, states, setpoints and events.
+    """
+    *got, start = await _rollout_estop(at, what)
+    assert tuple(got) == await _thread_estop(False, start, what, between_ticks=True)

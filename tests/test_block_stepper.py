@@ -204,3 +204,194 @@ async def test_a_blocks_controls_are_the_writes_bit_for_bit(robot_name: str) -> 
             assert ctrl.tobytes() == expected, j
         sp.enabled[0] = False  # a joint with torque off: each tick writes its setpoint
         assert stepper.controls(rows, sp.view) is None
+
+
+# ----------------------------------------------------------------------------- the open loop (one rollout)
+
+
+async def _tick_by_tick(robot: agentsdk.Robot, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, bytes]:
+    """Each row written, stepped and read as the loop does: the readings, the states, the last derived arrays."""
+    b = robot.backend
+    m, d = b.model, b.data
+    sp = Setpoint(len(b.names))
+    expected = np.empty((len(rows), 3, len(b.names)))
+    states = np.empty((len(rows), mujoco.mj_stateSize(m, _STATE)))
+    for k, row in enumerate(rows):
+        sp.block[...] = row
+        b.write(sp.view)
+        await b.step(b.period)
+        expected[k] = b.read()
+        mujoco.mj_getState(m, d, states[k], _STATE)
+    derived = d.xpos.tobytes() + d.qfrc_actuator.tobytes() + d.actuator_force.tobytes() + d.sensordata.tobytes()
+    return expected, states, derived
+
+
+@pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
+@pytest.mark.parametrize("rate", [1000.0, 500.0, 200.0])  # 1, 2 and 5 physics steps per tick
+@pytest.mark.parametrize("hold", [False, True])
+async def test_an_open_loop_block_is_one_rollout_and_tick_by_tick_bit_for_bit(
+    robot_name: str, rate: float, hold: bool,
+) -> None:
+    """``run(..., stop, controls)``: tick 0's write, then one ``mujoco.rollout``, the same bits as tick by tick.
+
+    With applied forces set (a rollout resets the user inputs it is not given), a motion's
+    precomputed controls or a hold written once; the readings, the state (warm start included) and
+    the arrays MuJoCo derives in a step (poses, actuation, sensors) end as tick by tick left them, the
+    warning counters unchanged, and a restore to any tick (replayed from tick 0) is tick by tick's.
+    """
+    async with agentsdk.connect("mujoco", robot=robot_name, safety=SAFETY, update_rate=rate) as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        n, K = len(b.names), 70
+        d.qfrc_applied[:] = 0.01
+        d.xfrc_applied[2, :] = (0.3, -0.2, 0.1, 0.01, 0.0, -0.01)
+        rows = np.stack([sp.block for sp in _stream(robot, K, seed=4, hold=hold)])
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        warnings = d.warning.number.tobytes()
+        expected, states, derived = await _tick_by_tick(robot, rows)
+        mujoco.mj_setState(m, d, start, _STATE)
+        stepper = BlockStepper(b, K)
+        sp = Setpoint(n)
+        put = None if hold else stepper.controls(rows, sp.view)
+        assert hold or put is not None
+        writes: list[int] = []
+
+        def write(k: int) -> None:
+            writes.append(k)
+            if k == 0:
+                sp.block[...] = rows[0]
+                b.write(sp.view)
+            elif put is not None:
+                put(k)
+
+        readings = np.full((K, 3, n), np.nan)
+        assert stepper.run(write, K, readings, lambda: False, put) == K
+        assert writes == [0]  # one rollout after tick 0's write
+        assert stepper.fault is None
+        assert readings.tobytes() == expected.tobytes()
+        got = np.empty_like(start)
+        mujoco.mj_getState(m, d, got, _STATE)
+        assert got.tobytes() == states[-1].tobytes()
+        assert d.xpos.tobytes() + d.qfrc_actuator.tobytes() + d.actuator_force.tobytes() + d.sensordata.tobytes() \
+            == derived
+        assert d.warning.number.tobytes() == warnings
+        if not hold:
+            assert np.abs(readings[-1, 0] - readings[0, 0]).max() > 0.05  # it moved
+
+        def rewrite(k: int) -> None:
+            sp.block[...] = rows[k]
+            b.write(sp.view)
+
+        for k in (K - 1, 37, 16, 1):
+            stepper.restore(k, rewrite)
+            mujoco.mj_getState(m, d, got, _STATE)
+            assert got.tobytes() == states[k - 1].tobytes(), k
+
+
+async def test_a_stop_during_the_rollout_puts_mujoco_back_before_tick_0() -> None:
+    """``stop()`` true after the rollout (an e-stop landed meanwhile): no tick done, state and counters as before."""
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        n, K = len(b.names), 40
+        rows = np.stack([sp.block for sp in _stream(robot, K, seed=8, hold=False)])
+        sp = Setpoint(n)
+        stepper = BlockStepper(b, K)
+        put = stepper.controls(rows, sp.view)
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        warn = (d.warning.number.tobytes(), b._warn_bytes)
+        asked: list[float] = []
+
+        def write(k: int) -> None:
+            sp.block[...] = rows[k]
+            b.write(sp.view)
+
+        def stop() -> bool:
+            asked.append(d.time)  # asked once, after the rollout
+            return True
+
+        readings = np.zeros((K, 3, n))
+        assert stepper.run(write, K, readings, stop, put) == 0
+        assert len(asked) == 1 and asked[0] > 0.9 * K * b.period
+        got = np.empty_like(start)
+        mujoco.mj_getState(m, d, got, _STATE)
+        assert got.tobytes() == start.tobytes()
+        assert (d.warning.number.tobytes(), b._warn_bytes) == warn
+        assert not readings.any()
+
+
+async def test_a_diverging_step_in_an_open_loop_block_ends_it_as_tick_by_tick() -> None:
+    """A rollout stops at a warning: the block runs again tick by tick and ends at that tick with the backend's error.
+    """
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        n, K, bad = len(b.names), 30, 17
+        rows = np.stack([sp.block for sp in _stream(robot, K, seed=5, hold=False)])
+        rows[bad, 2, 0] = np.inf  # MuJoCo rejects the control: a divergence warning
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        warn0 = (d.warning.number.copy(), d.warning.lastinfo.copy(), b._warn.copy(), b._warn_bytes)
+        sp = Setpoint(n)
+        expected = np.empty((K, 3, n))
+        with pytest.raises(SimulationDiverged) as tick_by_tick:
+            for k in range(K):
+                sp.block[...] = rows[k]
+                b.write(sp.view)
+                await b.step(b.period)
+                expected[k] = b.read()
+        after = np.empty_like(start)
+        mujoco.mj_getState(m, d, after, _STATE)
+        mujoco.mj_setState(m, d, start, _STATE)
+        d.warning.number[:], d.warning.lastinfo[:] = warn0[0], warn0[1]
+        b._warn[:], b._warn_bytes = warn0[2], warn0[3]
+        stepper = BlockStepper(b, K)
+        put = stepper.controls(rows, sp.view)
+        assert put is not None
+
+        def write(k: int) -> None:
+            if k == 0:
+                sp.block[...] = rows[0]
+                b.write(sp.view)
+            else:
+                put(k)
+
+        readings = np.empty((K, 3, n))
+        assert stepper.run(write, K, readings, lambda: False, put) == bad
+        assert str(stepper.fault) == str(tick_by_tick.value)
+        assert readings[:bad].tobytes() == expected[:bad].tobytes()
+        got = np.empty_like(start)
+        mujoco.mj_getState(m, d, got, _STATE)
+        assert got.tobytes() == after.tobytes()
+
+
+async def test_a_replaced_mj_step_or_a_foreign_put_runs_the_block_tick_by_tick(monkeypatch: pytest.MonkeyPatch) -> None:
+    """No rollout where it would bypass something: ``mujoco.mj_step`` replaced, a ``put`` not this stepper's."""
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        b = robot.backend
+        n, K = len(b.names), 20
+        sp = Setpoint(n)
+        sp.block[...] = _stream(robot, 1, seed=1, hold=True)[0].block
+        stepper = BlockStepper(b, K)
+        readings = np.empty((K, 3, n))
+        writes: list[int] = []
+
+        def write(k: int) -> None:
+            writes.append(k)
+            if k == 0:
+                b.write(sp.view)
+
+        step = mujoco.mj_step
+        steps: list[int] = []
+        monkeypatch.setattr(mujoco, "mj_step", lambda m, d, nstep=1: (steps.append(nstep), step(m, d, nstep=nstep)))
+        assert stepper.run(write, K, readings, lambda: False, None) == K
+        assert writes == list(range(K)) and len(steps) == K
+        monkeypatch.undo()
+        writes.clear()
+        assert stepper.run(write, K, readings, lambda: False, lambda k: None) == K
+        assert writes == list(range(K))
+        writes.clear()
+        assert stepper.run(write, K, readings, lambda: False, None) == K
+        assert writes == [0]

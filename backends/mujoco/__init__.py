@@ -218,6 +218,17 @@ class MujocoBackend(Backend):
         self._step_gravity = self._plan_gravity(spec)
         if self._step_gravity is not None:
             self._step_gravity.configure(spec)
+        # one effort sensor per joint, last in the model, reading what read() returns as the effort (the
+        # servo's force, or the joint's actuation with MuJoCo's gravity compensation): a block of ticks
+        # run as one mujoco.rollout gets each step's effort from them (backends.mujoco.block)
+        for j in self.joints:
+            sensor = spec.add_sensor()
+            if self._step_gravity is not None:
+                sensor.type, sensor.objtype = mujoco.mjtSensor.mjSENS_JOINTACTFRC, mujoco.mjtObj.mjOBJ_JOINT
+                sensor.objname = j.name
+            else:
+                sensor.type, sensor.objtype = mujoco.mjtSensor.mjSENS_ACTUATORFRC, mujoco.mjtObj.mjOBJ_ACTUATOR
+                sensor.objname = f"{j.name}_servo"
         try:
             self.model = spec.compile()
         except Exception as exc:
@@ -225,6 +236,9 @@ class MujocoBackend(Backend):
         self.data = mujoco.MjData(self.model)
         self._sensors.bind(self.model, self.data)
         m = self.model
+        n = len(self.joints)
+        #: where the effort sensors' values start in ``sensordata`` (one value each, in joint order)
+        self._effort_sensor_adr = int(m.sensor_adr[m.nsensor - n]) if n else 0
         if self._step_gravity is not None:
             self._step_gravity.bind(m)
         jids = [m.joint(j.name).id for j in self.joints]
@@ -238,7 +252,6 @@ class MujocoBackend(Backend):
         key = self.start_pose.keyframe if desc.format == "mjcf" else None
         self._home_key = int(mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, key)) if key else -1
         d = self.data
-        n = len(self.joints)
         # views into the model and data, made once (each attribute access builds a new array object)
         self._ctrl = d.ctrl
         self._tmp = np.zeros(n)

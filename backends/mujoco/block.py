@@ -26,6 +26,23 @@ servo law on all rows, the inverse-dynamics feed-forward per row with only its m
 ``mj_inverse``), and the block's ``write(k)`` puts row ``k`` into ``ctrl`` (tick 0 still writes its
 setpoint: that sets the model arrays below).
 
+When a block writes no more than those precomputed controls (a motion), or nothing after tick 0 (a
+hold), its ticks after tick 0's write run as **one** ``mujoco.rollout`` call (:meth:`BlockStepper.run`
+with ``stop``, the *open loop*): the same ``mj_step`` calls on the backend's own ``MjData`` with the
+same inputs, no Python between them, so the same bits (``tests/test_block_stepper.py``). The rollout
+is given every user input (``mjSTATE_USER``: it would reset applied forces, mocap and equality
+switches it is not given), each reading's position and velocity come from the state it returns, and
+its effort from the backend's per-joint effort sensors (the last sensors of the model, reading
+exactly what :meth:`~agentsdk.Backend.read` returns); it clears MuJoCo's warning counters and stops
+at a warning, so the counters are put back after it and a block that saw a warning runs again tick
+by tick. Python's per-tick work in the stepper was ~1 µs per tick on arm3 (write, step call, three
+reading copies); the rollout's per-step copies in C cost a fraction of that. An emergency stop or
+latch from another thread that lands while the rollout runs (it releases the GIL, as ``mj_step``
+does) is found after it: MuJoCo goes back to before tick 0 and no tick of the block is done, as if it
+had landed just before the block. No rollout runs where the backend keeps a host effort map (mimic
+followers or scattered dofs with MuJoCo's gravity compensation), sensors are disabled in the model,
+or ``mujoco.mj_step`` was replaced (a test's fault injection, which the rollout would bypass).
+
 Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
 enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them
 constant (pre-planned motions write the loop's gains), which is the caller's precondition.
@@ -36,7 +53,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
@@ -51,6 +68,15 @@ if TYPE_CHECKING:
 __all__ = ["BlockStepper"]
 
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+#: a rollout's per-step inputs: the controls and every other user input (applied forces, mocap, equality
+#: switches, userdata), which mujoco.rollout would otherwise reset to the model's defaults
+_USER = mujoco.mjtState.mjSTATE_USER
+#: a rollout's per-step output (and its start): the physics without the solver's warm start
+_FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
+#: MuJoCo's step as imported: where it was replaced (a test's fault injection) no rollout runs, which would bypass it
+_MJ_STEP = mujoco.mj_step
+#: the most ticks one rollout runs (its buffers are sized for this many, times the physics steps per tick)
+OPEN_LOOP_TICKS = 256
 
 
 class BlockStepper:
@@ -89,6 +115,21 @@ class BlockStepper:
 
         #: the step and write a block reproduces: the backend's own (see :meth:`ready`)
         self._stock = (Backend.step, MujocoBackend._step, Backend.write, MujocoBackend._write)
+        #: checkpoints of the last run are ``every`` ticks apart (an open-loop run keeps tick 0's only)
+        self._every_run = every
+        #: a run's ticks may be one mujoco.rollout (see :meth:`run`): each step's effort is a plain
+        #: gather of one of the backend's effort sensors, which the model computes
+        n = len(backend.joints)
+        self._open_loop = (n > 0 and backend._effort_map is None
+                           and not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SENSOR)
+        self._roller: Any = None  # mujoco's rollout object, made at the first open-loop run
+        # the rollout's arrays (made with it): inputs per step, outputs per step, the start
+        self._ro: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        off_q = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_TIME)
+        off_v = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_TIME | mujoco.mjtState.mjSTATE_QPOS)
+        a = backend._effort_sensor_adr
+        #: where a reading's position, velocity and effort are in a rollout's state and sensor rows
+        self._cols = (_columns(backend._qadr + off_q), _columns(backend._dadr + off_v), slice(a, a + n))
 
     def controls(self, rows: np.ndarray, setpoint: SetpointView) -> Callable[[int], None] | None:
         """The controls :meth:`~agentsdk.Backend.write` computes from each of K setpoints, all before the block.
@@ -134,12 +175,7 @@ class BlockStepper:
                 ff = inverse.compute_block(b._qdes, put_q, rows[:, 0], rows[:, 1], rows[:, 6], idx,
                                            self._ctrl_ff[:K], setpoint.mode)
                 ctrls[idx] += ff[idx]
-        ctrl = b._ctrl
-
-        def put(j: int) -> None:
-            ctrl[...] = ctrls[j]
-
-        return put
+        return _Put(b._ctrl, ctrls)
 
     def ready(self) -> bool:
         """The backend's ``step``/``_step``/``write``/``_write`` are MuJoCo's own: a block makes those calls itself.
@@ -154,11 +190,24 @@ class BlockStepper:
         return ((cls.step, cls._step, cls.write, cls._write) == self._stock
                 and "step" not in own and "_step" not in own and "write" not in own and "_write" not in own)
 
-    def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
+    def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray,
+            stop: Callable[[], bool] | None = None, controls: Callable[[int], None] | None = None) -> int:
         """Run ticks ``0 .. count - 1``: ``write(k)``, step one control period, read into ``readings[k]`` (3, n).
 
         Returns the ticks done: ``count``, or fewer when a step diverged (:attr:`fault`) or
         ``write(k)`` returned False (it wrote nothing: the block ends before tick ``k``).
+
+        *Open loop*: ``stop`` given says that after tick 0 the ticks write nothing but ``controls(k)``
+        (the ``put`` of this stepper's :meth:`controls` for this block), or with ``controls`` None
+        nothing at all (a hold, :attr:`write_once`), and that ``write(k)`` returns False exactly when
+        ``stop()`` is true. Then, after tick 0's write, all the ticks are one ``mujoco.rollout``
+        call, the same ``mj_step`` calls with the same inputs (no Python between the steps): each
+        reading comes from the state it returns and the backend's effort sensors. ``stop()`` is
+        asked after it: true (an emergency stop or latch from another thread landed during the
+        block), and MuJoCo goes back to before tick 0 and no tick is done, as when it lands before
+        tick 0's write. Only tick 0's checkpoint is kept (:meth:`restore` replays from it), and a
+        warning during the rollout runs the block again tick by tick (warnings and divergences
+        as the backend's own step reports them).
         """
         if not 0 <= count <= self.capacity:
             raise InvalidValueError(f"count must be within 0..{self.capacity}, got {count}")
@@ -166,10 +215,18 @@ class BlockStepper:
         self.fault = None
         self.done = 0
         self._at_end = True
+        self._every_run = self.every
         # the backend's record of MuJoCo's warning counters before the block (see restore)
         self._warned = (b._warn.copy(), b._warn_bytes)
         w = b.data.warning
         counters = (w.number.copy(), w.lastinfo.copy())  # MuJoCo's own, all of them
+        if (stop is not None and self._open_loop and 2 <= count <= OPEN_LOOP_TICKS
+                and (controls is None or isinstance(controls, _Put)) and mujoco.mj_step is _MJ_STEP):
+            done = self._run_open_loop(write, count, readings, stop, controls, counters)
+            if done is not None:
+                self.done = done
+                return done
+            self._every_run = self.every  # again tick by tick, from the block's start
         done = self._run(write, count, readings)
         if done and self._diverged():
             # a step diverged: again from the block's start (MuJoCo's warning counters too) with the
@@ -212,6 +269,74 @@ class BlockStepper:
             vs[k] = v
             es[k] = e
         return count
+
+    def _run_open_loop(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray,
+                       stop: Callable[[], bool], controls: Callable[[int], None] | None,
+                       counters: tuple[np.ndarray, np.ndarray]) -> int | None:
+        """:meth:`run`'s open loop: tick 0's write, then every step as one rollout; None: run it tick by tick.
+
+        None when the rollout saw a warning (it stops stepping at one) or the acceleration is not
+        finite: MuJoCo is then back before tick 0 and the caller runs the block tick by tick.
+        """
+        b = self._b
+        m, d = b.model, b.data
+        nsub = b._nsub
+        start = self.states[0]
+        mujoco.mj_getState(m, d, start, _STATE)
+        self._every_run = self.capacity  # only tick 0's checkpoint
+        if write(0) is False:
+            return 0
+        if self._ro is None:
+            from mujoco import rollout
+
+            self._roller = rollout.Rollout(nthread=0)  # on this thread (it releases the GIL, as mj_step)
+            steps = OPEN_LOOP_TICKS * nsub
+            self._ro = (np.empty((1, steps, mujoco.mj_stateSize(m, _USER))),
+                        np.empty((1, steps, mujoco.mj_stateSize(m, _FULL))),
+                        np.empty((1, steps, m.nsensordata)),
+                        np.empty((1, mujoco.mj_stateSize(m, _FULL))),
+                        np.empty((1, m.nv)))
+        inputs, out, sensed, s0, w0 = self._ro
+        N = count * nsub
+        steps_in = inputs[:, :N]
+        rows = steps_in[0]
+        mujoco.mj_getState(m, d, rows[0], _USER)  # the inputs as tick 0's write left them, for every step
+        rows[1:] = rows[0]
+        if isinstance(controls, _Put):
+            # tick k's controls for each of its physics steps (ctrl is first in mjSTATE_USER)
+            rows.reshape(count, nsub, -1)[1:, :, : m.nu] = controls.ctrls[1:count, None, :]
+        mujoco.mj_getState(m, d, s0[0], _FULL)
+        w0[0] = d.qacc_warmstart
+        w = d.warning
+        # (skip_checks: the arrays are made for this model, C-contiguous float64, and the outputs are
+        # written in place, as their size is exactly N steps)
+        self._roller.rollout([m], [d], s0, steps_in, control_spec=int(_USER), skip_checks=True, nstep=N,
+                             initial_warmstart=w0, state=out[:, :N], sensordata=sensed[:, :N])
+        warned = w.number.any()  # (the rollout clears the counters first and stops at any warning)
+        w.number[:], w.lastinfo[:] = counters
+        if warned or self._diverged():
+            self._restart(counters)
+            return None
+        if stop():
+            # an emergency stop or latch landed during the block: as if before tick 0's write (the
+            # torque-off model arrays it set stay; the loop's next tick enforces it)
+            self._restart(counters)
+            return 0
+        qc, vc, ec = self._cols
+        st = out[0, nsub - 1 : N : nsub]
+        readings[:count, 0] = st[:, qc]
+        readings[:count, 1] = st[:, vc]
+        readings[:count, 2] = sensed[0, nsub - 1 : N : nsub, ec]
+        return count
+
+    def _restart(self, counters: tuple[np.ndarray, np.ndarray]) -> None:
+        """MuJoCo back to before the block's tick 0, its warning counters too."""
+        b = self._b
+        mujoco.mj_setState(b.model, b.data, self.states[0], _STATE)
+        w = b.data.warning
+        w.number[:], w.lastinfo[:] = counters
+        b._warn[...] = self._warned[0]
+        b._warn_bytes = self._warned[1]
 
     def _diverged(self) -> bool:
         """A step of the block diverged: the warning counters moved, or the acceleration is not finite."""
@@ -272,8 +397,9 @@ class BlockStepper:
         self._at_end = False
         b = self._b
         m, d = b.model, b.data
-        c = k - k % self.every
-        mujoco.mj_setState(m, d, self.states[c // self.every], _STATE)
+        every = self._every_run
+        c = k - k % every
+        mujoco.mj_setState(m, d, self.states[c // every], _STATE)
         step, nsub = mujoco.mj_step, b._nsub
         for j in range(c, k):
             write(j)
@@ -281,3 +407,22 @@ class BlockStepper:
         if self.fault is not None:
             b._warn[...] = self._warned[0]
             b._warn_bytes = self._warned[1]
+
+
+class _Put:
+    """:meth:`BlockStepper.controls`' result: ``put(j)`` writes tick ``j``'s controls; ``ctrls`` holds them all."""
+
+    __slots__ = ("ctrl", "ctrls")
+
+    def __init__(self, ctrl: np.ndarray, ctrls: np.ndarray) -> None:
+        self.ctrl, self.ctrls = ctrl, ctrls
+
+    def __call__(self, j: int) -> None:
+        self.ctrl[...] = self.ctrls[j]
+
+
+def _columns(idx: np.ndarray) -> slice | np.ndarray:
+    """``idx`` as a slice where it is consecutive (a view, no gather), else the index array."""
+    if len(idx) and (np.diff(idx) == 1).all():
+        return slice(int(idx[0]), int(idx[-1]) + 1)
+    return idx

@@ -97,13 +97,16 @@ class BlockStepper:
             return False
         return not p.getContactPoints(physicsClientId=b._cid)
 
-    def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray) -> int:
+    def run(self, write: Callable[[int], bool | None], count: int, readings: np.ndarray,
+            stop: Callable[[], bool] | None = None, controls: Callable[[int], None] | None = None) -> int:
         """Run ticks ``0 .. count - 1``: ``write(k)``, the substeps, read into ``readings[k]`` (3, n).
 
         Returns the ticks done: ``count``, or fewer when a substep diverged (:attr:`fault`, PyBullet
         left as the diverged substep left it, as tick by tick), ``write(k)`` returned False (it wrote
         nothing: the block ends before tick ``k``), or a tick left a contact point (the block ends
         after it). :meth:`restore` reads tick starts from ``readings``: leave it as it is until then.
+        ``stop`` and ``controls`` (an open loop, :meth:`agentsdk.block.BlockStepperLike.run`) are not
+        used: every tick calls ``write``.
         """
         if not 0 <= count <= self.capacity:
             raise InvalidValueError(f"count must be within 0..{self.capacity}, got {count}")

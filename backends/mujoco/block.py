@@ -221,7 +221,9 @@ class BlockStepper:
         w = b.data.warning
         counters = (w.number.copy(), w.lastinfo.copy())  # MuJoCo's own, all of them
         if (stop is not None and self._open_loop and 2 <= count <= OPEN_LOOP_TICKS
-                and (controls is None or isinstance(controls, _Put)) and mujoco.mj_step is _MJ_STEP):
+                and (controls is None or isinstance(controls, _Put) and controls.ctrl is b._ctrl
+                     and count <= len(controls.ctrls))
+                and mujoco.mj_step is _MJ_STEP):
             done = self._run_open_loop(write, count, readings, stop, controls, counters)
             if done is not None:
                 self.done = done

@@ -389,7 +389,8 @@ async def test_block_lockstep_is_refused_where_it_cannot_run_and_turns_off() -> 
 async def _rollout_estop(at: int, what: str) -> tuple[Any, ...]:
     """:func:`_thread_estop`'s run with the e-stop from another thread inside a block's rollout.
 
-    The e-stop comes from MuJoCo's control callback, which the rollout's steps call.
+    The e-stop comes when the rollout of the block that holds tick ``at`` is called, after the
+    block's first write: ``stop()`` sees it after the rollout, as one that landed during it.
 
     Returns what :func:`_thread_estop` returns and the tick the block that saw it started at.
     """
@@ -413,15 +414,20 @@ async def _rollout_estop(at: int, what: str) -> tuple[Any, ...]:
             finally:
                 inside.pop()
 
-        def callback(m: Any, d: Any) -> None:
-            if inside and not fired and d.time >= (at - 0.5) * b.period:
+        rollout = mujoco_block.mujoco_rollout.Rollout.rollout
+
+        def rollout_spy(self: Any, model: Any, data: Any, *args: Any, **kw: Any) -> Any:
+            t0 = data[0].time  # the block's first step starts here; it runs nstep physics steps
+            t_at = (at - 0.5) * b.period
+            if inside and not fired and t0 <= t_at < t0 + kw["nstep"] * model[0].opt.timestep:
                 fired.append(inside[-1])
                 th = threading.Thread(target=robot.safety.estop_threadsafe, args=(0,))
                 th.start()
                 th.join()
+            return rollout(self, model, data, *args, **kw)
 
         mujoco_block.BlockStepper._run_open_loop = spy  # type: ignore[method-assign]
-        mujoco.set_mjcb_control(callback)
+        mujoco_block.mujoco_rollout.Rollout.rollout = rollout_spy  # type: ignore[method-assign]
         try:
             if what == "move":
                 q = (await robot.read()).position
@@ -430,7 +436,7 @@ async def _rollout_estop(at: int, what: str) -> tuple[Any, ...]:
                              stretch_to_limits=True)
             await robot.clock.sleep(0.5)
         finally:
-            mujoco.set_mjcb_control(None)
+            mujoco_block.mujoco_rollout.Rollout.rollout = rollout  # type: ignore[method-assign]
             mujoco_block.BlockStepper._run_open_loop = open_loop  # type: ignore[method-assign]
         loop = robot._loop
         assert fired and fired[0] < at, (fired, at)  # it landed inside a rollout, after the block's start

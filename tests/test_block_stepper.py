@@ -245,10 +245,13 @@ async def test_an_open_loop_block_is_one_rollout_and_tick_by_tick_bit_for_bit(
         n, K = len(b.names), 70
         d.qfrc_applied[:] = 0.01
         d.xfrc_applied[2, :] = (0.3, -0.2, 0.1, 0.01, 0.0, -0.01)
+        # warnings seen before the block (a rollout clears the counters: they must come back)
+        d.warning.number[int(mujoco.mjtWarning.mjWARN_CONTACTFULL)] = 3
+        d.warning.lastinfo[int(mujoco.mjtWarning.mjWARN_CONTACTFULL)] = 7
         rows = np.stack([sp.block for sp in _stream(robot, K, seed=4, hold=hold)])
         start = np.empty(mujoco.mj_stateSize(m, _STATE))
         mujoco.mj_getState(m, d, start, _STATE)
-        warnings = d.warning.number.tobytes()
+        warnings = d.warning.number.tobytes() + d.warning.lastinfo.tobytes()
         expected, states, derived = await _tick_by_tick(robot, rows)
         mujoco.mj_setState(m, d, start, _STATE)
         stepper = BlockStepper(b, K)
@@ -275,7 +278,7 @@ async def test_an_open_loop_block_is_one_rollout_and_tick_by_tick_bit_for_bit(
         assert got.tobytes() == states[-1].tobytes()
         assert d.xpos.tobytes() + d.qfrc_actuator.tobytes() + d.actuator_force.tobytes() + d.sensordata.tobytes() \
             == derived
-        assert d.warning.number.tobytes() == warnings
+        assert d.warning.number.tobytes() + d.warning.lastinfo.tobytes() == warnings
         if not hold:
             assert np.abs(readings[-1, 0] - readings[0, 0]).max() > 0.05  # it moved
 
@@ -283,7 +286,7 @@ async def test_an_open_loop_block_is_one_rollout_and_tick_by_tick_bit_for_bit(
             sp.block[...] = rows[k]
             b.write(sp.view)
 
-        for k in (K - 1, 37, 16, 1):
+        for k in (K - 1, 37, 16, 1, K):  # (the end again, after restores: replayed from tick 0 too)
             stepper.restore(k, rewrite)
             mujoco.mj_getState(m, d, got, _STATE)
             assert got.tobytes() == states[k - 1].tobytes(), k
@@ -301,7 +304,8 @@ async def test_a_stop_during_the_rollout_puts_mujoco_back_before_tick_0() -> Non
         put = stepper.controls(rows, sp.view)
         start = np.empty(mujoco.mj_stateSize(m, _STATE))
         mujoco.mj_getState(m, d, start, _STATE)
-        warn = (d.warning.number.tobytes(), b._warn_bytes)
+        d.warning.number[int(mujoco.mjtWarning.mjWARN_CNSTRFULL)] = 2  # seen before the block
+        warn = (d.warning.number.tobytes(), d.warning.lastinfo.tobytes(), b._warn_bytes)
         asked: list[float] = []
 
         def write(k: int) -> None:
@@ -318,7 +322,7 @@ async def test_a_stop_during_the_rollout_puts_mujoco_back_before_tick_0() -> Non
         got = np.empty_like(start)
         mujoco.mj_getState(m, d, got, _STATE)
         assert got.tobytes() == start.tobytes()
-        assert (d.warning.number.tobytes(), b._warn_bytes) == warn
+        assert (d.warning.number.tobytes(), d.warning.lastinfo.tobytes(), b._warn_bytes) == warn
         assert not readings.any()
 
 
@@ -351,7 +355,10 @@ async def test_a_diverging_step_in_an_open_loop_block_ends_it_as_tick_by_tick() 
         put = stepper.controls(rows, sp.view)
         assert put is not None
 
+        writes: list[int] = []
+
         def write(k: int) -> None:
+            writes.append(k)
             if k == 0:
                 sp.block[...] = rows[0]
                 b.write(sp.view)
@@ -360,6 +367,8 @@ async def test_a_diverging_step_in_an_open_loop_block_ends_it_as_tick_by_tick() 
 
         readings = np.empty((K, 3, n))
         assert stepper.run(write, K, readings, lambda: False, put) == bad
+        # the rollout (tick 0's write only), then the block step by step, then again with the checks
+        assert writes == [0, *range(K), *range(bad + 1)]
         assert str(stepper.fault) == str(tick_by_tick.value)
         assert readings[:bad].tobytes() == expected[:bad].tobytes()
         got = np.empty_like(start)
@@ -395,3 +404,70 @@ async def test_a_replaced_mj_step_or_a_foreign_put_runs_the_block_tick_by_tick(m
         writes.clear()
         assert stepper.run(write, K, readings, lambda: False, None) == K
         assert writes == [0]
+
+
+async def test_rk4_and_a_control_callback_run_the_block_step_by_step_bit_for_bit() -> None:
+    """No rollout where its readings or inputs could differ: RK4 (its last stages skip the sensors the
+    efforts come from) or a callback MuJoCo calls inside the step that may change the inputs."""
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, integrator="rk4") as robot:
+        b = robot.backend
+        m, d = b.model, b.data
+        n, K = len(b.names), 30
+        rows = np.stack([sp.block for sp in _stream(robot, K, seed=2, hold=False)])
+        start = np.empty(mujoco.mj_stateSize(m, _STATE))
+        mujoco.mj_getState(m, d, start, _STATE)
+        expected, _states, _derived = await _tick_by_tick(robot, rows)
+        mujoco.mj_setState(m, d, start, _STATE)
+        stepper = BlockStepper(b, K)
+        sp = Setpoint(n)
+        put = stepper.controls(rows, sp.view)
+        assert put is not None
+        writes: list[int] = []
+
+        def write(k: int) -> None:
+            writes.append(k)
+            if k == 0:
+                sp.block[...] = rows[0]
+                b.write(sp.view)
+            else:
+                put(k)
+
+        readings = np.empty((K, 3, n))
+        assert stepper.run(write, K, readings, lambda: False, put) == K
+        assert writes == list(range(K))
+        assert readings.tobytes() == expected.tobytes()
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+        b = robot.backend
+        stepper = BlockStepper(b, K)
+        hold = Setpoint(n)
+        hold.block[...] = _stream(robot, 1, seed=1, hold=True)[0].block
+        writes.clear()
+
+        def write_hold(k: int) -> None:
+            writes.append(k)
+            if k == 0:
+                b.write(hold.view)
+
+        mujoco.set_mjcb_control(lambda m, d: None)
+        try:
+            assert stepper.run(write_hold, K, readings, lambda: False, None) == K
+        finally:
+            mujoco.set_mjcb_control(None)
+        assert writes == list(range(K))
+        writes.clear()
+        assert stepper.run(write_hold, K, readings, lambda: False, None) == K
+        assert writes == [0]
+
+
+@pytest.mark.parametrize("realtime", [False, True])
+async def test_the_effort_sensors_are_in_a_lockstep_model_only(realtime: bool) -> None:
+    """One effort sensor per joint, last in the model, reading the effort ``read()`` returns; none in realtime."""
+    async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY, realtime=realtime) as robot:
+        b = robot.backend
+        n = len(b.names)
+        assert b.model.nsensor == (0 if realtime else n)
+        if not realtime:
+            await robot.clock.sleep(0.05)
+            a = b._effort_sensor_adr
+            assert b.data.sensordata[a : a + n].tobytes() == b.read()[2].tobytes()
+            assert b.block_stepper(8)._open_loop

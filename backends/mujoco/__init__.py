@@ -218,10 +218,13 @@ class MujocoBackend(Backend):
         self._step_gravity = self._plan_gravity(spec)
         if self._step_gravity is not None:
             self._step_gravity.configure(spec)
-        # one effort sensor per joint, last in the model, reading what read() returns as the effort (the
-        # servo's force, or the joint's actuation with MuJoCo's gravity compensation): a block of ticks
-        # run as one mujoco.rollout gets each step's effort from them (backends.mujoco.block)
-        for j in self.joints:
+        # in lockstep, one effort sensor per joint, last in the model, reading what read() returns as the
+        # effort (the servo's force, or the joint's actuation with MuJoCo's gravity compensation): a block
+        # of ticks run as one mujoco.rollout gets each step's effort from them (backends.mujoco.block);
+        # a realtime robot runs no blocks and does not pay for them (~3 % of arm3's step)
+        #: the effort sensors are in the model (a lockstep robot with joints)
+        self._effort_sensors = not self.realtime and bool(self.joints)
+        for j in self.joints if self._effort_sensors else ():
             sensor = spec.add_sensor()
             if self._step_gravity is not None:
                 sensor.type, sensor.objtype = mujoco.mjtSensor.mjSENS_JOINTACTFRC, mujoco.mjtObj.mjOBJ_JOINT
@@ -238,7 +241,7 @@ class MujocoBackend(Backend):
         m = self.model
         n = len(self.joints)
         #: where the effort sensors' values start in ``sensordata`` (one value each, in joint order)
-        self._effort_sensor_adr = int(m.sensor_adr[m.nsensor - n]) if n else 0
+        self._effort_sensor_adr = int(m.sensor_adr[m.nsensor - n]) if self._effort_sensors else 0
         if self._step_gravity is not None:
             self._step_gravity.bind(m)
         jids = [m.joint(j.name).id for j in self.joints]

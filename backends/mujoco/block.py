@@ -39,9 +39,15 @@ by tick. Python's per-tick work in the stepper was ~1 µs per tick on arm3 (writ
 reading copies); the rollout's per-step copies in C cost a fraction of that. An emergency stop or
 latch from another thread that lands while the rollout runs (it releases the GIL, as ``mj_step``
 does) is found after it: MuJoCo goes back to before tick 0 and no tick of the block is done, as if it
-had landed just before the block. No rollout runs where the backend keeps a host effort map (mimic
-followers or scattered dofs with MuJoCo's gravity compensation), sensors are disabled in the model,
-or ``mujoco.mj_step`` was replaced (a test's fault injection, which the rollout would bypass).
+had landed just before the block. No rollout runs where its result could differ from tick by tick or
+it would bypass something: a realtime backend (no effort sensors), a host effort map (mimic followers
+or scattered dofs with MuJoCo's gravity compensation), the RK4 integrator (its last three stages skip
+the sensors, so they keep the first stage's actuation while ``read()`` returns the last's), sensors
+disabled in the model, a control or passive callback installed (it may change the inputs, which a
+rollout sets again before every physics step), ``mujoco.mj_step`` replaced (a test's fault
+injection), or a MuJoCo without ``mujoco.rollout.Rollout`` (before 3.2.7). A rollout logs a MuJoCo
+warning it meets even when the same warning was seen before the block (it clears the counters, and
+MuJoCo logs a warning when its counter is 0), and the block then runs again step by step.
 
 Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
 enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them
@@ -57,6 +63,7 @@ from typing import TYPE_CHECKING, Any
 
 import mujoco
 import numpy as np
+from mujoco import rollout as mujoco_rollout
 
 from agentsdk.errors import InvalidValueError, SimulationDiverged
 
@@ -75,8 +82,14 @@ _USER = mujoco.mjtState.mjSTATE_USER
 _FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS
 #: MuJoCo's step as imported: where it was replaced (a test's fault injection) no rollout runs, which would bypass it
 _MJ_STEP = mujoco.mj_step
-#: the most ticks one rollout runs (its buffers are sized for this many, times the physics steps per tick)
-OPEN_LOOP_TICKS = 256
+_NO_SENSORS = int(mujoco.mjtDisableBit.mjDSBL_SENSOR)
+#: the most physics steps one rollout runs (its buffers are sized for this many: a few MB on the humanoid)
+OPEN_LOOP_STEPS = 2048
+#: MuJoCo's rollout object (``mujoco.rollout.Rollout``, MuJoCo 3.2.7 and later), or None: no open loop
+_ROLLOUT = getattr(mujoco_rollout, "Rollout", None)
+#: callbacks MuJoCo calls inside a step that may change its inputs (ctrl, applied forces), which a
+#: rollout sets again before every physics step and tick by tick writes once per tick or not at all
+_INPUT_CALLBACKS = (mujoco.get_mjcb_control, mujoco.get_mjcb_passive)
 
 
 class BlockStepper:
@@ -118,10 +131,12 @@ class BlockStepper:
         #: checkpoints of the last run are ``every`` ticks apart (an open-loop run keeps tick 0's only)
         self._every_run = every
         #: a run's ticks may be one mujoco.rollout (see :meth:`run`): each step's effort is a plain
-        #: gather of one of the backend's effort sensors, which the model computes
+        #: gather of one of the backend's effort sensors, which hold what read() returns after the step
+        #: (not with RK4, whose last stages skip the sensors: they keep the first stage's actuation)
         n = len(backend.joints)
-        self._open_loop = (n > 0 and backend._effort_map is None
-                           and not m.opt.disableflags & mujoco.mjtDisableBit.mjDSBL_SENSOR)
+        self._ticks_open = min(capacity, OPEN_LOOP_STEPS // backend._nsub)
+        self._open_loop = (_ROLLOUT is not None and backend._effort_sensors and backend._effort_map is None
+                           and m.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4 and self._ticks_open >= 2)
         self._roller: Any = None  # mujoco's rollout object, made at the first open-loop run
         # the rollout's arrays (made with it): inputs per step, outputs per step, the start
         self._ro: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -220,10 +235,11 @@ class BlockStepper:
         self._warned = (b._warn.copy(), b._warn_bytes)
         w = b.data.warning
         counters = (w.number.copy(), w.lastinfo.copy())  # MuJoCo's own, all of them
-        if (stop is not None and self._open_loop and 2 <= count <= OPEN_LOOP_TICKS
-                and (controls is None or isinstance(controls, _Put) and controls.ctrl is b._ctrl
-                     and count <= len(controls.ctrls))
-                and mujoco.mj_step is _MJ_STEP):
+        if (stop is not None and self._open_loop and 2 <= count <= self._ticks_open
+                and (controls is None or (isinstance(controls, _Put) and controls.ctrl is b._ctrl
+                                          and count <= len(controls.ctrls)))
+                and mujoco.mj_step is _MJ_STEP and not b.model.opt.disableflags & _NO_SENSORS
+                and not any(get() is not None for get in _INPUT_CALLBACKS)):
             done = self._run_open_loop(write, count, readings, stop, controls, counters)
             if done is not None:
                 self.done = done
@@ -285,14 +301,13 @@ class BlockStepper:
         nsub = b._nsub
         start = self.states[0]
         mujoco.mj_getState(m, d, start, _STATE)
-        self._every_run = self.capacity  # only tick 0's checkpoint
+        self._every_run = self.capacity + 1  # only tick 0's checkpoint (restore: c = 0 for every k)
         if write(0) is False:
             return 0
         if self._ro is None:
-            from mujoco import rollout
-
-            self._roller = rollout.Rollout(nthread=0)  # on this thread (it releases the GIL, as mj_step)
-            steps = OPEN_LOOP_TICKS * nsub
+            assert _ROLLOUT is not None  # (else no open loop)
+            self._roller = _ROLLOUT(nthread=0)  # on this thread (it releases the GIL, as mj_step)
+            steps = self._ticks_open * nsub
             self._ro = (np.empty((1, steps, mujoco.mj_stateSize(m, _USER))),
                         np.empty((1, steps, mujoco.mj_stateSize(m, _FULL))),
                         np.empty((1, steps, m.nsensordata)),

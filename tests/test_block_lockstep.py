@@ -270,6 +270,15 @@ async def test_a_step_that_diverges_in_a_block_faults_as_tick_by_tick() -> None:
     assert await _diverge(True) == await _diverge(False)
 
 
+async def _hold_or_move(robot: agentsdk.Robot, what: str) -> None:
+    """The e-stop tests' half second: a hold, or a 0.3 rad move of every joint over 0.8 s."""
+    if what == "move":
+        q = (await robot.read()).position
+        goal = [float(x) + 0.3 for x in q]
+        robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]), stretch_to_limits=True)
+    await robot.clock.sleep(0.5)
+
+
 async def _thread_estop(block: bool, at: int, what: str, backend: str = "mujoco",
                         between_ticks: bool = False) -> tuple[Any, ...]:
     """An e-stop from another thread between tick ``at``'s write and its step (``between_ticks``: before its write)."""
@@ -315,12 +324,7 @@ async def _thread_estop(block: bool, at: int, what: str, backend: str = "mujoco"
                 pybullet.stepSimulation = stop_and_step_pybullet
             else:
                 mujoco.mj_step = stop_and_step
-            if what == "move":
-                q = (await robot.read()).position
-                goal = [float(x) + 0.3 for x in q]
-                robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]),
-                             stretch_to_limits=True)
-            await robot.clock.sleep(0.5)
+            await _hold_or_move(robot, what)
         finally:
             mujoco.mj_step = step
             if backend == "pybullet":
@@ -429,12 +433,7 @@ async def _rollout_estop(at: int, what: str) -> tuple[Any, ...]:
         mujoco_block.BlockStepper._run_open_loop = spy  # type: ignore[method-assign]
         mujoco_block.mujoco_rollout.Rollout.rollout = rollout_spy  # type: ignore[method-assign]
         try:
-            if what == "move":
-                q = (await robot.read()).position
-                goal = [float(x) + 0.3 for x in q]
-                robot.follow(Trajectory(list(robot.joint_names), [TrajectoryPoint(0.8, goal)]),
-                             stretch_to_limits=True)
-            await robot.clock.sleep(0.5)
+            await _hold_or_move(robot, what)
         finally:
             mujoco_block.mujoco_rollout.Rollout.rollout = rollout  # type: ignore[method-assign]
             mujoco_block.BlockStepper._run_open_loop = open_loop  # type: ignore[method-assign]

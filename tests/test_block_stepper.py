@@ -9,7 +9,9 @@ and a step that diverges ends the block at that tick with the backend's own erro
 from __future__ import annotations
 
 import importlib.metadata
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import mujoco
 import numpy as np
@@ -226,6 +228,23 @@ async def _tick_by_tick(robot: agentsdk.Robot, rows: np.ndarray) -> tuple[np.nda
     return expected, states, derived
 
 
+def _open_loop_writes(b: Any, sp: Setpoint, rows: np.ndarray,
+                      put: Callable[[int], None] | None) -> tuple[Callable[[int], None], list[int]]:
+    """An open-loop block's ``write``: tick 0's setpoint through the backend, then ``put(k)`` (None: nothing),
+    and the list of the ticks it was called for."""
+    writes: list[int] = []
+
+    def write(k: int) -> None:
+        writes.append(k)
+        if k == 0:
+            sp.block[...] = rows[0]
+            b.write(sp.view)
+        elif put is not None:
+            put(k)
+
+    return write, writes
+
+
 @pytest.mark.parametrize("robot_name", ["arm3", "humanoid"])
 @pytest.mark.parametrize("rate", [1000.0, 500.0, 200.0])  # 1, 2 and 5 physics steps per tick
 @pytest.mark.parametrize("hold", [False, True])
@@ -258,15 +277,7 @@ async def test_an_open_loop_block_is_one_rollout_and_tick_by_tick_bit_for_bit(
         sp = Setpoint(n)
         put = None if hold else stepper.controls(rows, sp.view)
         assert hold or put is not None
-        writes: list[int] = []
-
-        def write(k: int) -> None:
-            writes.append(k)
-            if k == 0:
-                sp.block[...] = rows[0]
-                b.write(sp.view)
-            elif put is not None:
-                put(k)
+        write, writes = _open_loop_writes(b, sp, rows, put)
 
         readings = np.full((K, 3, n), np.nan)
         assert stepper.run(write, K, readings, lambda: False, put) == K
@@ -355,15 +366,7 @@ async def test_a_diverging_step_in_an_open_loop_block_ends_it_as_tick_by_tick() 
         put = stepper.controls(rows, sp.view)
         assert put is not None
 
-        writes: list[int] = []
-
-        def write(k: int) -> None:
-            writes.append(k)
-            if k == 0:
-                sp.block[...] = rows[0]
-                b.write(sp.view)
-            else:
-                put(k)
+        write, writes = _open_loop_writes(b, sp, rows, put)
 
         readings = np.empty((K, 3, n))
         assert stepper.run(write, K, readings, lambda: False, put) == bad
@@ -381,17 +384,10 @@ async def test_a_replaced_mj_step_or_a_foreign_put_runs_the_block_tick_by_tick(m
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
         b = robot.backend
         n, K = len(b.names), 20
-        sp = Setpoint(n)
-        sp.block[...] = _stream(robot, 1, seed=1, hold=True)[0].block
+        hold = np.stack([sp.block for sp in _stream(robot, 1, seed=1, hold=True)])
         stepper = BlockStepper(b, K)
         readings = np.empty((K, 3, n))
-        writes: list[int] = []
-
-        def write(k: int) -> None:
-            writes.append(k)
-            if k == 0:
-                b.write(sp.view)
-
+        write, writes = _open_loop_writes(b, Setpoint(n), hold, None)
         step = mujoco.mj_step
         steps: list[int] = []
         monkeypatch.setattr(mujoco, "mj_step", lambda m, d, nstep=1: (steps.append(nstep), step(m, d, nstep=nstep)))
@@ -422,15 +418,7 @@ async def test_rk4_and_a_control_callback_run_the_block_step_by_step_bit_for_bit
         sp = Setpoint(n)
         put = stepper.controls(rows, sp.view)
         assert put is not None
-        writes: list[int] = []
-
-        def write(k: int) -> None:
-            writes.append(k)
-            if k == 0:
-                sp.block[...] = rows[0]
-                b.write(sp.view)
-            else:
-                put(k)
+        write, writes = _open_loop_writes(b, sp, rows, put)
 
         readings = np.empty((K, 3, n))
         assert stepper.run(write, K, readings, lambda: False, put) == K
@@ -439,15 +427,8 @@ async def test_rk4_and_a_control_callback_run_the_block_step_by_step_bit_for_bit
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
         b = robot.backend
         stepper = BlockStepper(b, K)
-        hold = Setpoint(n)
-        hold.block[...] = _stream(robot, 1, seed=1, hold=True)[0].block
-        writes.clear()
-
-        def write_hold(k: int) -> None:
-            writes.append(k)
-            if k == 0:
-                b.write(hold.view)
-
+        hold = np.stack([sp.block for sp in _stream(robot, 1, seed=1, hold=True)])
+        write_hold, writes = _open_loop_writes(b, Setpoint(n), hold, None)
         mujoco.set_mjcb_control(lambda m, d: None)
         try:
             assert stepper.run(write_hold, K, readings, lambda: False, None) == K

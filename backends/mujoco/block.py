@@ -250,10 +250,7 @@ class BlockStepper:
             # a step diverged: again from the block's start (MuJoCo's warning counters too) with the
             # backend's checks after every step, which end the block at that tick (rare: a diverged
             # simulation faults the loop)
-            mujoco.mj_setState(b.model, b.data, self.states[0], _STATE)
-            w.number[:], w.lastinfo[:] = counters
-            b._warn[...] = self._warned[0]
-            b._warn_bytes = self._warned[1]
+            self._restart(counters)
             done = self._run_checked(write, count, readings)
         self.done = done
         return done

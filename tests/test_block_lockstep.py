@@ -458,3 +458,80 @@ async def test_an_emergency_stop_during_a_rollout_lands_before_the_blocks_first_
     """
     *got, start = await _rollout_estop(at, what)
     assert tuple(got) == await _thread_estop(False, start, what, between_ticks=True)
+
+
+#: a two-joint arm beside boxes that fall into a pile in too small an arena: once they touch, MuJoCo drops
+#: constraints (and counts mjWARN_CNSTRFULL) at every physics step, and logs that warning the first time only
+CROWDED_MJCF = """<mujoco model="crowded">
+  <compiler angle="radian"/>
+  <size memory="48K"/>
+  <worldbody>
+    <geom type="plane" size="5 5 .1"/>
+    <body name="link1" pos="-1 0 1">
+      <joint name="j1" type="hinge" axis="0 1 0" range="-2 2"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+      <body name="link2" pos="0.3 0 0">
+        <joint name="j2" type="hinge" axis="0 1 0" range="-2 2"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03"/>
+      </body>
+    </body>
+""" + "".join(
+    f'    <body pos="{0.11 * i:.2f} {0.11 * j:.2f} {1.3 + 0.11 * k:.2f}"><freejoint/>'
+    '<geom type="box" size=".05 .05 .05"/></body>\n'
+    for i in range(3) for j in range(2) for k in range(1 + (j == 0))
+) + """  </worldbody>
+  <actuator><motor joint="j1" name="j1"/><motor joint="j2" name="j2"/></actuator>
+</mujoco>
+"""
+
+
+async def test_a_warning_at_every_step_is_logged_once_and_the_blocks_stay_tick_by_tick_bit_for_bit(
+    tmp_path: Any, caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A rollout clears MuJoCo's warning counters: blocks of a model that warns must not log the warning again.
+
+    Before: the first block's rollout logged the warning, the block's run tick by tick after it logged it
+    again, and every later block's rollout logged it once more (6 lines for one warning in this run).
+    """
+    from agentsdk.backends.mujoco import block as mujoco_block
+
+    path = tmp_path / "crowded.xml"
+    path.write_text(CROWDED_MJCF)
+    rollouts: list[float] = []
+    rollout = mujoco_block.mujoco_rollout.Rollout.rollout
+
+    def rollout_spy(self: Any, model: Any, data: Any, *args: Any, **kw: Any) -> Any:
+        rollouts.append(data[0].time)
+        return rollout(self, model, data, *args, **kw)
+
+    async def run(block: bool) -> tuple[bytes, list[str]]:
+        caplog.clear()
+        async with agentsdk.connect("mujoco", str(path), safety=SAFETY, block_lockstep=block) as robot:
+            hasher = _Hasher()
+            robot.add_tick_hook(Phase.OBSERVE, hasher, order=1 << 30)
+            await robot.command(JointCommand("position", [0.2, -0.3]))
+            await robot.clock.sleep(0.7)
+            await robot.follow(Trajectory(["j1", "j2"], [TrajectoryPoint(1.5, [0.5, 0.1])]))
+            await robot.clock.sleep(0.3)
+            d = robot.backend.data
+            counted = d.warning.number[int(mujoco.mjtWarning.mjWARN_CNSTRFULL)]
+            assert counted > 0.5 * robot.clock.ticks * robot.backend._nsub  # (it warns at every step once piled)
+            state = hasher.cut().encode() + d.qpos.tobytes() + d.qvel.tobytes()
+            warned = [r.getMessage() for r in caplog.records if r.getMessage().startswith("MuJoCo:")]
+            return state + d.warning.number.tobytes() + d.warning.lastinfo.tobytes(), warned
+
+    mujoco_block.mujoco_rollout.Rollout.rollout = rollout_spy  # type: ignore[method-assign]
+    try:
+        with caplog.at_level("WARNING", logger="agentsdk.backends.mujoco"):
+            blocks, logged_blocks = await run(True)
+            # the rollouts of the blocks before the boxes touch, and the one of the block where they do: after
+            # it, MuJoCo has counted the warning
+            assert rollouts and rollouts[-1] < 0.5
+            n_rollouts = len(rollouts)
+            ticks, logged_ticks = await run(False)
+    finally:
+        mujoco_block.mujoco_rollout.Rollout.rollout = rollout  # type: ignore[method-assign]
+    assert len(rollouts) == n_rollouts
+    assert len(logged_ticks) == 1 and "arena" in logged_ticks[0]
+    assert logged_blocks == logged_ticks
+    assert blocks == ticks

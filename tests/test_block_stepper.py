@@ -264,9 +264,7 @@ async def test_an_open_loop_block_is_one_rollout_and_tick_by_tick_bit_for_bit(
         n, K = len(b.names), 70
         d.qfrc_applied[:] = 0.01
         d.xfrc_applied[2, :] = (0.3, -0.2, 0.1, 0.01, 0.0, -0.01)
-        # warnings seen before the block (a rollout clears the counters: they must come back)
-        d.warning.number[int(mujoco.mjtWarning.mjWARN_CONTACTFULL)] = 3
-        d.warning.lastinfo[int(mujoco.mjtWarning.mjWARN_CONTACTFULL)] = 7
+        d.warning.lastinfo[int(mujoco.mjtWarning.mjWARN_CONTACTFULL)] = 7  # (a rollout clears it: it comes back)
         rows = np.stack([sp.block for sp in _stream(robot, K, seed=4, hold=hold)])
         start = np.empty(mujoco.mj_stateSize(m, _STATE))
         mujoco.mj_getState(m, d, start, _STATE)
@@ -315,7 +313,7 @@ async def test_a_stop_during_the_rollout_puts_mujoco_back_before_tick_0() -> Non
         put = stepper.controls(rows, sp.view)
         start = np.empty(mujoco.mj_stateSize(m, _STATE))
         mujoco.mj_getState(m, d, start, _STATE)
-        d.warning.number[int(mujoco.mjtWarning.mjWARN_CNSTRFULL)] = 2  # seen before the block
+        d.warning.lastinfo[int(mujoco.mjtWarning.mjWARN_CNSTRFULL)] = 2  # (a rollout clears it: it comes back)
         warn = (d.warning.number.tobytes(), d.warning.lastinfo.tobytes(), b._warn_bytes)
         asked: list[float] = []
 
@@ -380,7 +378,8 @@ async def test_a_diverging_step_in_an_open_loop_block_ends_it_as_tick_by_tick() 
 
 
 async def test_a_replaced_mj_step_or_a_foreign_put_runs_the_block_tick_by_tick(monkeypatch: pytest.MonkeyPatch) -> None:
-    """No rollout where it would bypass something: ``mujoco.mj_step`` replaced, a ``put`` not this stepper's."""
+    """No rollout where it would bypass something (``mujoco.mj_step`` replaced, a ``put`` not this stepper's) or
+    log a warning again (MuJoCo has counted one)."""
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
         b = robot.backend
         n, K = len(b.names), 20
@@ -400,6 +399,11 @@ async def test_a_replaced_mj_step_or_a_foreign_put_runs_the_block_tick_by_tick(m
         writes.clear()
         assert stepper.run(write, K, readings, lambda: False, None) == K
         assert writes == [0]
+        # MuJoCo has counted a warning: no rollout (it clears the counters, so MuJoCo would log the warning again)
+        b.data.warning.number[int(mujoco.mjtWarning.mjWARN_CONTACTFULL)] = 1
+        writes.clear()
+        assert stepper.run(write, K, readings, lambda: False, None) == K
+        assert writes == list(range(K))
 
 
 async def test_rk4_and_a_control_callback_run_the_block_step_by_step_bit_for_bit() -> None:

@@ -138,6 +138,11 @@ class BlockStepper:
         self._open_loop = (_ROLLOUT is not None and backend._effort_sensors and backend._effort_map is None
                            and m.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4 and self._ticks_open >= 2)
         self._roller: Any = None  # mujoco's rollout object, made at the first open-loop run
+        #: the warnings MuJoCo only counts (no divergence: the backend's own checks ignore them), and
+        #: those of them the last rollout counted (see :meth:`run`: the replay does not log them again)
+        self._counted_only = np.ones(len(backend.data.warning.number), dtype=bool)
+        self._counted_only[np.asarray(backend._warn_codes, dtype=np.intp)] = False
+        self._rollout_counted = np.zeros_like(self._counted_only)
         # the rollout's arrays (made with it): inputs per step, outputs per step, the start
         self._ro: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         off_q = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_TIME)
@@ -222,7 +227,9 @@ class BlockStepper:
         block), and MuJoCo goes back to before tick 0 and no tick is done, as when it lands before
         tick 0's write. Only tick 0's checkpoint is kept (:meth:`restore` replays from it), and a
         warning during the rollout runs the block again tick by tick (warnings and divergences
-        as the backend's own step reports them).
+        as the backend's own step reports them; MuJoCo logs the warning once). A rollout clears
+        MuJoCo's warning counters (MuJoCo logs a warning when its counter is 0), so once MuJoCo
+        has counted a warning, blocks run tick by tick.
         """
         if not 0 <= count <= self.capacity:
             raise InvalidValueError(f"count must be within 0..{self.capacity}, got {count}")
@@ -235,23 +242,40 @@ class BlockStepper:
         self._warned = (b._warn.copy(), b._warn_bytes)
         w = b.data.warning
         counters = (w.number.copy(), w.lastinfo.copy())  # MuJoCo's own, all of them
+        # (no rollout once MuJoCo has counted a warning: a rollout clears the counters, so MuJoCo would
+        # log a warning it logged before again, at every block that meets it)
+        quiet: np.ndarray | None = None
         if (stop is not None and self._open_loop and 2 <= count <= self._ticks_open
                 and (controls is None or (isinstance(controls, _Put) and controls.ctrl is b._ctrl
                                           and count <= len(controls.ctrls)))
                 and mujoco.mj_step is _MJ_STEP and not b.model.opt.disableflags & _NO_SENSORS
-                and not any(get() is not None for get in _INPUT_CALLBACKS)):
+                and not any(get() is not None for get in _INPUT_CALLBACKS) and not counters[0].any()):
             done = self._run_open_loop(write, count, readings, stop, controls, counters)
             if done is not None:
                 self.done = done
                 return done
             self._every_run = self.every  # again tick by tick, from the block's start
-        done = self._run(write, count, readings)
-        if done and self._diverged():
-            # a step diverged: again from the block's start (MuJoCo's warning counters too) with the
-            # backend's checks after every step, which end the block at that tick (rare: a diverged
-            # simulation faults the loop)
-            self._restart(counters)
-            done = self._run_checked(write, count, readings)
+            # The rollout met a warning and MuJoCo logged it (its first, as the counters were all 0). So
+            # that the ticks again do not log it a second time, the warnings it counted that only count
+            # start at 1 (MuJoCo logs at 0 only) and are 1 less at the end: the counts of tick by tick.
+            # (A divergence is logged again: the backend's checks look at those counters, and it faults.)
+            quiet = self._rollout_counted
+            if quiet.any():
+                counters = (counters[0] + quiet, counters[1])
+                b.data.warning.number[quiet] = 1
+            else:
+                quiet = None
+        try:
+            done = self._run(write, count, readings)
+            if done and self._diverged():
+                # a step diverged: again from the block's start (MuJoCo's warning counters too) with the
+                # backend's checks after every step, which end the block at that tick (rare: a diverged
+                # simulation faults the loop)
+                self._restart(counters)
+                done = self._run_checked(write, count, readings)
+        finally:
+            if quiet is not None:
+                b.data.warning.number[quiet] -= 1
         self.done = done
         return done
 
@@ -327,6 +351,7 @@ class BlockStepper:
         self._roller.rollout([m], [d], s0, steps_in, control_spec=int(_USER), skip_checks=True, nstep=N,
                              initial_warmstart=w0, state=out[:, :N], sensordata=sensed[:, :N])
         warned = w.number.any()  # (the rollout clears the counters first and stops at any warning)
+        np.logical_and(w.number, self._counted_only, out=self._rollout_counted)
         w.number[:], w.lastinfo[:] = counters
         if warned or self._diverged():
             self._restart(counters)

@@ -87,6 +87,7 @@ def test_can_quickstart_passes_its_script_to_the_vm_intact(block: str, tmp_path:
 
 
 @pytest.mark.slow
+@pytest.mark.serial  # the CAN backend in realtime on the VM's one vCPU: not beside another test worker
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("block", CAN_BLOCKS, ids=["can-quickstart"])
 def test_can_quickstart_runs_as_written(block: str, tmp_path: Path) -> None:

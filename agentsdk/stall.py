@@ -173,8 +173,16 @@ def _stack_of(frame: Any) -> traceback.StackSummary:
 
 
 def format_stack(stack: traceback.StackSummary) -> str:
-    """``stack`` as ``traceback.format_stack`` prints it (source lines read now)."""
-    return "".join(stack.format()) or "(loop thread not found)"
+    """``stack`` as ``traceback.format_stack`` prints it (source lines read at the first call, then kept).
+
+    A stall's stack is formatted twice: for the watchdog thread's log line and for
+    ``robot.safety.stall_traceback``; the text (and the source files it reads) is made once.
+    """
+    text: str | None = getattr(stack, "_agentsdk_text", None)
+    if text is None:
+        text = "".join(stack.format()) or "(loop thread not found)"
+        stack._agentsdk_text = text  # type: ignore[attr-defined]  # (a list subclass: it takes attributes)
+    return text
 
 
 def _innermost_user_frame(summary: traceback.StackSummary) -> str:

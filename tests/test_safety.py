@@ -356,7 +356,21 @@ async def test_position_commands_and_trajectories_are_not_watched() -> None:
 
 
 # ----------------------------------------------------- 4. loop stall watchdog
-async def test_blocked_loop_is_stopped_by_the_watchdog_thread(backend: str, monkeypatch: pytest.MonkeyPatch) -> None:
+async def test_blocked_loop_is_stopped_by_the_watchdog_thread(
+    backend: str, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    import traceback
+
+    formats: list[int] = []
+    real_format = traceback.StackSummary.format
+
+    def count_format(self: traceback.StackSummary) -> list[str]:
+        formats.append(id(self))
+        return real_format(self)
+
+    # the stack's source lines are read once: for the thread's log line and stall_traceback together
+    monkeypatch.setattr(traceback.StackSummary, "format", count_format)
+    caplog.set_level(logging.ERROR, logger="agentsdk.safety")
     async with arm(backend, stall_in_lockstep=True) as robot:
         ctl, safety = robot.backend, robot.safety
         timeout = safety.config.stall_timeout
@@ -394,6 +408,13 @@ async def test_blocked_loop_is_stopped_by_the_watchdog_thread(backend: str, monk
         assert timeout <= safety.stall_latency <= timeout + 0.2, safety.stall_latency
         assert safety.stall_traceback is not None
         assert f'test_safety.py", line {stall_line}' in safety.stall_traceback
+        for _ in range(200):  # (the thread logs the stack once torque is off: at most a moment after the block)
+            if any("event loop stalled" in r.getMessage() for r in caplog.records):
+                break
+            await asyncio.sleep(0.01)
+        (logged,) = [r.getMessage() for r in caplog.records if "event loop stalled" in r.getMessage()]
+        assert logged.endswith(safety.stall_traceback)
+        assert len(formats) == 1, formats
         await robot.clock.sleep(robot.control_period)  # the loop records the thread's event
         (ev,) = [e for e in safety.events if e.kind == "stall"]
         assert f"test_safety.py:{stall_line}" in ev.detail

@@ -408,7 +408,7 @@ async def test_blocked_loop_is_stopped_by_the_watchdog_thread(
         assert timeout <= safety.stall_latency <= timeout + 0.2, safety.stall_latency
         assert safety.stall_traceback is not None
         assert f'test_safety.py", line {stall_line}' in safety.stall_traceback
-        for _ in range(200):  # (the thread logs the stack once torque is off: at most a moment after the block)
+        for _ in range(500):  # (the thread logs the stack once torque is off: at most a moment after the block)
             if any("event loop stalled" in r.getMessage() for r in caplog.records):
                 break
             await asyncio.sleep(0.01)

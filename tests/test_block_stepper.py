@@ -103,6 +103,30 @@ async def test_a_block_is_tick_by_tick_bit_for_bit_and_restores_any_tick(robot_n
             stepper.run(lambda k: None, K + 1, readings)
 
 
+async def _diverging_tick_by_tick(robot: agentsdk.Robot, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, str]:
+    """Rows written, stepped and read tick by tick until one diverges: the readings, MuJoCo's state after the
+    divergence and the backend's error; then MuJoCo and the backend back at the start, warning counters included."""
+    b = robot.backend
+    m, d = b.model, b.data
+    start = np.empty(mujoco.mj_stateSize(m, _STATE))
+    mujoco.mj_getState(m, d, start, _STATE)
+    warn0 = (d.warning.number.copy(), d.warning.lastinfo.copy(), b._warn.copy(), b._warn_bytes)
+    sp = Setpoint(len(b.names))
+    expected = np.empty((len(rows), 3, len(b.names)))
+    with pytest.raises(SimulationDiverged) as tick_by_tick:
+        for k, row in enumerate(rows):
+            sp.block[...] = row
+            b.write(sp.view)
+            await b.step(b.period)
+            expected[k] = b.read()
+    after = np.empty_like(start)
+    mujoco.mj_getState(m, d, after, _STATE)
+    mujoco.mj_setState(m, d, start, _STATE)
+    d.warning.number[:], d.warning.lastinfo[:] = warn0[0], warn0[1]
+    b._warn[:], b._warn_bytes = warn0[2], warn0[3]
+    return expected, after, str(tick_by_tick.value)
+
+
 async def test_a_diverging_step_ends_the_block_with_the_backends_error() -> None:
     async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
         b = robot.backend
@@ -110,27 +134,13 @@ async def test_a_diverging_step_ends_the_block_with_the_backends_error() -> None
         n, K, bad = len(b.names), 30, 17
         stream = _stream(robot, K, seed=5, hold=False)
         stream[bad].effort[0] = np.inf  # MuJoCo rejects the control: a divergence warning
-        start = np.empty(mujoco.mj_stateSize(m, _STATE))
-        mujoco.mj_getState(m, d, start, _STATE)
-        warn0 = (d.warning.number.copy(), d.warning.lastinfo.copy(), b._warn.copy(), b._warn_bytes)
-        expected = np.empty((K, 3, n))
-        with pytest.raises(SimulationDiverged) as tick_by_tick:
-            for k, sp in enumerate(stream):
-                b.write(sp.view)
-                await b.step(b.period)
-                expected[k] = b.read()
-        after = np.empty_like(start)
-        mujoco.mj_getState(m, d, after, _STATE)
-        # the same start, warning counters included
-        mujoco.mj_setState(m, d, start, _STATE)
-        d.warning.number[:], d.warning.lastinfo[:] = warn0[0], warn0[1]
-        b._warn[:], b._warn_bytes = warn0[2], warn0[3]
+        expected, after, error = await _diverging_tick_by_tick(robot, np.stack([sp.block for sp in stream]))
         stepper = BlockStepper(b, K)
         readings = np.empty((K, 3, n))
         assert stepper.run(lambda k: b.write(stream[k].view), K, readings) == bad
-        assert str(stepper.fault) == str(tick_by_tick.value)
+        assert str(stepper.fault) == error
         assert readings[:bad].tobytes() == expected[:bad].tobytes()
-        got = np.empty_like(start)
+        got = np.empty_like(after)
         mujoco.mj_getState(m, d, got, _STATE)
         assert got.tobytes() == after.tobytes()
 
@@ -344,22 +354,8 @@ async def test_a_diverging_step_in_an_open_loop_block_ends_it_as_tick_by_tick() 
         n, K, bad = len(b.names), 30, 17
         rows = np.stack([sp.block for sp in _stream(robot, K, seed=5, hold=False)])
         rows[bad, 2, 0] = np.inf  # MuJoCo rejects the control: a divergence warning
-        start = np.empty(mujoco.mj_stateSize(m, _STATE))
-        mujoco.mj_getState(m, d, start, _STATE)
-        warn0 = (d.warning.number.copy(), d.warning.lastinfo.copy(), b._warn.copy(), b._warn_bytes)
+        expected, after, error = await _diverging_tick_by_tick(robot, rows)
         sp = Setpoint(n)
-        expected = np.empty((K, 3, n))
-        with pytest.raises(SimulationDiverged) as tick_by_tick:
-            for k in range(K):
-                sp.block[...] = rows[k]
-                b.write(sp.view)
-                await b.step(b.period)
-                expected[k] = b.read()
-        after = np.empty_like(start)
-        mujoco.mj_getState(m, d, after, _STATE)
-        mujoco.mj_setState(m, d, start, _STATE)
-        d.warning.number[:], d.warning.lastinfo[:] = warn0[0], warn0[1]
-        b._warn[:], b._warn_bytes = warn0[2], warn0[3]
         stepper = BlockStepper(b, K)
         put = stepper.controls(rows, sp.view)
         assert put is not None
@@ -370,9 +366,9 @@ async def test_a_diverging_step_in_an_open_loop_block_ends_it_as_tick_by_tick() 
         assert stepper.run(write, K, readings, lambda: False, put) == bad
         # the rollout (tick 0's write only), then the block step by step, then again with the checks
         assert writes == [0, *range(K), *range(bad + 1)]
-        assert str(stepper.fault) == str(tick_by_tick.value)
+        assert str(stepper.fault) == error
         assert readings[:bad].tobytes() == expected[:bad].tobytes()
-        got = np.empty_like(start)
+        got = np.empty_like(after)
         mujoco.mj_getState(m, d, got, _STATE)
         assert got.tobytes() == after.tobytes()
 

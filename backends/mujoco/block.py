@@ -45,9 +45,9 @@ or scattered dofs with MuJoCo's gravity compensation), the RK4 integrator (its l
 the sensors, so they keep the first stage's actuation while ``read()`` returns the last's), sensors
 disabled in the model, a control or passive callback installed (it may change the inputs, which a
 rollout sets again before every physics step), ``mujoco.mj_step`` replaced (a test's fault
-injection), or a MuJoCo without ``mujoco.rollout.Rollout`` (before 3.2.7). A rollout logs a MuJoCo
-warning it meets even when the same warning was seen before the block (it clears the counters, and
-MuJoCo logs a warning when its counter is 0), and the block then runs again step by step.
+injection), a MuJoCo without ``mujoco.rollout.Rollout`` (before 3.2.7), or once MuJoCo has counted
+a warning (a rollout clears the counters, and MuJoCo logs a warning when its counter is 0: it would
+log the warning again at every block); the block that meets the first warning logs it once.
 
 Not restored: the model arrays :meth:`~agentsdk.Backend.write` sets when the gains or the
 enabled joints change (the servo bias terms, the torque-off effort ranges); a block keeps them

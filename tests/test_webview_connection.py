@@ -112,19 +112,47 @@ async def _with_page(body: Callable[[Any, Any, ScriptedPage], Any], *, robot: st
             view.close()
 
 
-@pytest.mark.slow
 async def test_a_page_too_busy_to_answer_pings_keeps_its_connection() -> None:
-    """A page that reads nothing for 45 s (longer than websockets' default 20 s ping + 20 s pong timeout) stays."""
+    """A page that reads nothing for many ping intervals, but less than the ping timeout, stays and catches up.
+
+    At a tenth of the web view's defaults (0.5 s pings as 10 s, a 4.5 s stall as 45 s), with a timeout of 8 s
+    so that a loaded machine's late resume is not what is tested; the next test checks that a page's connection
+    gets the defaults, whose timeout outlasts websockets' own ping + pong (the 45 s stall it used to drop)."""
+    def tune(view: Any) -> None:
+        view.connections.ping_interval = 0.5
+        view.connections.ping_timeout = 8.0
+
     async def body(arm: Any, view: Any, page: ScriptedPage) -> None:
         page.stall()
-        await asyncio.sleep(45.0)
+        await asyncio.sleep(4.5)  # nine pings go out meanwhile, none answered
         frames = page.frames
         page.resume()
-        # it catches up and frames flow again (websockets' defaults dropped it after 20 s + 20 s: it reads the close)
+        # it catches up and frames flow again (with websockets' 20 s + 20 s scaled the same way, it read the close)
         await _until(lambda: page.frames > frames + 2 or page.ended.is_set())
         assert not page.ended.is_set()
         assert list(view.connections.ended) == []
         assert view.connections.connected() == [0]
+
+    await _with_page(body, tune=tune)
+
+
+async def test_a_page_gets_the_web_views_keepalive_which_outlasts_websockets_defaults() -> None:
+    """The connection viser keeps for a page carries PING_INTERVAL and PING_TIMEOUT (viser does not pass
+    websockets' options on), and a busy page may go unanswered longer than websockets' defaults allow."""
+    import inspect
+
+    from websockets.asyncio.server import serve
+
+    from agentsdk.webconnection import PING_INTERVAL, PING_TIMEOUT
+
+    defaults = inspect.signature(serve).parameters
+    ws_allowance = defaults["ping_interval"].default + defaults["ping_timeout"].default
+    assert PING_TIMEOUT > ws_allowance + 10.0, (PING_TIMEOUT, ws_allowance)
+
+    async def body(arm: Any, view: Any, page: ScriptedPage) -> None:
+        assert view.connections.untuned == 0
+        (connection,) = view.connections._open.values()
+        assert (connection.ping_interval, connection.ping_timeout) == (PING_INTERVAL, PING_TIMEOUT)
 
     await _with_page(body)
 

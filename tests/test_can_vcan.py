@@ -527,7 +527,7 @@ async def main(robot):
     print("MOVING", flush=True)
     await motion   # the README's own pattern
 """
-SIGNAL_TRIALS = int(os.environ.get("AGENTSDK_SIGNAL_TRIALS", "5"))
+SIGNAL_TRIALS = int(os.environ.get("AGENTSDK_SIGNAL_TRIALS", "4"))  # each of the 4 signal offsets once
 
 
 @pytest.mark.timeout(900)
@@ -641,23 +641,3 @@ async def test_set_zero_on_vcan0_refused_with_torque_on_then_zeroes_without_movi
         proc.stop()
     assert blocking == []
 
-
-# ------------------------------------------------------------ the README's CAN quickstart (issue 10, item 13)
-@pytest.mark.timeout(400)
-def test_readme_can_quickstart_runs_as_written() -> None:
-    """Before: the quickstart failed 3 runs in 4 in user-mode Linux and its ``kill $EMU`` hid it (exit 0).
-
-    Runs the command inside the README's ``run-in-vcan.sh bash -c '...'`` block as written (this
-    test already runs inside the VM) and requires exit 0: the behavior completed. Its exit status
-    is the run's, so a motor lost or answering too late fails here.
-    """
-    import re
-
-    readme = (ROOT / "README.md").read_text()
-    block = readme.split("## CAN quickstart (emulator + vcan)")[1].split("```bash\n")[1].split("```")[0]
-    match = re.search(r"bash -c '(.*?)'\n", block, re.S)
-    assert match, block
-    env = dict(os.environ, PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
-    proc = subprocess.run(["bash", "-c", match.group(1)], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=300, check=False)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]

@@ -134,7 +134,7 @@ async def _measure(seconds: float, rounds: int, backends: tuple[str, ...]) -> li
 
 def main(quick: bool = False, backends: tuple[str, ...] = BACKENDS) -> list[Comparison]:
     """Measure (shorter with ``quick``) and print the table of the module documentation."""
-    comps = asyncio.run(_measure(1.0 if quick else 2.0, 4 if quick else 6, backends))
+    comps = asyncio.run(_measure(0.5 if quick else 2.0, 3 if quick else 6, backends))
     print(f"{'figure':60} {'raw µs':>8} {'SDK µs':>8} {'÷ raw':>6}")
     for c in comps:
         assert c.baseline is not None and c.sdk is not None

@@ -23,8 +23,10 @@ What the server does (:class:`ConnectionWatch`):
   browser stops reading, the pong waits behind the data, and the connection was dropped although the page was
   alive. Each page's connection gets :data:`PING_INTERVAL` and :data:`PING_TIMEOUT` instead (viser does not
   expose websockets' options, so they are set on the connection viser keeps for the page); a page that really
-  is gone (its socket open, nothing answering) is still dropped within ``PING_INTERVAL + PING_TIMEOUT``; a
-  closed page or browser is seen at once (its socket closes).
+  is gone (its socket open, nothing answering) is still dropped within ``PING_INTERVAL + PING_TIMEOUT +
+  CLOSE_TIMEOUT``: found by the ping, then given :data:`CLOSE_TIMEOUT` to answer the close (websockets' default,
+  10 s, kept the page's jog step running that much longer, for a page that answers nothing); a closed page or
+  browser is seen at once (its socket closes).
 * **Why a page left** is logged (the close code and reason, e.g. ``1011 keepalive ping timeout``) and kept in
   :attr:`ConnectionWatch.ended`; ``on_disconnect(client_id)`` lets the view cancel a jog step that page started.
 """
@@ -38,14 +40,17 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["PING_INTERVAL", "PING_TIMEOUT", "STALE_AFTER", "ConnectionWatch", "PageExit", "connection_css",
-           "heartbeat_html"]
+__all__ = ["CLOSE_TIMEOUT", "PING_INTERVAL", "PING_TIMEOUT", "STALE_AFTER", "ConnectionWatch", "PageExit",
+           "connection_css", "heartbeat_html"]
 
 log = logging.getLogger("agentsdk.webview")
 
 #: keepalive pings to each page (s between them) and how long a page may take to answer one (s)
 PING_INTERVAL = 10.0
 PING_TIMEOUT = 60.0
+#: how long a page may take to answer the server's close (s) before its socket is cut: a page found gone by the
+#: keepalive answers nothing, and a page the server closes at shutdown has nothing left to say
+CLOSE_TIMEOUT = 2.0
 #: a page that has had no new frame for this long (s) says its state may be stale
 STALE_AFTER = 5.0
 
@@ -119,15 +124,18 @@ class ConnectionWatch:
     """
 
     def __init__(self, server: Any, *, on_disconnect: Callable[[int], None] | None = None,
-                 ping_interval: float = PING_INTERVAL, ping_timeout: float = PING_TIMEOUT) -> None:
+                 ping_interval: float = PING_INTERVAL, ping_timeout: float = PING_TIMEOUT,
+                 close_timeout: float = CLOSE_TIMEOUT) -> None:
         from .errors import ConfigurationError
 
-        if not (ping_interval > 0 and ping_timeout > 0):
-            raise ConfigurationError("the web view's keepalive ping interval and timeout must be positive "
-                                     f"numbers of seconds, got {ping_interval} and {ping_timeout}")
+        if not (ping_interval > 0 and ping_timeout > 0 and close_timeout > 0):
+            raise ConfigurationError("the web view's keepalive ping interval, ping timeout and close timeout must be "
+                                     f"positive numbers of seconds, got {ping_interval}, {ping_timeout} and "
+                                     f"{close_timeout}")
         self.server = server
         self.ping_interval = float(ping_interval)
         self.ping_timeout = float(ping_timeout)
+        self.close_timeout = float(close_timeout)
         self._on_disconnect = on_disconnect
         self._lock = threading.Lock()
         self._open: dict[int, Any] = {}
@@ -157,6 +165,7 @@ class ConnectionWatch:
         if connection is not None and hasattr(connection, "ping_timeout"):
             connection.ping_interval = self.ping_interval
             connection.ping_timeout = self.ping_timeout
+            connection.close_timeout = self.close_timeout
         else:
             self.untuned += 1
             log.debug("web view: the keepalive of page %s keeps websockets' defaults", client.client_id)

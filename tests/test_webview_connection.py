@@ -58,7 +58,7 @@ class ScriptedPage:
         unzip = zstandard.ZstdDecompressor()
         try:
             async with connect(self.url, subprotocols=[f"viser-v{viser.__version__}"], max_size=None,  # type: ignore[list-item]
-                               ping_interval=None) as ws:
+                               ping_interval=None, close_timeout=1.0) as ws:  # (the test's own close: no 10 s wait)
                 self.ws = ws
                 await self.send(
                     {"type": "ViewerCameraMessage", "wxyz": (1.0, 0.0, 0.0, 0.0), "position": (1.0, -1.0, 1.0),
@@ -137,22 +137,25 @@ async def test_a_page_too_busy_to_answer_pings_keeps_its_connection() -> None:
 
 
 async def test_a_page_gets_the_web_views_keepalive_which_outlasts_websockets_defaults() -> None:
-    """The connection viser keeps for a page carries PING_INTERVAL and PING_TIMEOUT (viser does not pass
-    websockets' options on), and a busy page may go unanswered longer than websockets' defaults allow."""
+    """The connection viser keeps for a page carries PING_INTERVAL, PING_TIMEOUT and CLOSE_TIMEOUT (viser does
+    not pass websockets' options on): a busy page may go unanswered longer than websockets' defaults allow, and a
+    page found gone is cut sooner than websockets' close timeout would (its jog step cancelled sooner)."""
     import inspect
 
     from websockets.asyncio.server import serve
 
-    from agentsdk.webconnection import PING_INTERVAL, PING_TIMEOUT
+    from agentsdk.webconnection import CLOSE_TIMEOUT, PING_INTERVAL, PING_TIMEOUT
 
     defaults = inspect.signature(serve).parameters
     ws_allowance = defaults["ping_interval"].default + defaults["ping_timeout"].default
     assert PING_TIMEOUT > ws_allowance + 10.0, (PING_TIMEOUT, ws_allowance)
+    assert CLOSE_TIMEOUT < defaults["close_timeout"].default
 
     async def body(arm: Any, view: Any, page: ScriptedPage) -> None:
         assert view.connections.untuned == 0
         (connection,) = view.connections._open.values()
-        assert (connection.ping_interval, connection.ping_timeout) == (PING_INTERVAL, PING_TIMEOUT)
+        assert (connection.ping_interval, connection.ping_timeout, connection.close_timeout) == (
+            PING_INTERVAL, PING_TIMEOUT, CLOSE_TIMEOUT)
 
     await _with_page(body)
 
@@ -225,6 +228,8 @@ def test_the_keepalive_settings_are_checked() -> None:
 
     with pytest.raises(ConfigurationError, match="keepalive"):
         ConnectionWatch(object(), ping_timeout=0.0)
+    with pytest.raises(ConfigurationError, match="close timeout"):
+        ConnectionWatch(object(), close_timeout=float("nan"))
 
 
 def test_the_page_css_keys_the_banner_to_viser_s_disconnected_gate() -> None:

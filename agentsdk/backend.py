@@ -219,6 +219,7 @@ class Backend(ABC):
     options_model: ClassVar[type[BaseModel] | None] = None
     #: sensor kinds the backend samples in ``_read_sensors`` (joint sensors are served by the loop for every backend)
     sensor_kinds: ClassVar[frozenset[str]] = frozenset()
+    step_never_suspends: ClassVar[bool] = False  #: this class's ``_step`` never suspends: lockstep may run it inline
 
     def __str__(self) -> str:
         return self.name

@@ -23,8 +23,9 @@ import itertools
 import math
 import time
 from abc import ABC, abstractmethod
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
+from typing import Any
 
 from .errors import AgentTimeoutError, InvalidValueError
 from .realtime import DeadlineTimer, timerfd_available
@@ -160,6 +161,11 @@ def _set_done(fut: asyncio.Future[None]) -> None:
         fut.set_result(None)
 
 
+def _end_lease(lease: asyncio.Future[bool]) -> None:
+    if not lease.done():
+        lease.set_result(False)
+
+
 def _fresh(exc: BaseException) -> BaseException:
     """A new exception like ``exc`` (one instance raised in many tasks would collect their tracebacks)."""
     try:
@@ -253,6 +259,18 @@ class LockstepClock(Clock):
         self._seq = itertools.count()
         #: set whenever a new sleeper arrives, so an idle control loop wakes up
         self.wakeup = asyncio.Event()
+        #: the inline tick (see :meth:`lend`): the control loop's tick, run by a behavior's sleep; None: never
+        self.inline_tick: Callable[[], bool] | None = None
+        #: while the control loop is lent (:meth:`lend`): its lease, the handle that ends it, the event
+        #: loop's ready queue, and the wall time (``time.perf_counter``) the lease ends
+        self._lease: asyncio.Future[bool] | None = None
+        self._release: asyncio.Handle | None = None
+        self._ready: Any = None
+        self._lease_end = 0.0
+        #: the last sleeper queued wakes at the next tick (a behavior that sleeps one period per tick)
+        self.one_tick_sleeper = False
+        #: ticks run by sleepers (:meth:`lend`) so far
+        self.inline_ticks = 0
 
     def now(self) -> float:
         """Simulated time: ticks elapsed times the control period (no accumulated drift)."""
@@ -281,7 +299,13 @@ class LockstepClock(Clock):
             await asyncio.sleep(0)
         elif math.isinf(deadline):
             await self._park(None)  # no tick ever reaches it: wait until cancelled or closed
+        elif deadline <= (self._tick + 1) * self.period + 1e-12:  # the next tick wakes it (advance's test)
+            if self._lease is not None and self._inline():
+                return
+            self.one_tick_sleeper = True
+            await self._enqueue(deadline)
         else:
+            self.one_tick_sleeper = False
             await self._enqueue(deadline)
 
     async def sleep_until(self, deadline: float) -> None:
@@ -295,7 +319,63 @@ class LockstepClock(Clock):
             # no tick ever reaches it: wait (without driving simulated time) until cancelled or closed
             await self._park(None)
             return
+        if deadline <= (self._tick + 1) * self.period + 1e-12:  # the next tick wakes it (advance's test)
+            if self._lease is not None and self._inline():
+                return
+            self.one_tick_sleeper = True
+        else:
+            self.one_tick_sleeper = False
         await self._enqueue(deadline)
+
+    async def lend(self, ready: Any, budget: float) -> bool:
+        """Park the control loop while a behavior that sleeps one period per tick runs the ticks itself.
+
+        The control loop calls this after a tick that woke the only sleeper, one that slept until
+        that tick (:attr:`one_tick_sleeper`). Until the lease ends, that behavior's next sleep
+        until the next tick runs the tick in its own task (:attr:`inline_tick`) and returns
+        without passing through the event loop, as long as nothing else could have run first:
+        the event loop's ``ready`` queue holds only this lease's end, nobody else sleeps, and
+        less than ``budget`` seconds of wall time have passed (asyncio timers and I/O then run,
+        as between the control loop's batches). That is the tick the control loop would have
+        run next, with the same inputs: what it saves is the hand-off (a future, two
+        wake-ups, two passes through the event loop) per tick.
+
+        The lease ends when that behavior waits for anything else, or anyone else becomes
+        runnable: the handle queued here runs then and wakes the control loop. Returns True
+        when an inline tick faulted the loop (the control loop then ends, as after a fault
+        in its own tick).
+        """
+        loop = asyncio.get_running_loop()
+        lease: asyncio.Future[bool] = loop.create_future()
+        self._lease, self._ready = lease, ready
+        self._release = release = loop.call_soon(_end_lease, lease)
+        self._lease_end = time.perf_counter() + budget
+        try:
+            return await lease
+        finally:
+            release.cancel()
+            if self._lease is lease:
+                self._lease = self._release = None
+
+    def _inline(self) -> bool:
+        """Run the next tick here if nothing else could run before it (:meth:`lend`); True if it ran."""
+        lease = self._lease
+        assert lease is not None and self.inline_tick is not None
+        ready = self._ready
+        if lease.done() or len(ready) != 1 or ready[0] is not self._release:
+            return False
+        # (nobody else sleeps: the lease began without another sleeper, and one that queued since is a task
+        # that ran, which it could only do after the lease's end in the ready queue)
+        if time.perf_counter() >= self._lease_end:
+            return False
+        if not self.inline_tick():
+            return False  # (its step may suspend)
+        self.inline_ticks += 1
+        if self._error is not None:  # the tick faulted the loop: the control loop ends, this sleeper gets the fault
+            if not lease.done():
+                lease.set_result(True)
+            raise _fresh(self._error)
+        return True
 
     def _enqueue(self, deadline: float) -> asyncio.Future[None]:
         """A future the first tick at or after ``deadline`` resolves (and wake an idle control loop)."""
@@ -310,6 +390,14 @@ class LockstepClock(Clock):
         while heap and heap[0][2].done():
             heapq.heappop(heap)
         return heap[0][0] if heap else None
+
+    @property
+    def pending(self) -> bool:
+        """Somebody sleeps (a wake-up is queued)."""
+        heap = self._heap
+        while heap and heap[0][2].done():
+            heapq.heappop(heap)
+        return bool(heap)
 
     def wakes_next_tick(self) -> bool:
         """The next :meth:`advance` wakes a sleeper (``ticks_until_wake(limit) == 1`` for any ``limit >= 1``).

@@ -26,7 +26,9 @@ runs paced to the wall clock.
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import enum
+import functools
 import logging
 import math
 import threading
@@ -594,8 +596,18 @@ class ControlLoop:
         position, velocity, effort = st.position, st.velocity, st.effort
         advance, now = clock.advance, clock.now
         perf_counter = time.perf_counter
+        # a behavior that sleeps one period per tick may run the ticks itself (LockstepClock.lend)
+        lend = ready is not None and type(backend).step_never_suspends
+        # the inline tick runs in this task's context (what the tick's hooks and the tasks they start see)
+        context = contextvars.copy_context()
+        clock.inline_tick = functools.partial(context.run, self._tick_inline, clock.advance) if lend else None
+        park = False
         try:
             while True:
+                if park:
+                    park = False
+                    if await clock.lend(ready, self.batch_seconds):
+                        return  # an inline tick faulted the loop (reported there)
                 await _settle(loop, ready)
                 idle_after = clock.next_deadline() is None
                 if idle_after and not command.fns:
@@ -649,6 +661,8 @@ class ControlLoop:
                         fn(t, stv, spv)
                     # end the batch when this tick made another task runnable, or went idle
                     if woke or single or len(ready) != n_ready or perf_counter() >= end:
+                        # it woke the one sleeper, who sleeps one period per tick: lend it the ticks
+                        park = lend and not single and woke == 1 and clock.one_tick_sleeper and not clock.pending
                         break
                     if idle_after and not command.fns:
                         break
@@ -656,6 +670,33 @@ class ControlLoop:
             raise
         except Exception as exc:
             self._on_loop_fault(exc)
+
+    def _tick_inline(self, advance: Callable[[], int]) -> bool:
+        """One lockstep tick run in a behavior's sleep (:meth:`LockstepClock.lend`): the tick of :meth:`_run_lockstep`.
+
+        False (nothing done) when the step may suspend (not the ``_step`` its class declares ``step_never_suspends``). A
+        fault ends the control loop as one in its own tick does (:meth:`_on_loop_fault`: torque off, the
+        listeners told, the clock failed), so the sleeper gets it.
+        """
+        backend = self.backend
+        if getattr(backend._step, "__func__", None) is not _never_suspending_step(type(backend)):
+            return False  # a step replaced on a subclass or the instance (a test's fault injection) may suspend
+        try:
+            self._before_step()
+            stepping = self.backend.step(self.period).__await__()
+            try:
+                stepping.send(None)
+            except StopIteration:
+                pass
+            else:
+                stepping.close()
+                raise BackendFault(f"the step of backend {self.backend.name!r} ({type(self.backend).__qualname__}) "
+                                   "suspended, but the backend declares step_never_suspends")
+            advance()  # (wakes nobody: the one sleeper is the caller)
+            self._after_tick()
+        except Exception as exc:
+            self._on_loop_fault(exc)
+        return True
 
     async def _run_realtime(self) -> None:
         clock = self.clock
@@ -825,6 +866,15 @@ def _ready_queue(loop: asyncio.AbstractEventLoop) -> Any:
     """The event loop's queue of runnable callbacks (``BaseEventLoop._ready``), or None (see :func:`_settle`)."""
     ready = getattr(loop, "_ready", None)
     return ready if hasattr(ready, "__len__") else None
+
+
+@functools.cache
+def _never_suspending_step(cls: type[Backend]) -> Callable[..., Any] | None:
+    """The ``_step`` that ``Backend.step_never_suspends`` speaks for: that of the class declaring it (None: none)."""
+    for klass in cls.__mro__:
+        if "step_never_suspends" in vars(klass):
+            return vars(klass).get("_step") if klass.step_never_suspends else None  # type: ignore[attr-defined]
+    return None
 
 
 #: lockstep control loops currently settling, per event loop (their own yields are not "work")

@@ -60,6 +60,7 @@ class MockBackend(Backend):
     """
 
     name = "mock"
+    step_never_suspends = True  # its _step computes the step and returns
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )

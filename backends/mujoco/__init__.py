@@ -145,6 +145,7 @@ class MujocoBackend(Backend):
     """
 
     name = "mujoco"
+    step_never_suspends = True  # its _step computes the step and returns
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )

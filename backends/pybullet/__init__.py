@@ -153,6 +153,7 @@ class PybulletBackend(Backend):
     """PyBullet simulation of the description (DIRECT mode, headless), servo law applied as joint torques."""
 
     name = "pybullet"
+    step_never_suspends = True  # its _step computes the step and returns
     capabilities = Capabilities(
         modes=frozenset(MODES), lockstep=True, realtime=True, deterministic=True
     )

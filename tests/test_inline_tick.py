@@ -1,0 +1,268 @@
+"""The inline tick (issue 28, acceptance 2): a behavior that sleeps one period per tick runs the ticks itself.
+
+In lockstep, after a tick that woke the only sleeper, one that sleeps one period per tick, the control
+loop lends it the ticks (:meth:`agentsdk.clock.LockstepClock.lend`): its next sleep runs the tick in
+its own task when nothing else could run first. Everything observable must be what the control loop
+computes tick by tick: these runs compare a lent run with one where the backend does not declare
+``step_never_suspends`` (no lending), and check faults, cancellation and steps that suspend.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+import agentsdk
+from agentsdk import BackendFault, JointCommand
+from agentsdk.backends.mock import MockBackend
+from agentsdk.clock import LockstepClock
+from agentsdk.registry import load_backend, register_backend, unregister_backend
+
+#: guards against a hang (the bug); never a timing assertion
+HANG_GUARD = 60.0
+
+
+def _simulators() -> list[Any]:
+    out = []
+    for name in ("mock", "mujoco", "pybullet"):
+        try:
+            load_backend(name)
+        except Exception as exc:  # an optional simulator that is not installed
+            out.append(pytest.param(name, marks=pytest.mark.skip(reason=f"{name}: {exc}")))
+        else:
+            out.append(name)
+    return out
+
+
+def _clock(robot: agentsdk.Robot) -> LockstepClock:
+    clock = robot.clock
+    assert isinstance(clock, LockstepClock)
+    return clock
+
+
+async def _scenario(backend: str) -> tuple[dict[str, Any], int]:
+    """One behavior commanding every tick beside others; everything it and the robot saw, and the inline ticks."""
+    log: list[tuple[Any, ...]] = []
+    rows: list[bytes] = []
+    async with agentsdk.connect(backend, robot="arm3") as robot:
+        clock = _clock(robot)
+        period = robot.control_period
+        robot.add_tick_hook(agentsdk.Phase.OBSERVE, lambda t, st, sp: rows.append(b"".join(
+            a.tobytes() for a in (st.position, st.velocity, st.effort, sp.position, sp.velocity, sp.effort,
+                                  sp.kp, sp.kd, sp.enabled))))
+        q0 = (await robot.read()).position.copy()
+
+        async def slow_sleeper() -> None:  # wakes every 13 ticks, between the behavior's
+            for j in range(8):
+                await clock.sleep(13 * period)
+                log.append(("slow", j, robot.ticks, clock.now()))
+
+        async def spawned(k: int) -> None:  # a task started by the behavior: runs before the next tick
+            for j in range(3):
+                log.append(("spawned", k, j, robot.ticks))
+                await asyncio.sleep(0)
+
+        async def behavior() -> None:
+            children: list[asyncio.Task[None]] = []
+            for k in range(400):
+                state = await robot.read()
+                log.append(("read", k, robot.ticks, state.stamp, state.position.tobytes()))
+                target = q0 + 0.3 * math.sin(0.05 * k)
+                if k == 120:
+                    target = target + 10.0  # beyond the limits: clamped, an event
+                applied = await robot.command(JointCommand("position", target.tolist()))
+                log.append(("applied", k, tuple(applied.values.values())))
+                if k == 60:
+                    children.append(asyncio.create_task(spawned(k)))
+                if k == 200:
+                    await clock.sleep(3 * period)  # not one period: the control loop ticks
+                elif k == 250:
+                    await clock.sleep_until(clock.now() + period)
+                elif k == 300:
+                    await asyncio.sleep(0)  # another kind of wait ends the lease
+                    await clock.sleep(period)
+                else:
+                    await clock.sleep(period)
+            await asyncio.gather(*children)
+
+        slow = asyncio.create_task(slow_sleeper())
+        async with asyncio.timeout(HANG_GUARD):
+            await behavior()
+            await slow
+            # a robot-time timeout around one-period sleeps (its watcher sleeps too: no lending)
+            with pytest.raises(agentsdk.AgentTimeoutError):
+                async with clock.timeout(20 * period):
+                    while True:
+                        await clock.sleep(period)
+            log.append(("timeout", robot.ticks))
+            # cancelled by another task while it sleeps one period per tick
+            runner = asyncio.create_task(_forever(robot, period, log))
+            await clock.sleep(30 * period)
+            runner.cancel()
+            with pytest.raises(asyncio.CancelledError):
+                await runner
+            log.append(("cancelled", robot.ticks))
+        events = [(e.kind, e.detail, e.joint, e.time) for e in robot.safety.events]
+        final = (await robot.read()).position.tobytes()
+        inline = clock.inline_ticks
+    return {"log": log, "rows": rows, "events": events, "final": final}, inline
+
+
+async def _forever(robot: agentsdk.Robot, period: float, log: list[tuple[Any, ...]]) -> None:
+    while True:
+        await robot.command(JointCommand("position", (await robot.read()).position.tolist()))
+        log.append(("forever", robot.ticks))
+        await robot.clock.sleep(period)
+
+
+@pytest.fixture
+def no_lending() -> Iterator[None]:
+    """Every backend as one whose step may suspend: the control loop runs every tick."""
+    saved = {}
+    for name in ("mock", "mujoco", "pybullet"):
+        try:
+            cls = load_backend(name)
+        except Exception:
+            continue
+        saved[cls] = cls.__dict__["step_never_suspends"]
+        cls.step_never_suspends = False
+    try:
+        yield
+    finally:
+        for cls, value in saved.items():
+            cls.step_never_suspends = value
+
+
+@pytest.mark.parametrize("backend", _simulators())
+async def test_a_behavior_commanding_every_tick_runs_its_ticks_bit_for_bit(backend: str, request: Any) -> None:
+    assert load_backend(backend).step_never_suspends
+    lent, inline = await _scenario(backend)
+    assert inline > 100, "the behavior ran no ticks itself: nothing was compared"
+    request.getfixturevalue("no_lending")
+    ticked, none = await _scenario(backend)
+    assert none == 0
+    assert any("clamped" in e[1] for e in lent["events"]), lent["events"]
+    for key in ("log", "events", "rows", "final"):
+        assert lent[key] == ticked[key], key
+
+
+async def test_a_fault_in_an_inline_tick_reaches_the_sleeper_and_one_control_loop_runs_after_recovery() -> None:
+    async with agentsdk.connect("mock", robot="arm3") as robot:
+        clock, period = _clock(robot), robot.control_period
+        backend = robot.backend
+        assert isinstance(backend, MockBackend)
+        robot._loop.batch_seconds = 3600.0  # no lease ends on wall time: the faulting tick runs in the sleep
+        async with asyncio.timeout(HANG_GUARD):
+            q = (await robot.read()).position.tolist()
+            for _ in range(20):
+                await robot.command(JointCommand("position", q))
+                await clock.sleep(period)
+            before = clock.inline_ticks
+            assert before > 0
+            backend.step_error = True  # the next tick's step faults: that tick runs in the sleep below
+            with pytest.raises(BackendFault, match="injected step error"):
+                await robot.command(JointCommand("position", q))
+                await clock.sleep(period)
+            assert clock.inline_ticks == before + 1
+            assert robot.safety.state is agentsdk.SafetyState.FAULT and not robot.torque_enabled
+            await robot.reset()
+            await robot.enable()
+            for _ in range(30):
+                ticks = robot.ticks
+                await robot.command(JointCommand("position", q))
+                await clock.sleep(period)
+                assert robot.ticks == ticks + 1  # one tick per period: one control loop
+            controls = [t for t in asyncio.all_tasks() if t.get_name().endswith("-control") and not t.done()]
+            assert len(controls) == 1
+            assert clock.inline_ticks > before + 1
+
+
+async def test_a_step_replaced_on_the_instance_is_not_run_inline() -> None:
+    async with agentsdk.connect("mock", robot="arm3") as robot:
+        clock, period = _clock(robot), robot.control_period
+        backend = robot.backend
+        original = backend._step
+        suspended = 0
+
+        async def slow_step(dt: float) -> None:  # a fault injection that waits: it must not run in a sleep
+            nonlocal suspended
+            await asyncio.sleep(0)
+            suspended += 1
+            await original(dt)
+
+        async with asyncio.timeout(HANG_GUARD):
+            q = (await robot.read()).position.tolist()
+            for _ in range(10):
+                await robot.command(JointCommand("position", q))
+                await clock.sleep(period)
+            assert clock.inline_ticks > 0
+            backend._step = slow_step  # type: ignore[method-assign]
+            before = clock.inline_ticks
+            for _ in range(20):
+                ticks = robot.ticks
+                await robot.command(JointCommand("position", q))
+                await clock.sleep(period)
+                assert robot.ticks == ticks + 1
+            assert clock.inline_ticks == before and suspended == 20
+            del backend._step
+            for _ in range(10):
+                await robot.command(JointCommand("position", q))
+                await clock.sleep(period)
+            assert clock.inline_ticks > before
+            assert robot.safety.state is agentsdk.SafetyState.OK
+
+
+class _SuspendingMock(MockBackend):
+    """Declares a step that never suspends, and suspends."""
+
+    step_never_suspends = True
+
+    async def _step(self, dt: float) -> None:
+        await asyncio.sleep(0)
+        await super()._step(dt)
+
+
+async def test_a_backend_whose_declared_step_suspends_faults_the_loop_naming_it() -> None:
+    register_backend("suspending-mock", _SuspendingMock)
+    try:
+        async with agentsdk.connect("suspending-mock", robot="arm3") as robot:
+            clock, period = _clock(robot), robot.control_period
+            robot._loop.batch_seconds = 3600.0  # no lease ends on wall time
+            async with asyncio.timeout(HANG_GUARD):
+                q = (await robot.read()).position.tolist()
+                with pytest.raises(BackendFault, match=r"'mock' \(_SuspendingMock\) suspended"):
+                    for _ in range(10):
+                        await robot.command(JointCommand("position", q))
+                        await clock.sleep(period)
+                assert not robot.torque_enabled
+                assert clock.inline_ticks == 1  # the first tick lent faulted
+    finally:
+        unregister_backend("suspending-mock")
+
+
+async def test_a_sleeper_runs_its_tick_only_when_nobody_else_can_run() -> None:
+    """Lending ends when another task is ready; the ticks then come from the control loop again."""
+    async with agentsdk.connect("mock", robot="arm3") as robot:
+        clock, period = _clock(robot), robot.control_period
+        async with asyncio.timeout(HANG_GUARD):
+            q = (await robot.read()).position.tolist()
+            for _ in range(5):
+                await robot.command(JointCommand("position", q))
+                await clock.sleep(period)
+            ran: list[int] = []
+
+            async def other() -> None:
+                ran.append(robot.ticks)
+
+            before = clock.inline_ticks
+            task = asyncio.create_task(other())  # ready now: the next tick must wait for it
+            await clock.sleep(period)
+            assert ran and ran[0] == robot.ticks - 1  # it ran before that tick
+            assert clock.inline_ticks == before
+            await task
+    assert np.isfinite(clock.now())

@@ -266,3 +266,42 @@ async def test_a_sleeper_runs_its_tick_only_when_nobody_else_can_run() -> None:
             assert clock.inline_ticks == before
             await task
     assert np.isfinite(clock.now())
+
+
+async def _record_commanding(path: Any, backend: str) -> tuple[int, int]:
+    from agentsdk.recording import Recorder
+
+    async with agentsdk.connect(backend, robot="arm3", safety={"stall_timeout": None}) as robot:
+        clock, period = _clock(robot), robot.control_period
+        rec = Recorder(robot, path, block_ticks=100, metadata={"created": "fixed"})
+        q0 = (await robot.read()).position.copy()
+        for k in range(600):
+            await robot.read()
+            await robot.command(JointCommand("position", (q0 + 0.2 * math.sin(0.02 * k)).tolist()))
+            if k == 400:
+                await robot.estop(1)  # a stop ramp (a task) and its events
+                await robot.safety.wait_stopped()
+                await robot.reset()
+                await robot.enable()
+            await clock.sleep(period)
+        ticks, inline = robot.ticks, clock.inline_ticks
+    rec.finish()
+    return ticks, inline
+
+
+@pytest.mark.parametrize("backend", _simulators())
+async def test_a_recording_of_a_behavior_commanding_every_tick_is_byte_equal_lent_or_not(
+    backend: str, tmp_path: Any, request: Any, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from agentsdk.recording import _recorder as recorder_module
+
+    monkeypatch.setattr(recorder_module, "FLUSH_INTERVAL", 1e9)  # chunks cut by rows, not by the wall clock
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a, b = tmp_path / "a" / "run.mcap", tmp_path / "b" / "run.mcap"  # (the name is in the file)
+    ticks_a, inline = await _record_commanding(a, backend)
+    assert inline > 200
+    request.getfixturevalue("no_lending")
+    ticks_b, none = await _record_commanding(b, backend)
+    assert none == 0 and ticks_a == ticks_b
+    assert a.read_bytes() == b.read_bytes()

@@ -6,7 +6,7 @@ Units are SI and radians; joint names are exactly as in the URDF (the ROS
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Literal, get_args
@@ -103,14 +103,13 @@ class JointState:
         :meth:`from_arrays` of the rows, with one copy and one flag change for the three: the
         block becomes read-only, so its rows are read-only views that cannot be made writable.
         """
-        self = object.__new__(cls)
-        setattr_ = object.__setattr__
+        self = _new(cls)
         block.setflags(write=False)
-        setattr_(self, "position", block[0])
-        setattr_(self, "velocity", block[1])
-        setattr_(self, "effort", block[2])
-        setattr_(self, "names", names)
-        setattr_(self, "stamp", stamp)
+        _state_position(self, block[0])  # (each slot by its descriptor: no object.__setattr__ call)
+        _state_velocity(self, block[1])
+        _state_effort(self, block[2])
+        _state_names(self, names)
+        _state_stamp(self, stamp)
         return self
 
     def index(self, name: str) -> int:
@@ -207,15 +206,53 @@ class JointCommand:
             raise UnsupportedModeError(f"unsupported command mode {mode!r}; expected one of {', '.join(MODES)}")
         if mode != "position" and (velocity is not None or effort is not None):
             raise InvalidValueError("velocity/effort feed-forward terms are only valid in position mode")
-        object.__setattr__(self, "mode", mode)
-        object.__setattr__(self, "values", _freeze_values(values, "values"))
-        object.__setattr__(self, "velocity", None if velocity is None else _freeze_values(velocity, "velocity"))
-        object.__setattr__(self, "effort", None if effort is None else _freeze_values(effort, "effort"))
+        _command_mode(self, mode)  # (each slot by its descriptor: no object.__setattr__ call)
+        _command_values(self, _freeze_values(values, "values"))
+        _command_velocity(self, None if velocity is None else _freeze_values(velocity, "velocity"))
+        _command_effort(self, None if effort is None else _freeze_values(effort, "effort"))
 
     def __repr__(self) -> str:
         vals = dict(self.values) if isinstance(self.values, Mapping) else list(self.values)
         return f"JointCommand(mode={self.mode!r}, values={vals!r})"
 
+
+
+class JointValues(Mapping[str, float]):
+    """``{joint name: value}`` of an :class:`AppliedCommand`, read-only, in the command's joint order.
+
+    A behavior that commands every tick rarely looks at what was applied: the dict is made on first use.
+    """
+
+    __slots__ = ("_dict", "_names", "_values")
+
+    def __init__(self, names: tuple[str, ...], values: list[float]) -> None:
+        self._names = names
+        self._values = values
+        self._dict: dict[str, float] | None = None
+
+    def _mapping(self) -> dict[str, float]:
+        d = self._dict
+        if d is None:
+            d = self._dict = dict(zip(self._names, self._values, strict=True))
+        return d
+
+    def __getitem__(self, name: str) -> float:
+        return self._mapping()[name]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._mapping()
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def __repr__(self) -> str:
+        return f"JointValues({self._mapping()!r})"
+
+
+_new = object.__new__
 
 
 @dataclass(frozen=True, slots=True)
@@ -232,6 +269,21 @@ class AppliedCommand:
     velocity: Mapping[str, float] | None = None
     effort: Mapping[str, float] | None = None
 
+    @classmethod
+    def of_arrays(cls, mode: CommandMode, names: tuple[str, ...], values: FloatArray, velocity: FloatArray | None,
+                  effort: FloatArray | None) -> AppliedCommand:
+        """The command applied to ``names`` (the arrays' values, copied): the command gate's, once per command.
+
+        What the dataclass's ``__init__`` makes, without its four ``object.__setattr__`` calls (each
+        slot is set by its own descriptor) and with :class:`JointValues` for the mappings.
+        """
+        self = _new(cls)
+        _set_mode(self, mode)
+        _set_values(self, JointValues(names, values.tolist()))
+        _set_velocity(self, None if velocity is None else JointValues(names, velocity.tolist()))
+        _set_effort(self, None if effort is None else JointValues(names, effort.tolist()))
+        return self
+
     def as_command(self) -> JointCommand:
         """The same command as a :class:`JointCommand`."""
         return JointCommand(self.mode, dict(self.values), velocity=self.velocity, effort=self.effort)
@@ -241,3 +293,13 @@ class AppliedCommand:
             f", {k}={dict(v)!r}" for k, v in (("velocity", self.velocity), ("effort", self.effort)) if v is not None
         )
         return f"AppliedCommand(mode={self.mode!r}, values={dict(self.values)!r}{ff})"
+
+
+#: the slots of the frozen value types the control path makes per call, set by their descriptors (half the
+#: cost of ``object.__setattr__``, which looks each name up and parses an argument tuple)
+_state_position, _state_velocity, _state_effort, _state_names, _state_stamp = (
+    JointState.__dict__[name].__set__ for name in ("position", "velocity", "effort", "names", "stamp"))
+_command_mode, _command_values, _command_velocity, _command_effort = (
+    JointCommand.__dict__[name].__set__ for name in ("mode", "values", "velocity", "effort"))
+_set_mode, _set_values, _set_velocity, _set_effort = (
+    AppliedCommand.__dict__[name].__set__ for name in ("mode", "values", "velocity", "effort"))

@@ -8,7 +8,9 @@ the same indices and values, or the same exception type and message.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import pickle
 import random
 from types import MappingProxyType
 from typing import Any
@@ -16,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agentsdk import JointCommand
+from agentsdk import AppliedCommand, JointCommand
 from agentsdk.clock import LockstepClock
 from agentsdk.commands import CommandShapes, resolve_command
 from agentsdk.errors import AgentSDKError, InvalidValueError
@@ -106,13 +108,34 @@ def test_the_cache_is_bounded() -> None:
     assert len(shapes._by_keys) <= CommandShapes.LIMIT
 
 
-def test_applied_mappings_are_read_only() -> None:
-    # the AppliedCommand mappings built from cached names are fresh per command
+def test_applied_mappings_are_read_only_copies_that_behave_as_the_dicts_they_stand_for() -> None:
+    # the AppliedCommand mappings built from cached names are fresh per command, and read-only
     shapes = CommandShapes(NAMES, INDEX)
     a = shapes.resolve(JointCommand("position", [0.0] * 5), MODES, "sim")
     b = shapes.resolve(JointCommand("position", [1.0] * 5), MODES, "sim")
     assert a[0] is b[0] and a[2] is not b[2]
-    assert isinstance(MappingProxyType(dict(zip(a[1], a[2].tolist(), strict=True))), MappingProxyType)
+    values, ff = np.array([0.5, -1.0, 2.0]), np.array([0.1, 0.2, 0.3])
+    names = ("c", "a", "e")
+    applied = AppliedCommand.of_arrays("position", names, values, ff, None)
+    values[:] = 9.0  # the arrays were copied
+    expected = {"c": 0.5, "a": -1.0, "e": 2.0}
+    old = AppliedCommand("position", MappingProxyType(expected),
+                         MappingProxyType(dict(zip(names, [0.1, 0.2, 0.3], strict=True))), None)
+    assert applied == old and old == applied  # as the dataclass of proxies compared
+    assert applied.values == expected and expected == applied.values
+    assert list(applied.values) == list(names) and list(applied.values.items()) == list(expected.items())
+    assert len(applied.values) == 3 and "a" in applied.values and "b" not in applied.values
+    assert applied.values["e"] == 2.0 and applied.velocity is not None and applied.velocity["a"] == 0.2
+    assert applied.effort is None
+    with pytest.raises(KeyError):
+        applied.values["b"]
+    with pytest.raises(TypeError):
+        applied.values["a"] = 1.0  # type: ignore[index]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        applied.mode = "velocity"  # type: ignore[misc]
+    assert applied.as_command() == JointCommand("position", expected, velocity=dict(applied.velocity))
+    assert repr(applied) == repr(old)
+    assert pickle.loads(pickle.dumps(applied)) == applied
 
 
 @pytest.mark.parametrize(

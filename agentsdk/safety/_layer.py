@@ -10,7 +10,6 @@ Who holds whom (each object gets exactly its collaborators; calls only point dow
 from __future__ import annotations
 
 import asyncio
-from types import MappingProxyType
 from typing import TYPE_CHECKING
 
 from ..checks import MeasuredPositionCheck, SafetyCheck
@@ -284,9 +283,4 @@ class SafetyLayer:
         sel = _EVERY if idx is self._full else idx
         self._feed(sel)
         self._start_ramp(mode, sel, values)
-        return AppliedCommand(
-            mode,
-            MappingProxyType(dict(zip(names, values.tolist(), strict=True))),
-            None if vel is None else MappingProxyType(dict(zip(names, vel.tolist(), strict=True))),
-            None if eff is None else MappingProxyType(dict(zip(names, eff.tolist(), strict=True))),
-        )
+        return AppliedCommand.of_arrays(mode, names, values, vel, eff)

@@ -76,7 +76,7 @@ import functools
 import logging
 import warnings
 from abc import ABC, abstractmethod
-from collections.abc import Awaitable, Iterator, Sequence
+from collections.abc import Awaitable, Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, TypeAlias, final
 
@@ -200,6 +200,7 @@ class Backend(ABC):
     #: the public methods the loop calls; a subclass implements the hooks instead
     _FINAL: ClassVar[tuple[str, ...]] = (
         "open", "close", "write", "step", "read", "emergency_stop", "enable", "recover", "read_sensors",
+        "step_runs_inline",
     )
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -510,6 +511,14 @@ class Backend(ABC):
         return self._step(dt)
 
     @final
+    def step_runs_inline(self) -> bool:
+        """The next :meth:`step` never suspends: it is the ``_step`` of the class declaring ``step_never_suspends``.
+
+        Not a subclass's that did not declare it again, nor one set on the instance (a test's fault injection).
+        """
+        return getattr(self._step, "__func__", None) is _never_suspending_step(type(self))
+
+    @final
     def read(self) -> JointReading:
         """The latest measured ``(position, velocity, effort)`` (the ``_read`` hook; the arrays may be reused)."""
         return self._read()
@@ -577,6 +586,15 @@ class Backend(ABC):
     async def _recover(self) -> None:
         """Optional: bring a faulted backend back to a usable state (simulators: reset the world)."""
         raise BackendFault(f"backend {self.name!r} cannot recover from a fault; close and reconnect")
+
+
+@functools.cache
+def _never_suspending_step(cls: type[Backend]) -> Callable[..., Any] | None:
+    """The ``_step`` that ``step_never_suspends`` speaks for: that of the class declaring it (None: none)."""
+    for klass in cls.__mro__:
+        if "step_never_suspends" in vars(klass):
+            return vars(klass).get("_step") if klass.step_never_suspends else None  # type: ignore[attr-defined]
+    return None
 
 
 def substeps(period: float, timestep: float, simulator: str, source: str) -> int:

@@ -300,7 +300,9 @@ class LockstepClock(Clock):
         elif math.isinf(deadline):
             await self._park(None)  # no tick ever reaches it: wait until cancelled or closed
         elif deadline <= (self._tick + 1) * self.period + 1e-12:  # the next tick wakes it (advance's test)
-            if self._lease is not None and self._inline():
+            if self._lease is not None and (ran := self._inline()):
+                if ran == 2:
+                    await self._after_inline()
                 return
             self.one_tick_sleeper = True
             await self._enqueue(deadline)
@@ -320,7 +322,9 @@ class LockstepClock(Clock):
             await self._park(None)
             return
         if deadline <= (self._tick + 1) * self.period + 1e-12:  # the next tick wakes it (advance's test)
-            if self._lease is not None and self._inline():
+            if self._lease is not None and (ran := self._inline()):
+                if ran == 2:
+                    await self._after_inline()
                 return
             self.one_tick_sleeper = True
         else:
@@ -357,25 +361,40 @@ class LockstepClock(Clock):
             if self._lease is lease:
                 self._lease = self._release = None
 
-    def _inline(self) -> bool:
-        """Run the next tick here if nothing else could run before it (:meth:`lend`); True if it ran."""
+    def _inline(self) -> int:
+        """Run the next tick here if nothing else could run before it (:meth:`lend`).
+
+        0: not run. 1: run. 2: run, and the sleeper must pass through the event loop before it
+        returns (:meth:`_after_inline`): the tick made another task ready (a hook resolved a future,
+        a fault listener woke a waiter), which would have run before the sleeper's wake-up, or
+        the sleeper's own cancellation came during the tick, or the tick faulted the loop.
+        """
         lease = self._lease
         assert lease is not None and self.inline_tick is not None
         ready = self._ready
         if lease.done() or len(ready) != 1 or ready[0] is not self._release:
-            return False
-        # (nobody else sleeps: the lease began without another sleeper, and one that queued since is a task
-        # that ran, which it could only do after the lease's end in the ready queue)
+            return 0
+        if self._heap and self.pending:
+            return 0  # a task that ran before the sleeper (queued ahead of the lease's end) sleeps too
         if time.perf_counter() >= self._lease_end:
-            return False
+            return 0
+        task = asyncio.current_task()
+        if task is None or task.cancelling():
+            return 0  # a cancellation is pending: it lands at the sleep, before the tick (as it would there)
         if not self.inline_tick():
-            return False  # (its step may suspend)
+            return 0  # (its step may suspend)
         self.inline_ticks += 1
         if self._error is not None:  # the tick faulted the loop: the control loop ends, this sleeper gets the fault
             if not lease.done():
                 lease.set_result(True)
+            return 2
+        return 2 if len(ready) != 1 or task.cancelling() else 1
+
+    async def _after_inline(self) -> None:
+        """After an inline tick that woke another task, was cancelled or faulted: let the others run, then the fault."""
+        await asyncio.sleep(0)
+        if self._error is not None:
             raise _fresh(self._error)
-        return True
 
     def _enqueue(self, deadline: float) -> asyncio.Future[None]:
         """A future the first tick at or after ``deadline`` resolves (and wake an idle control loop)."""

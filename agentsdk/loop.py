@@ -424,9 +424,11 @@ class ControlLoop:
         self._spawn()
 
     def _spawn(self) -> None:
+        # the task's own context, kept: an inline tick (LockstepClock.lend) runs the hooks in it too
+        self._context = contextvars.copy_context()
         self._task = asyncio.get_running_loop().create_task(
             self._run_realtime() if self.realtime else self._run_lockstep(),
-            name=f"agentsdk-{self.backend.name}-control",
+            name=f"agentsdk-{self.backend.name}-control", context=self._context,
         )
 
     async def stop(self) -> None:
@@ -599,9 +601,9 @@ class ControlLoop:
         # a behavior that sleeps one period per tick may run the ticks itself (LockstepClock.lend)
         lend = ready is not None and type(backend).step_never_suspends
         # the inline tick runs in this task's context (what the tick's hooks and the tasks they start see)
-        context = contextvars.copy_context()
-        clock.inline_tick = functools.partial(context.run, self._tick_inline, clock.advance) if lend else None
+        clock.inline_tick = functools.partial(self._context.run, self._tick_inline, clock.advance) if lend else None
         park = False
+        _lockstep_loops[loop] = _lockstep_loops.get(loop, 0) + 1
         try:
             while True:
                 if park:
@@ -661,8 +663,10 @@ class ControlLoop:
                         fn(t, stv, spv)
                     # end the batch when this tick made another task runnable, or went idle
                     if woke or single or len(ready) != n_ready or perf_counter() >= end:
-                        # it woke the one sleeper, who sleeps one period per tick: lend it the ticks
-                        park = lend and not single and woke == 1 and clock.one_tick_sleeper and not clock.pending
+                        # it woke the one sleeper, who sleeps one period per tick: lend it the ticks (not beside
+                        # another lockstep robot: the two loops' settles decide how their ticks interleave)
+                        park = (lend and not single and woke == 1 and clock.one_tick_sleeper and not clock.pending
+                                and _lockstep_loops[loop] == 1)
                         break
                     if idle_after and not command.fns:
                         break
@@ -670,16 +674,21 @@ class ControlLoop:
             raise
         except Exception as exc:
             self._on_loop_fault(exc)
+        finally:
+            n = _lockstep_loops[loop] - 1
+            if n:
+                _lockstep_loops[loop] = n
+            else:
+                del _lockstep_loops[loop]
 
     def _tick_inline(self, advance: Callable[[], int]) -> bool:
         """One lockstep tick run in a behavior's sleep (:meth:`LockstepClock.lend`): the tick of :meth:`_run_lockstep`.
 
-        False (nothing done) when the step may suspend (not the ``_step`` its class declares ``step_never_suspends``). A
+        False (nothing done) when the step may suspend (:meth:`Backend.step_runs_inline`). A
         fault ends the control loop as one in its own tick does (:meth:`_on_loop_fault`: torque off, the
         listeners told, the clock failed), so the sleeper gets it.
         """
-        backend = self.backend
-        if getattr(backend._step, "__func__", None) is not _never_suspending_step(type(backend)):
+        if not self.backend.step_runs_inline():
             return False  # a step replaced on a subclass or the instance (a test's fault injection) may suspend
         try:
             self._before_step()
@@ -694,8 +703,8 @@ class ControlLoop:
                                    "suspended, but the backend declares step_never_suspends")
             advance()  # (wakes nobody: the one sleeper is the caller)
             self._after_tick()
-        except Exception as exc:
-            self._on_loop_fault(exc)
+        except (Exception, asyncio.CancelledError) as exc:  # (a hook's CancelledError is its failure: the
+            self._on_loop_fault(exc)                          # sleeper's own cancel cannot land in a tick)
         return True
 
     async def _run_realtime(self) -> None:
@@ -868,14 +877,8 @@ def _ready_queue(loop: asyncio.AbstractEventLoop) -> Any:
     return ready if hasattr(ready, "__len__") else None
 
 
-@functools.cache
-def _never_suspending_step(cls: type[Backend]) -> Callable[..., Any] | None:
-    """The ``_step`` that ``Backend.step_never_suspends`` speaks for: that of the class declaring it (None: none)."""
-    for klass in cls.__mro__:
-        if "step_never_suspends" in vars(klass):
-            return vars(klass).get("_step") if klass.step_never_suspends else None  # type: ignore[attr-defined]
-    return None
-
+#: lockstep control loops running, per event loop (one alone may lend its ticks: LockstepClock.lend)
+_lockstep_loops: dict[asyncio.AbstractEventLoop, int] = {}
 
 #: lockstep control loops currently settling, per event loop (their own yields are not "work")
 _settling: dict[asyncio.AbstractEventLoop, int] = {}

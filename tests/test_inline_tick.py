@@ -305,3 +305,169 @@ async def test_a_recording_of_a_behavior_commanding_every_tick_is_byte_equal_len
     ticks_b, none = await _record_commanding(b, backend)
     assert none == 0 and ticks_a == ticks_b
     assert a.read_bytes() == b.read_bytes()
+
+
+# ------------------------------------------------ lent and unlent runs of the same scenario (mock backend)
+async def _both(scenario: Any) -> tuple[Any, int]:
+    """``scenario()`` lent and unlent: its result in both (asserted equal), and the lent run's inline ticks."""
+    lent = await scenario()
+    saved = MockBackend.step_never_suspends
+    MockBackend.step_never_suspends = False
+    try:
+        ticked = await scenario()
+    finally:
+        MockBackend.step_never_suspends = saved
+    assert ticked[1] == 0
+    assert lent[0] == ticked[0]
+    return lent[0], lent[1]
+
+
+@pytest.mark.parametrize("phase", [agentsdk.Phase.COMMAND, agentsdk.Phase.OBSERVE])
+async def test_a_cancel_from_a_tick_hook_lands_at_that_ticks_sleep(phase: agentsdk.Phase) -> None:
+    async def scenario() -> tuple[Any, int]:
+        log: list[tuple[str, int]] = []
+        async with agentsdk.connect("mock", robot="arm3") as robot:
+            clock, period = _clock(robot), robot.control_period
+            robot._loop.batch_seconds = 3600.0  # without the fix, a lease would run every tick to the end
+            me: list[asyncio.Task[None]] = []
+            robot.add_tick_hook(phase, lambda t, st, sp: me[0].cancel() if robot.ticks == 30 else None)
+
+            async def behavior() -> None:
+                me.append(asyncio.current_task())  # type: ignore[arg-type]
+                try:
+                    for _ in range(200):
+                        await robot.command(JointCommand("position", [0.0, 0.0, 0.0]))
+                        await clock.sleep(period)
+                        log.append(("B", robot.ticks))
+                except asyncio.CancelledError:
+                    log.append(("cancelled", robot.ticks))
+                    raise
+
+            task = asyncio.create_task(behavior())
+            async with asyncio.timeout(HANG_GUARD):
+                with pytest.raises(asyncio.CancelledError):
+                    await task
+            # cancelling itself before a sleep: at that sleep, before its tick
+            ticks = robot.ticks
+            asyncio.current_task().cancel()  # type: ignore[union-attr]
+            with pytest.raises(asyncio.CancelledError):
+                await clock.sleep(period)
+            asyncio.current_task().uncancel()  # type: ignore[union-attr]
+            log.append(("self-cancelled", robot.ticks - ticks))
+            return log, clock.inline_ticks
+
+    log, inline = await _both(scenario)
+    assert inline > 10 and log[-2][0] == "cancelled" and log[-1] == ("self-cancelled", 0)
+
+
+async def test_a_task_a_tick_wakes_runs_before_the_sleeper_as_it_does_without_lending() -> None:
+    async def scenario() -> tuple[Any, int]:
+        log: list[tuple[str, int]] = []
+        async with agentsdk.connect("mock", robot="arm3") as robot:
+            clock, period = _clock(robot), robot.control_period
+            robot._loop.batch_seconds = 3600.0
+            fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+            fut2: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+
+            def hook(t: float, st: Any, sp: Any) -> None:
+                for f, at in ((fut, 30), (fut2, 60)):
+                    if robot.ticks == at and not f.done():
+                        f.set_result(None)  # a COMMAND hook finishing something (as a motion's end does)
+
+            robot.add_tick_hook(agentsdk.Phase.COMMAND, hook)
+
+            async def waiter() -> None:
+                await fut
+                log.append(("waiter", robot.ticks))
+
+            async def sleeper() -> None:  # woken by the hook, then it sleeps: ahead of the behavior's wake-up
+                await fut2
+                log.append(("sleeper woke", robot.ticks))
+                await clock.sleep(2.5 * period)
+                log.append(("sleeper slept", robot.ticks))
+
+            tasks = [asyncio.create_task(waiter()), asyncio.create_task(sleeper())]
+            async with asyncio.timeout(HANG_GUARD):
+                for k in range(90):
+                    if k == 60:
+                        await asyncio.sleep(0)  # ends the lease: the control loop runs tick 61, parks after
+                    await clock.sleep(period)
+                    log.append(("B", robot.ticks))
+                await asyncio.gather(*tasks)
+            return log, clock.inline_ticks
+
+    log, inline = await _both(scenario)
+    assert inline > 30 and ("waiter", 31) in log and ("sleeper slept", 64) in log
+
+
+async def test_a_fault_listeners_waiter_runs_before_the_sleeper_gets_the_fault() -> None:
+    async def scenario() -> tuple[Any, int]:
+        log: list[tuple[str, int, str]] = []
+        async with agentsdk.connect("mock", robot="arm3") as robot:
+            clock, period = _clock(robot), robot.control_period
+            robot._loop.batch_seconds = 3600.0
+            backend = robot.backend
+            assert isinstance(backend, MockBackend)
+            faulted = asyncio.Event()
+            robot.add_fault_listener(lambda exc: faulted.set())
+
+            async def monitor() -> None:
+                await faulted.wait()
+                log.append(("monitor", robot.ticks, robot.safety.state.name))
+
+            task = asyncio.create_task(monitor())
+            async with asyncio.timeout(HANG_GUARD):
+                try:
+                    for k in range(100):
+                        if k == 40:
+                            backend.step_error = True
+                        await clock.sleep(period)
+                except BackendFault as exc:
+                    log.append(("behavior", robot.ticks, type(exc).__name__))
+                await task
+            return log, clock.inline_ticks
+
+    log, inline = await _both(scenario)
+    assert inline > 30 and [e[0] for e in log] == ["monitor", "behavior"]
+
+
+async def test_two_lockstep_robots_on_one_event_loop_interleave_as_without_lending() -> None:
+    async def scenario() -> tuple[Any, int]:
+        log: list[tuple[str, int, int, int]] = []
+        async with agentsdk.connect("mock", robot="arm3") as ra, agentsdk.connect("mock", robot="arm3") as rb:
+            async def behavior(name: str, robot: agentsdk.Robot, n: int) -> None:
+                clock, period = robot.clock, robot.control_period
+                for k in range(n):
+                    await clock.sleep(period)
+                    log.append((name, k, ra.ticks, rb.ticks))
+
+            async with asyncio.timeout(HANG_GUARD):
+                await asyncio.gather(behavior("a", ra, 40), behavior("b", rb, 25))
+                await behavior("a alone", ra, 40)  # one robot's behavior, the other robot idle
+            return log, _clock(ra).inline_ticks + _clock(rb).inline_ticks
+
+    await _both(scenario)
+
+
+async def test_tick_hooks_see_the_control_loops_context_variables_lent_or_not() -> None:
+    import contextvars
+
+    counter: contextvars.ContextVar[int] = contextvars.ContextVar("counter", default=0)
+
+    async def scenario() -> tuple[Any, int]:
+        log: list[tuple[int, int]] = []
+        async with agentsdk.connect("mock", robot="arm3") as robot:
+            clock, period = _clock(robot), robot.control_period
+
+            def hook(t: float, st: Any, sp: Any) -> None:
+                counter.set(counter.get() + 1)
+                log.append((robot.ticks, counter.get()))
+
+            robot.add_tick_hook(agentsdk.Phase.OBSERVE, hook)
+            async with asyncio.timeout(HANG_GUARD):
+                for k in range(60):
+                    await clock.sleep(period if k % 10 else 3 * period)
+            return log, clock.inline_ticks
+
+    log, inline = await _both(scenario)
+    assert inline > 10 and all(tick == n for tick, n in log)

@@ -670,8 +670,10 @@ class ControlLoop:
                         break
                     if idle_after and not command.fns:
                         break
-        except asyncio.CancelledError:
-            raise
+        except asyncio.CancelledError as exc:
+            if _cancelled_here():
+                raise
+            self._on_loop_fault(exc)  # a hook's CancelledError (or an awaited future's): the tick failed
         except Exception as exc:
             self._on_loop_fault(exc)
         finally:
@@ -723,8 +725,10 @@ class ControlLoop:
                     self.missed_deadlines += skipped
                     deadline += skipped * period
                 await clock.sleep_until(deadline)
-        except asyncio.CancelledError:
-            raise
+        except asyncio.CancelledError as exc:
+            if _cancelled_here():
+                raise
+            self._on_loop_fault(exc)  # a hook's CancelledError (or an awaited future's): the tick failed
         except Exception as exc:
             self._on_loop_fault(exc)
 
@@ -875,6 +879,14 @@ def _ready_queue(loop: asyncio.AbstractEventLoop) -> Any:
     """The event loop's queue of runnable callbacks (``BaseEventLoop._ready``), or None (see :func:`_settle`)."""
     ready = getattr(loop, "_ready", None)
     return ready if hasattr(ready, "__len__") else None
+
+
+def _cancelled_here() -> bool:
+    """The running task was cancelled: a ``CancelledError`` a tick hook raised, or that came from a future
+    someone else cancelled, is not that, and would otherwise end the control loop without a fault.
+    """
+    task = asyncio.current_task()
+    return task is None or task.cancelling() > 0
 
 
 #: lockstep control loops running, per event loop (one alone may lend its ticks: LockstepClock.lend)

@@ -471,3 +471,33 @@ async def test_tick_hooks_see_the_control_loops_context_variables_lent_or_not() 
 
     log, inline = await _both(scenario)
     assert inline > 10 and all(tick == n for tick, n in log)
+
+
+@pytest.mark.parametrize("realtime", [False, True])
+@pytest.mark.parametrize("lending", [True, False])
+async def test_a_tick_hook_raising_cancelled_error_faults_the_loop_instead_of_ending_it(
+    realtime: bool, lending: bool, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A hook's CancelledError is a failed tick: torque off, FAULT, the sleepers told; before, the control
+    task ended as if cancelled and every sleeper waited for ever."""
+    monkeypatch.setattr(MockBackend, "step_never_suspends", lending)
+    async with agentsdk.connect("mock", robot="arm3", realtime=realtime) as robot:
+        clock, period = robot.clock, robot.control_period
+        at = robot.ticks + 20
+
+        def hook(t: float, st: Any, sp: Any) -> None:
+            if robot.ticks == at:
+                raise asyncio.CancelledError  # a hook's own bug (e.g. a cancelled future's result read in it)
+
+        handle = robot.add_tick_hook(agentsdk.Phase.COMMAND, hook)
+        q = (await robot.read()).position.tolist()
+        async with asyncio.timeout(HANG_GUARD):
+            with pytest.raises(BackendFault, match="CancelledError"):
+                for _ in range(200):
+                    await robot.command(JointCommand("position", q))
+                    await clock.sleep(period)
+            assert robot.safety.state is agentsdk.SafetyState.FAULT and not robot.torque_enabled
+            handle.remove()
+            await robot.reset()
+            await robot.enable()
+            assert (await robot.move_to({"joint1": 0.1})).ok

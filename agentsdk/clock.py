@@ -374,7 +374,7 @@ class LockstepClock(Clock):
         ready = self._ready
         if lease.done() or len(ready) != 1 or ready[0] is not self._release:
             return 0
-        if self._heap and self.pending:
+        if self._heap and self.next_deadline() is not None:
             return 0  # a task that ran before the sleeper (queued ahead of the lease's end) sleeps too
         if time.perf_counter() >= self._lease_end:
             return 0
@@ -409,14 +409,6 @@ class LockstepClock(Clock):
         while heap and heap[0][2].done():
             heapq.heappop(heap)
         return heap[0][0] if heap else None
-
-    @property
-    def pending(self) -> bool:
-        """Somebody sleeps (a wake-up is queued)."""
-        heap = self._heap
-        while heap and heap[0][2].done():
-            heapq.heappop(heap)
-        return bool(heap)
 
     def wakes_next_tick(self) -> bool:
         """The next :meth:`advance` wakes a sleeper (``ticks_until_wake(limit) == 1`` for any ``limit >= 1``).

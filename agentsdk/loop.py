@@ -665,8 +665,8 @@ class ControlLoop:
                     if woke or single or len(ready) != n_ready or perf_counter() >= end:
                         # it woke the one sleeper, who sleeps one period per tick: lend it the ticks (not beside
                         # another lockstep robot: the two loops' settles decide how their ticks interleave)
-                        park = (lend and not single and woke == 1 and clock.one_tick_sleeper and not clock.pending
-                                and _lockstep_loops[loop] == 1)
+                        park = (lend and not single and woke == 1 and clock.one_tick_sleeper
+                                and clock.next_deadline() is None and _lockstep_loops[loop] == 1)
                         break
                     if idle_after and not command.fns:
                         break

@@ -324,6 +324,19 @@ async def test_stale_stream_holds_within_timeout_plus_one_period(backend: str, m
         assert robot.safety.events[-1].kind == "resume"
 
 
+async def test_a_stream_resumed_after_a_hold_is_watched_again() -> None:
+    """A command to a held joint ends its hold (``feed`` clears it): when that stream goes stale again, the
+    watchdog holds it again, it does not stay unwatched."""
+    async with arm("mock", command_timeout=0.1) as robot:
+        cmd = JointCommand("velocity", {"joint1": 0.5})
+        for _ in range(2):
+            await robot.command(cmd)
+            assert robot.safety.state is SafetyState.OK
+            await wait_for(robot, lambda: robot.safety.state is SafetyState.HOLD, limit=1.0)
+        assert [e.kind for e in robot.safety.events if e.kind in ("watchdog", "resume")] == [
+            "watchdog", "resume", "watchdog"]
+
+
 async def test_watchdog_holds_each_stream_that_goes_stale() -> None:
     async with arm("mock", command_timeout=0.1) as robot:
         await robot.command(JointCommand("velocity", {"joint1": 0.5}))

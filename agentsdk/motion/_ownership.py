@@ -41,11 +41,14 @@ class _Ownership:
     # ------------------------------------------------------------ queries
     def owner_of(self, idx: np.ndarray) -> tuple[int, Motion | None] | None:
         """The first of joints ``idx`` driven (or reserved by a scheduled motion), with its motion."""
-        for j in idx.tolist():
-            ex = self.table.owner[j]
-            if ex is not None:
-                return j, ex.motion
-        for ex in self.table.pending:
+        table = self.table
+        owner = table.owner
+        if owner.count(None) != len(owner):  # (a C-level scan: nothing to look up while no joint is driven)
+            for j in idx.tolist():
+                ex = owner[j]
+                if ex is not None:
+                    return j, ex.motion
+        for ex in table.pending:
             hit = np.intersect1d(ex.idx, idx)
             if len(hit):
                 return int(hit[0]), ex.motion

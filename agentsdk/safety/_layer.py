@@ -29,8 +29,9 @@ if TYPE_CHECKING:
     from ..following import FollowingErrorCheck
 
 
-#: every joint, as an index (what a full-length command's index array selects)
-_EVERY = slice(None)
+#: every joint, as an index (what a full-length command's index array selects): ``x[...] = v`` is the
+#: cheapest in-place write numpy has (a slice is parsed into one first)
+_EVERY = Ellipsis
 
 
 class SafetyLayer:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import traceback
+from types import EllipsisType
 
 import numpy as np
 
@@ -47,6 +48,8 @@ class FusedChecks:
         self._right = np.vstack([np.zeros(n), hi, following.windows, np.zeros(n)])
         self._q_left, self._err = self._left[1], self._left[2]
         self._q_right, self._kp = self._right[0], self._right[3]
+        #: the bytes of the kp row last copied into the comparison
+        self._kp_bytes = self._kp.tobytes()
         self._ok = np.zeros((4, n), dtype=bool)
         self._all_ok = np.ones((4, n), dtype=bool).tobytes()
         self._all_position = np.full(n, _POS, dtype=np.int8).tobytes()
@@ -62,7 +65,10 @@ class FusedChecks:
             return False
         self._q_left[...] = q
         self._q_right[...] = q
-        self._kp[...] = sp.kp
+        kp = sp.kp.tobytes()
+        if kp != self._kp_bytes:  # (the gains rarely change: a bytes compare is half a row write)
+            self._kp[...] = sp.kp
+            self._kp_bytes = kp
         err = self._err
         np.subtract(q, sp.position, out=err)  # the following check's own error, op for op
         np.abs(err, out=err)
@@ -153,10 +159,14 @@ class Watchdogs:
             self._fused = FusedChecks(checks[0], checks[1], len(self._loop.joints))
 
     # ------------------------------------------------------ command watchdog
-    def feed(self, idx: np.ndarray | slice) -> None:
-        """A command was applied to joints ``idx`` (indices or a slice): they are watched from now; a HOLD ends."""
+    def feed(self, idx: np.ndarray | EllipsisType) -> None:
+        """A command was applied to joints ``idx`` (indices, or ``...`` for every joint): they are watched from now;
+        a HOLD ends.
+        """
         self._fed[idx] = self._loop.stamp
-        self._held[idx] = False
+        held = self._held
+        if held.tobytes() != self._all_false:  # (none held, the common case: a bytes compare, no write)
+            held[idx] = False
         core = self._core
         if core._state is SafetyState.HOLD:
             core.enter(SafetyState.OK)

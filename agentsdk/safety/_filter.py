@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from types import EllipsisType
 from typing import Any
 
 import numpy as np
@@ -68,12 +69,18 @@ class CommandFilter:
         self._rows: np.ndarray | None = None
         #: the bytes the last bounds clip of those rows left (a clip's result is its own fixed point)
         self._rows_clipped = b""
+        #: the velocity and effort rows among them (views made with ``_rows``), and the bytes the last clip of
+        #: the ramp path left in them
+        self._ff = np.zeros((2, n))
+        self._ff_clipped = b""
         #: deceleration available to stop a velocity stream before a position limit
         self._amax = np.array([j.max_acceleration for j in loop.joints]) * config.stop_deceleration_scale
         self._last_warn: dict[tuple[str, int], float] = {}
         #: the indices a full-length command resolves to (set by the safety layer to its command
         #: shapes' array): such a command is limited against the limiter's whole rows, not copies
         self.full_index: np.ndarray | None = None
+        #: limit_command's scratch row for a full-length command
+        self._clipped = np.empty(len(limiter.lo))
         self._full_range = {
             "position": (limiter.lo, limiter.hi, "position", "rad"),
             "velocity": (_readonly(np.negative(limiter.vmax)), limiter.vmax, "velocity", "rad/s"),
@@ -91,6 +98,9 @@ class CommandFilter:
         """The limiter starts from ``position`` with no ramp goal pending (start, enable)."""
         np.copyto(self._written, position)
         np.copyto(self._goal, self._written)
+        # a ramping joint's goal is always a command limit_command returned (the LIMIT tick relies on it): these
+        # goals are measured positions, maybe outside the bounds
+        self._ramping[:] = False
 
     def cancel_ramps(self) -> None:
         """End every direct position ramp where it is."""
@@ -141,13 +151,19 @@ class CommandFilter:
     def limit_command(self, mode: CommandMode, idx: np.ndarray, values: np.ndarray) -> np.ndarray:
         """Check a validated command against limits: returns the (possibly clamped) values or raises."""
         limiter = self.limiter
+        out: np.ndarray
         if idx is self.full_index:
             lo, hi, what, unit = self._full_range[mode]
+            # limiter.clamp_command's clip, on the range looked up once, into a scratch row (handed out
+            # only as a copy, when something was clipped)
+            out = self._clipped
+            np.maximum(values, lo, out=out)
+            np.minimum(out, hi, out=out)
         else:
             lo, hi, what, unit = limiter.command_range(mode, idx)
-        # limiter.clamp_command's clip, on the range looked up once
-        out: np.ndarray = np.minimum(np.maximum(values, lo), hi)
-        if out.tobytes() == values.tobytes():
+            out = np.minimum(np.maximum(values, lo), hi)
+        same = out.tobytes() == values.tobytes()
+        if same:
             # nothing clipped (the common case; one bytes compare instead of a ufunc and a reduction)
             any_bad = False
         else:  # something clipped, or only the sign of a zero differs (then nothing counts as clipped)
@@ -173,9 +189,14 @@ class CommandFilter:
                     f"above max_position_step {self._step[j]:.4f} rad per cycle (stream smaller steps, "
                     "use robot.move_to, or set limit_policy='clamp' to ramp)"
                 )
-        if not any_bad:
+        if same:
             return values
-        self._record_clamps(what, unit, idx, values, out, lo, hi)
+        if out is self._clipped:
+            out = out.copy()
+        if any_bad:
+            self._record_clamps(what, unit, idx, values, out, lo, hi)
+        # (not clipped but other bytes: a zero's sign at a bound; the clip's result is what the ramp's goal needs,
+        # a fixed point of the bounds clip)
         return out
 
     def _record_clamps(
@@ -231,9 +252,9 @@ class CommandFilter:
         """Where a direct position command's setpoint starts this tick (the ramp's current position)."""
         return self._written[idx] if mode == "position" else None
 
-    def start_ramp(self, mode: CommandMode, idx: np.ndarray | slice, values: np.ndarray) -> None:
-        """A command was applied to joints ``idx`` (indices or a slice): a position command starts their ramps,
-        another ends them.
+    def start_ramp(self, mode: CommandMode, idx: np.ndarray | EllipsisType, values: np.ndarray) -> None:
+        """A command was applied to joints ``idx`` (indices, or ``...`` for every joint): a position command
+        starts their ramps, another ends them. ``values`` are what :meth:`limit_command` returned.
 
         A direct position command becomes the *goal* of a ramp limited to
         ``max_position_step`` per cycle; the setpoint keeps showing where the
@@ -276,7 +297,7 @@ class CommandFilter:
             # (ufunc input and out are the same array object: a second view would cost an overlap check)
             rows = self._rows
             if self._rows_of is not sp or rows is None:
-                self._rows_of, self._rows = sp, sp.block[0:3]
+                self._rows_of, self._rows, self._ff = sp, sp.block[0:3], sp.block[1:3]
                 rows = self._rows
             limiter = self.limiter
             pos, written = sp.position, self._written
@@ -301,14 +322,29 @@ class CommandFilter:
                 return
             # the ramping joints' target is their goal (the long path's target row, bit for bit:
             # the same clamps in the same order on the same values)
+            ff = self._ff
+            target = self._target
             if ramping.tobytes() == self._all_true:
                 pos[...] = self._goal
+                if ff.tobytes() == self._ff_clipped:
+                    # a ramping joint's goal is a command limit_command returned, a fixed point of the bounds
+                    # clip (start_ramp, restart), and the feed-forward rows hold the bytes the last clip left
+                    # (a pose stream writes zeros every time): the bounds clip of the rows is the identity, so
+                    # the target is the goal itself (a zero's sign at a bound of zero aside: numpy's loops for
+                    # n and 3n elements may break that tie differently)
+                    target = self._goal
+                    limiter.clamp_step(pos, written, pos)
+                else:
+                    limiter.clamp_rows(rows)
+                    self._ff_clipped = ff.tobytes()
+                    target[...] = pos
+                    limiter.clamp_step(target, written, pos)
             else:
                 np.putmask(pos, ramping, self._goal)
-            limiter.clamp_rows(rows)
-            target = self._target
-            target[...] = pos
-            limiter.clamp_step(target, written, pos)
+                limiter.clamp_rows(rows)
+                self._ff_clipped = ff.tobytes()
+                target[...] = pos
+                limiter.clamp_step(target, written, pos)
             # a ramp ends where the step no longer clips it: ramping &= pos != target
             if pos.tobytes() == target.tobytes():
                 # every ramp reached its goal this tick (the common case: a goal inside the step window).

@@ -4,6 +4,7 @@
     agentsdk bench --quick             # shorter runs, same structure
     agentsdk bench --only overhead     # one benchmark (repeatable, or comma-separated)
     agentsdk bench --only anchors      # gymnasium and dm_control beside agentsdk (not in a plain --quick)
+    agentsdk bench --only instructions # the awaited cycle in instructions (valgrind; not in a plain --quick)
     agentsdk bench --json out.json     # also write the full results (raw data, tables) as JSON
     agentsdk bench --verbose           # every benchmark's table as it finishes
     agentsdk bench --list              # the benchmark names
@@ -122,6 +123,12 @@ def _tracking(quick: bool) -> list[Section]:
     from agentsdk.bench import tracking
 
     return [tracking.run(quick)]
+
+
+def _instructions(quick: bool, setup: bool = False) -> list[Section]:
+    from agentsdk.bench import instructions
+
+    return [instructions.run(quick, setup=setup)]
 
 
 def _block(quick: bool) -> list[Section]:
@@ -526,6 +533,8 @@ BENCHMARKS: dict[str, tuple[str, Runner]] = {
     ),
     "sensors": ("MuJoCo camera sensor per frame vs mujoco.Renderer; sensors' cost per tick", _sensors),
     "block": ("block lockstep (the default) vs tick-by-tick (opted out) vs the raw loop: hold and track", _block),
+    "instructions": ("one awaited command per tick, MuJoCo: instructions per cycle (cachegrind) vs the raw loop",
+                     _instructions),
 }
 ALIASES = {
     "ros2": "ros2_serve",
@@ -548,9 +557,10 @@ ALIASES = {
 #: left out of a plain ``--quick`` run (each runs when named with ``--only``, quick or not), and why
 NOT_IN_QUICK = {
     "anchors": "third-party stacks (gymnasium; dm_control in an environment of its own): `--only anchors`",
+    "instructions": "valgrind, a few minutes: `--only instructions`",
 }
 #: benchmarks that may set up what they need (a pinned environment, pip) only when named with ``--only``
-SETS_UP_WHEN_NAMED = {"anchors": _anchors}
+SETS_UP_WHEN_NAMED = {"anchors": _anchors, "instructions": _instructions}
 
 
 def _selected(only: list[str] | None) -> list[str]:

@@ -128,7 +128,8 @@ class CommandShapes:
         The index array is shared between commands of the same shape (read-only). Raises what
         :func:`resolve_command` raises for the same command.
         """
-        cmd = _check_kind(cmd, modes, backend)
+        if type(cmd) is not JointCommand or cmd.mode not in modes:  # (the common case without a call)
+            cmd = _check_kind(cmd, modes, backend)
         idx, names, values = self._map(cmd.values, "values")
         vel = eff = None
         if cmd.velocity is not None:

@@ -33,7 +33,7 @@ class SafetyBlock:
         self._filter_only = (self._filter_tick,)
         self._wd_tick = watchdogs.tick
         #: True once an e-stop latch is set (any thread)
-        self.latched: Callable[[], bool] = core._latched.is_set
+        self.latched: Callable[[], bool] = core.is_latched
         #: the checks' version (``Watchdogs.checks_version``) the block forms were last looked up at, and
         #: the checks then if each had one (else None): a Protocol isinstance costs microseconds and
         #: allocates, so once per change of the list, not per tick

@@ -39,8 +39,6 @@ class CommandFilter:
         self._core = core
         #: the stop port of the motion manager (replaced by SafetyLayer.attach_motions)
         self.motions = motions
-        #: bound once: the per-tick latch test
-        self._latch_is_set = core._latched.is_set
         n = len(loop.joints)
         #: the one limiting rule (position bounds, step per period, velocity and effort limits)
         self.limiter = limiter
@@ -279,7 +277,7 @@ class CommandFilter:
         and ``ndarray.any`` cost microseconds of dispatch on small arrays); the common case,
         every joint in position mode with torque on and no ramp, skips the masks.
         """
-        if self._latch_is_set() and not self._core._latch_handled:
+        if self._core.latched and not self._core._latch_handled:
             self.enforce_latch()
         ramping = self._ramping
         no_ramp = ramping.tobytes() == self._all_false
@@ -403,7 +401,7 @@ class CommandFilter:
         the state ``k`` quiet ticks leave.
         """
         K = len(rows)
-        if K == 0 or self._latch_is_set() or self._ramping.tobytes() != self._all_false:
+        if K == 0 or self._core.latched or self._ramping.tobytes() != self._all_false:
             return 0
         if not self.all_position_on(mode, enabled):
             return 0

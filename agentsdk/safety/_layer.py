@@ -168,7 +168,9 @@ class SafetyLayer:
 
     def check_fault(self) -> None:
         """Raise :class:`~agentsdk.errors.SafetyFault` (with the cause) while in FAULT."""
-        self._core.check_fault()
+        core = self._core
+        if core._state is SafetyState.FAULT:  # (every read asks: the core's call only when it raises)
+            core.check_fault()
 
     def check_motion_allowed(self) -> None:
         """Raise :class:`~agentsdk.errors.EStopActive` / :class:`~agentsdk.errors.SafetyFault` unless OK or HOLD."""
@@ -260,7 +262,7 @@ class SafetyLayer:
         loop = self.loop
         backend = loop.backend
         core = self._core
-        if core._state is not SafetyState.OK or core._latched.is_set():
+        if core._state is not SafetyState.OK or core.latched:
             self._check_motion_allowed()  # (OK without a latch: nothing to check)
         idx, names, values, vel, eff = self._resolve(cmd, backend.capabilities.modes, backend.name)
         assert isinstance(cmd, JointCommand)  # resolve checked it

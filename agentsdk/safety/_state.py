@@ -122,7 +122,10 @@ class SafetyCore:
         self._events_lock = threading.Lock()
         self._state = SafetyState.OK
         self._cause: BaseException | None = None
-        self._latched = threading.Event()  # set from any thread
+        #: the e-stop latch: set from any thread (under ``_latch_lock``), read every tick. A plain bool (a
+        #: store is atomic and seen at once by the other threads): ``threading.Event.is_set`` is a Python call,
+        #: and nobody waits on the latch
+        self.latched = False
         self._latch_lock = threading.Lock()
         #: latches so far (each from an unlatched state): a reset clears only the latch it began with
         self._latches = 0
@@ -136,7 +139,7 @@ class SafetyCore:
         """OK, HOLD, ESTOP, DISABLED or FAULT (an e-stop latched from another thread shows at once)."""
         if self._state is SafetyState.FAULT:
             return SafetyState.FAULT
-        if self._latched.is_set():
+        if self.latched:
             return SafetyState.ESTOP
         return self._state
 
@@ -229,15 +232,19 @@ class SafetyCore:
         ``handled``: also say whether the loop side has taken the latch over (None: unchanged).
         """
         with self._latch_lock:
-            first = not self._latched.is_set()
+            first = not self.latched
             if first:
                 self._latches += 1
             if self._latch_category is None or category < self._latch_category:
                 self._latch_category = category
-            self._latched.set()
+            self.latched = True
         if handled is not None:
             self._latch_handled = handled
         return first
+
+    def is_latched(self) -> bool:
+        """:attr:`latched`, as a call (for those handed a predicate)."""
+        return self.latched
 
     @property
     def latch_count(self) -> int:
@@ -250,13 +257,13 @@ class SafetyCore:
             exc = SafetyFault(f"safety FAULT: {self._cause}")
             exc.__cause__ = self._cause
             return exc
-        if self._latched.is_set():
+        if self.latched:
             return EStopActive("an e-stop is latched; call `await robot.reset()` before `await robot.enable()`")
         return None
 
     def clear_latch(self) -> None:
         """Clear the latch (a reset): nothing latched, no category, nothing for the loop side to take over."""
         with self._latch_lock:
-            self._latched.clear()
+            self.latched = False
             self._latch_category = None
         self._latch_handled = False

@@ -272,9 +272,9 @@ class Stops:
             if core.latch_count != latches:  # recovered, but an e-stop latched meanwhile: that is the state now
                 core.enter(SafetyState.ESTOP)
         self._check_no_new_latch(latches)
-        if core._latched.is_set() and not core._latch_handled:
+        if core.latched and not core._latch_handled:
             self._filter.enforce_latch()
-        if not core._latched.is_set() and core._state in (SafetyState.OK, SafetyState.HOLD):
+        if not core.latched and core._state in (SafetyState.OK, SafetyState.HOLD):
             # nothing latched: the robot may be moving (a trajectory, a velocity stream, a
             # position ramp). DISABLED means nothing moves: bring it to rest first (as a
             # category 2 stop would, torque stays on), never freeze it at speed.

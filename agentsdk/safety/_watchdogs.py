@@ -99,7 +99,6 @@ class Watchdogs:
         #: the stop port of the motion manager (replaced by SafetyLayer.attach_motions)
         self.motions = motions
         #: bound once: the per-tick calls into the objects below
-        self._latch_is_set = core._latched.is_set
         self._all_position_on = command_filter.all_position_on
         self._track_measured = command_filter.track_measured
         self._begin_stop = stops.begin_stop
@@ -198,7 +197,7 @@ class Watchdogs:
         state = self._core._state
         if state is not SafetyState.OK and state is not SafetyState.HOLD:
             return
-        if self._latch_is_set():
+        if self._core.latched:
             return
         fused = self._fused
         # the built-in checks in one comparison when all of them pass (the common tick); else one by one

@@ -65,10 +65,11 @@ class FusedChecks:
             return False
         self._q_left[...] = q
         self._q_right[...] = q
-        kp = sp.kp.tobytes()
-        if kp != self._kp_bytes:  # (the gains rarely change: a bytes compare is half a row write)
+        # (the gains rarely change: a bytes compare is half a row write; no bytes kept alive across the
+        # comparison below, which makes its own: the tick's peak allocation stays one small object)
+        if sp.kp.tobytes() != self._kp_bytes:
             self._kp[...] = sp.kp
-            self._kp_bytes = kp
+            self._kp_bytes = self._kp.tobytes()
         err = self._err
         np.subtract(q, sp.position, out=err)  # the following check's own error, op for op
         np.abs(err, out=err)

@@ -535,9 +535,9 @@ class ControlLoop:
             gate.accept(q, v, e, t)
             return
         st = self._state
-        st.position[:] = q
-        st.velocity[:] = v
-        st.effort[:] = e
+        st.position[...] = q  # [...] = is the cheapest in-place copy (np.copyto dispatches in Python)
+        st.velocity[...] = v
+        st.effort[...] = e
 
     def _before_step(self) -> None:
         """The tick up to the step: COMMAND hooks, LIMIT hooks, the torque-off rule, ``backend.write``."""
@@ -567,19 +567,10 @@ class ControlLoop:
         # one clock read per tick for the gate, the stamp, the hooks and the pacing (a read is a
         # system call where there is no vDSO, e.g. user-mode Linux)
         t = self.clock.now()
-        q, v, e = self.backend.read()  # (_read(t), inlined: this runs every tick)
-        gate = self.sensor_gate
-        if gate is not None:
-            self._read_t = t
-            gate.accept(q, v, e, t)
-        else:
-            st = self._state
-            st.position[...] = q
-            st.velocity[...] = v
-            st.effort[...] = e
+        self._read(t)
         self.stamp = t
         self.ticks += 1
-        t, stv, spv = self.stamp, self._state.view, self._sp.view
+        stv, spv = self._state.view, self._sp.view
         for fn in self._observe.fns:
             fn(t, stv, spv)
 

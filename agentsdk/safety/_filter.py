@@ -321,26 +321,24 @@ class CommandFilter:
             # the ramping joints' target is their goal (the long path's target row, bit for bit:
             # the same clamps in the same order on the same values)
             ff = self._ff
-            target = self._target
             if ramping.tobytes() == self._all_true:
                 pos[...] = self._goal
-                if ff.tobytes() == self._ff_clipped:
-                    # a ramping joint's goal is a command limit_command returned, a fixed point of the bounds
-                    # clip (start_ramp, restart), and the feed-forward rows hold the bytes the last clip left
-                    # (a pose stream writes zeros every time): the bounds clip of the rows is the identity, so
-                    # the target is the goal itself (a zero's sign at a bound of zero aside: numpy's loops for
-                    # n and 3n elements may break that tie differently)
-                    target = self._goal
-                    limiter.clamp_step(pos, written, pos)
-                else:
-                    limiter.clamp_rows(rows)
-                    self._ff_clipped = ff.tobytes()
-                    target[...] = pos
-                    limiter.clamp_step(target, written, pos)
+                short = ff.tobytes() == self._ff_clipped
             else:
                 np.putmask(pos, ramping, self._goal)
+                short = False
+            if short:
+                # every joint ramps: its goal is a command limit_command returned, a fixed point of the bounds
+                # clip (start_ramp, restart), and the feed-forward rows hold the bytes the last clip left
+                # (a pose stream writes zeros every time): the bounds clip of the rows is the identity, so
+                # the target is the goal itself (a zero's sign at a bound of zero aside: numpy's loops for
+                # n and 3n elements may break that tie differently)
+                target = self._goal
+                limiter.clamp_step(pos, written, pos)
+            else:
                 limiter.clamp_rows(rows)
                 self._ff_clipped = ff.tobytes()
+                target = self._target
                 target[...] = pos
                 limiter.clamp_step(target, written, pos)
             # a ramp ends where the step no longer clips it: ramping &= pos != target

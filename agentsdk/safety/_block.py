@@ -32,8 +32,6 @@ class SafetyBlock:
         #: the LIMIT hooks a block allows (built once: ready() runs before every lockstep tick and allocates nothing)
         self._filter_only = (self._filter_tick,)
         self._wd_tick = watchdogs.tick
-        #: True once an e-stop latch is set (any thread)
-        self.latched: Callable[[], bool] = core.is_latched
         #: the checks' version (``Watchdogs.checks_version``) the block forms were last looked up at, and
         #: the checks then if each had one (else None): a Protocol isinstance costs microseconds and
         #: allocates, so once per change of the list, not per tick
@@ -58,7 +56,7 @@ class SafetyBlock:
         """
         if limit_hooks != self._filter_only:
             return False
-        if self._core._state is not SafetyState.OK or self.latched():
+        if self._core._state is not SafetyState.OK or self._core.latched:
             return False
         gate = self._loop.sensor_gate
         if gate is not None and (gate.pending or not gate.block_ready()):
@@ -73,6 +71,10 @@ class SafetyBlock:
             if not c.block_ready():
                 return False
         return True
+
+    def latched(self) -> bool:
+        """True once an e-stop latch is set (any thread): a block ends before its next write."""
+        return self._core.latched
 
     def is_watchdog_hook(self, fn: Callable[..., object]) -> bool:
         """True for the safety watchdogs' OBSERVE hook (its block form is :meth:`observe_quiet`)."""
@@ -95,7 +97,7 @@ class SafetyBlock:
         gate = self._loop.sensor_gate
         if gate is not None:
             q = min(q, gate.block_quiet(ts, states))
-        checked = min(q, done - 1 if self.latched() else done)
+        checked = min(q, done - 1 if self._core.latched else done)
         checks = self._checks()
         assert checks is not None  # (ready() said so, and nothing runs between ready() and the block)
         for c in checks:

@@ -242,10 +242,6 @@ class SafetyCore:
             self._latch_handled = handled
         return first
 
-    def is_latched(self) -> bool:
-        """:attr:`latched`, as a call (for those handed a predicate)."""
-        return self.latched
-
     @property
     def latch_count(self) -> int:
         """How many times the e-stop latched from an unlatched state (any thread)."""

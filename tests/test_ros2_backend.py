@@ -54,21 +54,40 @@ class Served:
 
 @contextlib.asynccontextmanager
 async def _serve(*args: str, domain_id: int) -> AsyncIterator[Served]:
+    """``agentsdk serve ARGS`` in another process, until it says it serves each ``--robot``.
+
+    Its log (stderr) is read all along: a full pipe would block the served robot mid-tick. When the
+    body fails, the log's tail is printed, so a rejected goal or a fault shows the served side's reason.
+    """
     env = {k: v for k, v in os.environ.items() if k != "CYCLONEDDS_URI"}
     env["ROS_DOMAIN_ID"] = str(domain_id)
     env["PYTHONPATH"] = os.pathsep.join([str(Path(agentsdk.__file__).parents[1]), env.get("PYTHONPATH", "")])
     proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "agentsdk", "serve", *args, env=env,
                                                 stderr=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.DEVNULL)
-    assert proc.stderr is not None
+    stderr = proc.stderr
+    assert stderr is not None
+    log: list[str] = []
+
+    async def drain() -> None:
+        while line := (await stderr.readline()).decode():
+            log.append(line)
+
+    drainer: asyncio.Task[None] | None = None
+    failed = False
     try:
         robots = args.count("--robot")
         serving = 0
         async with asyncio.timeout(90):
             while serving < robots:
-                line = (await proc.stderr.readline()).decode()
-                assert line, "agentsdk serve exited before serving"
+                line = (await stderr.readline()).decode()
+                log.append(line)
+                assert line, "agentsdk serve exited before serving:\n" + "".join(log)
                 serving += "serving" in line
+        drainer = asyncio.create_task(drain())
         yield Served(proc, domain_id)
+    except BaseException:
+        failed = True
+        raise
     finally:
         if proc.returncode is None:
             proc.terminate()
@@ -78,6 +97,14 @@ async def _serve(*args: str, domain_id: int) -> AsyncIterator[Served]:
             except TimeoutError:
                 proc.kill()
                 await proc.wait()
+        if drainer is not None:
+            try:
+                async with asyncio.timeout(10):
+                    await drainer  # to the end of the log: the process has exited
+            except TimeoutError:
+                pass
+        if failed:
+            print(f"agentsdk serve {' '.join(args)}: the last of its log\n" + "".join(log[-100:]), file=sys.stderr)
 
 
 async def _final_joints(behavior: str, backend: str, **options: Any) -> np.ndarray:

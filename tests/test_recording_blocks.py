@@ -115,6 +115,63 @@ async def test_a_recording_with_blocks_is_byte_equal_to_the_tick_by_tick_one(
                     f"first difference at {where})")
 
 
+class _WallClock:
+    """The recorder module's ``time``, with a ``perf_counter`` that stands still or jumps ``step`` s per call."""
+
+    def __init__(self, step: float) -> None:
+        self.now, self.step = 0.0, step
+
+    def perf_counter(self) -> float:
+        self.now += self.step
+        return self.now
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(("capacity", "flush"), [(128, None), (77, None), (77, 0.065)])
+async def test_where_a_lockstep_recording_is_cut_does_not_depend_on_the_wall_clock(
+    capacity: int, flush: float | None, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The chunks of a lockstep recording end at the same ticks on a fast machine and a slow one.
+
+    The default flush interval, whole-size blocks: the hand-offs besides the last are the flush's. One run
+    tick by tick on a wall clock that stands still, one in blocks on a wall clock that jumps a second per
+    reading: the files are equal byte for byte, and the flush cut the run (every FLUSH_INTERVAL of robot time,
+    at a 16th row: the lockstep blocks, of two sizes, end elsewhere). A flush interval of 0.065 s falls due
+    33 rows after a hand-off: at the 48th row, not the 32nd.
+    """
+    if flush is not None:
+        monkeypatch.setattr(recorder_module, "FLUSH_INTERVAL", flush)
+    handoffs: list[list[int]] = []
+    handoff = Recorder._handoff
+
+    def counted(self: Recorder, final: bool = False) -> None:
+        handoffs[-1].append(self._k)
+        handoff(self, final)
+
+    monkeypatch.setattr(Recorder, "_handoff", counted)
+    files, stats = [], []
+    for block, step in ((False, 0.0), (True, 1.0)):
+        monkeypatch.setattr(recorder_module, "time", _WallClock(step))
+        path = tmp_path / ("blocks" if block else "ticks") / "run.mcap"  # (the name is in the file)
+        path.parent.mkdir()
+        handoffs.append([])
+        async with agentsdk.connect("mujoco", robot="arm3", safety=SAFETY) as robot:
+            rec = Recorder(robot, path, metadata={"created": "fixed"})
+            runner = robot.block_lockstep(capacity=capacity) if block else None
+            await _behavior(robot)
+            stats.append((robot.ticks, robot.clock.now(), runner.blocks if runner is not None else 0))
+        rec.finish()
+        files.append(path.read_bytes())
+    (ticks, t_end, _), (_, _, blocks) = stats
+    assert blocks > 10, stats
+    # a hand-off every FLUSH_INTERVAL of robot time, at a 16th row (the 0.5 s flush at 500 Hz: 256 rows; 0.065 s: 48)
+    assert handoffs[0] == handoffs[1], handoffs
+    period = t_end / ticks
+    assert len(handoffs[0]) >= int(t_end / (recorder_module.FLUSH_INTERVAL + 16 * period)) - 1, (handoffs, t_end)
+    assert all(k % 16 == 0 for k in handoffs[0][:-1]), handoffs
+    assert files[0] == files[1]
+
+
 async def test_a_recorder_of_sensors_keeps_the_per_tick_hook(tmp_path: Path) -> None:
     """Sensor samples exist only in the tick: with recorded sensors the hook takes no blocks."""
     arm = Path(__file__).parent / "fixtures" / "sensor_arm" / "nocam.yaml"

@@ -89,8 +89,8 @@ Cost on the control loop
 ------------------------
 The recorder's tick hook copies a few numpy rows into a preallocated block
 (about 3 µs per tick for a 3-joint arm); no encoding and no Python object per
-tick.  A full block (or, every :data:`FLUSH_INTERVAL` s of wall time, a partial
-one) is handed to a writer thread, which selects the rows, computes ``/tf``,
+tick.  A full block (or, every :data:`FLUSH_INTERVAL` s, a partial one: of wall
+time on a realtime robot, of robot time in lockstep) is handed to a writer thread, which selects the rows, computes ``/tf``,
 encodes the block's messages and lays out its MCAP chunk with numpy (no Python
 work per message: the ``mcap`` package's writer spent about 8 µs of
 interpreter time per message, in the GIL the control loop needs), compresses
@@ -110,8 +110,16 @@ tick by tick (their samples exist only in the tick).
 Crash safety
 ------------
 Every hand-off closes an MCAP chunk and pushes it to the OS, so a killed run
-loses at most about half a second; :func:`read_recording` reads such a file
-up to its last complete chunk and sets ``RunData.truncated``.
+loses at most about half a second (of robot time in lockstep: more wall time
+where the simulation runs slower than real time); :func:`read_recording` reads
+such a file up to its last complete chunk and sets ``RunData.truncated``.
+
+Determinism
+-----------
+In lockstep, where a chunk ends depends on the ticks alone (the pool's size, the
+flush in robot time, the camera frames), not on the machine's speed: two runs of
+the same behavior, tick by tick or in blocks, write the same bytes, given the
+same ``created`` metadata (the wall-clock date, which ``metadata=`` overrides).
 
 Reading
 -------

@@ -178,7 +178,10 @@ class Recorder:
         self.metadata = self._metadata(metadata or {})
         self._data_path: Path | None = None
         self._temp: Path | None = None
-        self._rotated_at = time.perf_counter()
+        #: when the last hand-off was: wall-clock (realtime) or robot time (lockstep: where a lockstep run's
+        #: chunks are cut is then the same in every run of it, whatever the machine's speed)
+        self._lockstep = not robot.realtime
+        self._rotated_at = time.perf_counter() if robot.realtime else self._prev_t
         outputs: list[Output] = []
         try:
             if self.path is not None:
@@ -332,7 +335,8 @@ class Recorder:
         self._k = k
         if self._images is not None and self._images.tick(t):
             self._handoff()
-        elif k == self._cap or (not (k & 15) and time.perf_counter() - self._rotated_at > FLUSH_INTERVAL):
+        elif k == self._cap or (not (k & 15) and (t if self._lockstep else time.perf_counter()) - self._rotated_at
+                                                      > FLUSH_INTERVAL):
             self._handoff()
 
     def _on_block(self, ts: FloatArray, states: FloatArray, rows: FloatArray, sp: SetpointView) -> None:
@@ -340,9 +344,9 @@ class Recorder:
 
         ``states`` (K, 3, n) and ``rows`` (K, 7, n, :attr:`agentsdk.loop.Setpoint.FIELDS` order) as
         :class:`agentsdk.block.BlockObserver` gets them; ``mode`` and ``enabled`` are constant over a block.
-        The rows are copied a segment at a time: up to where the block fills (a hand-off, as the tick
-        that fills it makes) or, when the wall-clock flush is due, up to the next 16th row (where the
-        tick's check would have found it due: a block's ticks all run at one wall-clock instant).
+        The rows are copied a segment at a time, up to where the per-tick hook hands a block off: where
+        the block fills, or at the first 16th row whose tick is :data:`FLUSH_INTERVAL` of robot time
+        after the last hand-off (blocks run in lockstep only, where the flush is timed in robot time).
         """
         count = len(ts)
         self.ticks += count
@@ -359,9 +363,11 @@ class Recorder:
                     return
             k = self._k
             m = min(count - i, self._cap - k)
-            due = time.perf_counter() - self._rotated_at > FLUSH_INTERVAL
-            if due:
-                m = min(m, 16 - (k & 15))
+            # the first tick whose flush is due (the tick's own test, elementwise: the same rounding)
+            late = np.subtract(ts[i:i + m], self._rotated_at) > FLUSH_INTERVAL
+            due = bool(late[-1])
+            if due:  # (the times rise: late from its first True on) the first 16th row from there
+                m = min(m, ((k + int(np.argmax(late)) + 16) & ~15) - k)
             j, e = i + m, k + m
             b.t[k:e] = ts[i:j]
             b.tc[k] = self._prev_t
@@ -406,7 +412,7 @@ class Recorder:
 
     def _handoff(self, final: bool = False) -> None:
         """Queue the current block (and the side messages) for the writer and take a free block."""
-        self._rotated_at = time.perf_counter()
+        self._rotated_at = self._prev_t if self._lockstep else time.perf_counter()
         side, self._side = self._side, []
         b, m = self._block, self._k
         if b is None and not side and not final:

@@ -61,7 +61,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger("agentsdk.recording")
 
-#: wall-clock seconds between hand-offs (and chunk flushes): a killed run loses at most about this much
+#: seconds between hand-offs (and chunk flushes), of wall time (realtime) or robot time (lockstep): a killed run
+#: loses at most about this much
 FLUSH_INTERVAL = 0.5
 
 #: message type of every channel, per output kind ("agentsdk": replayable; "ros2": standard types only)

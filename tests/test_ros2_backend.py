@@ -52,6 +52,18 @@ class Served:
         self.domain_id = domain_id
 
 
+async def _stop(proc: asyncio.subprocess.Process) -> None:
+    """SIGTERM, then SIGKILL after 30 s; returns once the process has exited."""
+    if proc.returncode is None:
+        proc.terminate()
+        try:
+            async with asyncio.timeout(30):
+                await proc.wait()
+        except TimeoutError:
+            proc.kill()
+            await proc.wait()
+
+
 @contextlib.asynccontextmanager
 async def _serve(*args: str, domain_id: int) -> AsyncIterator[Served]:
     """``agentsdk serve ARGS`` in another process, until it says it serves each ``--robot``.
@@ -89,14 +101,7 @@ async def _serve(*args: str, domain_id: int) -> AsyncIterator[Served]:
         failed = True
         raise
     finally:
-        if proc.returncode is None:
-            proc.terminate()
-            try:
-                async with asyncio.timeout(30):
-                    await proc.wait()
-            except TimeoutError:
-                proc.kill()
-                await proc.wait()
+        await _stop(proc)
         if drainer is not None:
             try:
                 async with asyncio.timeout(10):
@@ -282,9 +287,7 @@ async def test_ros2_backend_drives_the_fast_dds_jtc_and_faults_when_its_joint_st
             hold = next(float(line.split()[1]) for line in lines if line.startswith("HOLD"))
             assert hold >= stopped
     finally:
-        proc.terminate()
-        async with asyncio.timeout(30):
-            await proc.wait()
+        await _stop(proc)
         await reader
 
 

@@ -90,11 +90,11 @@ Cost on the control loop
 The recorder's tick hook copies a few numpy rows into a preallocated block
 (about 3 µs per tick for a 3-joint arm); no encoding and no Python object per
 tick.  A full block (or, every :data:`FLUSH_INTERVAL` s, a partial one: of wall
-time on a realtime robot, of robot time in lockstep) is handed to a writer thread, which selects the rows, computes ``/tf``,
-encodes the block's messages and lays out its MCAP chunk with numpy (no Python
-work per message: the ``mcap`` package's writer spent about 8 µs of
-interpreter time per message, in the GIL the control loop needs), compresses
-it with zstd and writes it.  Blocks
+time on a realtime robot, of robot time in lockstep) is handed to a writer
+thread, which selects the rows, computes ``/tf``, encodes the block's messages
+and lays out its MCAP chunk with numpy (no Python work per message: the
+``mcap`` package's writer spent about 8 µs of interpreter time per message, in
+the GIL the control loop needs), compresses it with zstd and writes it.  Blocks
 come from a fixed pool: if the writer ever falls behind by the whole pool,
 ticks are dropped (counted in :attr:`Recorder.dropped_ticks`, logged) rather
 than the loop blocked or memory grown.  :meth:`Recorder.finish` joins the

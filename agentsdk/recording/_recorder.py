@@ -363,10 +363,11 @@ class Recorder:
                     return
             k = self._k
             m = min(count - i, self._cap - k)
-            # the first tick whose flush is due (the tick's own test, elementwise: the same rounding)
-            late = np.subtract(ts[i:i + m], self._rotated_at) > FLUSH_INTERVAL
-            due = bool(late[-1])
-            if due:  # (the times rise: late from its first True on) the first 16th row from there
+            # due by the segment's last tick (the times rise: then from some tick on): the tick's own test,
+            # in float64 as numpy's elementwise one below, so the same rounding
+            due = float(ts[i + m - 1]) - self._rotated_at > FLUSH_INTERVAL
+            if due:  # the first 16th row from the first tick whose flush is due
+                late = np.subtract(ts[i:i + m], self._rotated_at) > FLUSH_INTERVAL
                 m = min(m, ((k + int(np.argmax(late)) + 16) & ~15) - k)
             j, e = i + m, k + m
             b.t[k:e] = ts[i:j]
